@@ -1,0 +1,259 @@
+"""The traversal dataset: one long agent trajectory with its sensor readings.
+
+A :class:`Traversal` is what simulators and log readers produce and what every inference
+routine consumes. On disk it is a single ``.npz`` (``numpy.savez_compressed``) with these fields
+(``T`` time steps, ``B`` range beams, ``W`` wall segments):
+
+==================  ===============  =======================================================
+field               shape / dtype    meaning
+==================  ===============  =======================================================
+``observations``    [T, B] float     range readings (same units as poses), beam ``i`` at angle
+                                     ``heading + beam_angles[i]``; ``max_range`` = no return
+``controls``        [T-1, D_u] float control ``u_t`` applied after observing ``x_t``; moves
+                                     ``z_t`` to ``z_{t+1}``. ``metadata["control_model"]``
+                                     says which: ``"rotate_forward"`` (default, D_u = 2:
+                                     rotate by ``u_t[0]`` rad, then move ``u_t[1]`` along the
+                                     new heading) or ``"odometry_delta"`` (D_u = 3: ``(dx,
+                                     dy, dtheta)`` in the robot frame of ``z_t``)
+``poses``           [T, 3] float     true (or reference) poses ``(x, y, heading)``, heading in
+                                     ``[-pi, pi)``; optional (real logs may lack it)
+``walls``           [W, 4] float     wall segments ``(x1, y1, x2, y2)``; ``W`` may be 0
+``beam_angles``     [B] float        beam directions relative to the heading, rad
+``max_range``       scalar float     sensor range; readings >= it mean "no return"
+``obs_mask``        [T, B] bool      optional; ``False`` marks invalid / masked readings
+``images``          [T, H, W] float  optional first-person images, values in [0, 1]
+``timestamps``      [T] float        optional, seconds, non-decreasing
+``metadata``        JSON string      seed, maze spec, sensor and noise config, provenance
+==================  ===============  =======================================================
+
+Loading validates every field and raises :class:`DatasetError` naming the file and the field.
+Saving is atomic (temporary file + rename), so an interrupted save never leaves a half-written
+file in place of a good one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FORMAT_VERSION = 1
+
+
+class DatasetError(ValueError):
+    """A traversal (in memory or on disk) is malformed; the message names source and field."""
+
+
+@dataclass
+class Traversal:
+    """One trajectory. See the module docstring for the field table."""
+
+    observations: np.ndarray  # [T, B]
+    controls: np.ndarray  # [T-1, D_u]
+    walls: np.ndarray  # [W, 4]
+    beam_angles: np.ndarray  # [B]
+    max_range: float
+    poses: np.ndarray | None = None  # [T, 3]
+    obs_mask: np.ndarray | None = None  # [T, B] bool
+    images: np.ndarray | None = None  # [T, H, W]
+    timestamps: np.ndarray | None = None  # [T]
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        validate(self)
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.observations.shape[0])
+
+    @property
+    def num_beams(self) -> int:
+        return int(self.observations.shape[1])
+
+    def __len__(self) -> int:
+        return self.num_steps
+
+    def slice(self, start: int, stop: int) -> Traversal:
+        """Steps ``start:stop`` as a new traversal (controls trimmed to match)."""
+        if not 0 <= start < stop <= self.num_steps:
+            raise IndexError(f"slice [{start}:{stop}] outside a traversal of {self.num_steps} steps")
+
+        def cut(a):
+            return None if a is None else a[start:stop]
+
+        return replace(
+            self,
+            observations=self.observations[start:stop],
+            controls=self.controls[start : stop - 1],
+            poses=cut(self.poses),
+            obs_mask=cut(self.obs_mask),
+            images=cut(self.images),
+            timestamps=cut(self.timestamps),
+            metadata={**self.metadata, "sliced_from": [start, stop]},
+        )
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write atomically to ``path`` (``.npz``)."""
+        path = Path(path)
+        arrays = {
+            "format_version": np.asarray(FORMAT_VERSION),
+            "observations": self.observations,
+            "controls": self.controls,
+            "walls": self.walls,
+            "beam_angles": self.beam_angles,
+            "max_range": np.asarray(self.max_range, dtype=np.float64),
+            "metadata": np.asarray(json.dumps(self.metadata, sort_keys=True)),
+        }
+        for name in OPTIONAL_FIELDS:
+            value = getattr(self, name)
+            if value is not None:
+                arrays[name] = value
+        atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
+        return path
+
+
+OPTIONAL_FIELDS = ("poses", "obs_mask", "images", "timestamps")
+REQUIRED_FIELDS = ("observations", "controls", "walls", "beam_angles", "max_range")
+
+
+def atomic_write(path: Path, write) -> None:
+    """Call ``write(fileobj)`` on a temporary file next to ``path``, then rename it into place."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _float_array(src: str, name: str, value, ndim: int) -> np.ndarray:
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "fiu":
+        raise DatasetError(f"{src}: field '{name}' must be numeric, got dtype {arr.dtype}")
+    if arr.ndim != ndim:
+        raise DatasetError(f"{src}: field '{name}' must have {ndim} dims, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        bad = np.argwhere(~np.isfinite(arr))[0].tolist()
+        raise DatasetError(f"{src}: field '{name}' has a non-finite value at index {bad}")
+    return arr
+
+
+def validate(tr: Traversal, src: str = "traversal") -> Traversal:
+    """Check shapes, dtypes, lengths and values; raise :class:`DatasetError` on the first problem.
+
+    Converts float fields to ``float32`` (``float64`` is kept) in place.
+    """
+    obs = _float_array(src, "observations", tr.observations, 2)
+    T, B = obs.shape
+    if T == 0:
+        raise DatasetError(f"{src}: field 'observations' is empty (0 time steps)")
+    if B == 0:
+        raise DatasetError(f"{src}: field 'observations' has 0 beams")
+    if not np.isfinite(tr.max_range) or tr.max_range <= 0:
+        raise DatasetError(f"{src}: field 'max_range' must be positive, got {tr.max_range}")
+    mask = tr.obs_mask
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.dtype != np.bool_ or mask.shape != (T, B):
+            raise DatasetError(
+                f"{src}: field 'obs_mask' must be bool of shape {(T, B)}, "
+                f"got {mask.dtype} {mask.shape}"
+            )
+    valid = obs if mask is None else obs[mask]
+    if valid.size and valid.min() < 0:
+        t, b = np.argwhere((obs < 0) & (True if mask is None else mask))[0].tolist()
+        raise DatasetError(
+            f"{src}: field 'observations' has a negative range {obs[t, b]} at step {t}, beam {b}"
+        )
+    ctl = _float_array(src, "controls", tr.controls, 2)
+    if ctl.shape[0] != T - 1 or ctl.shape[1] < 1:
+        raise DatasetError(
+            f"{src}: field 'controls' must have shape (T-1, D_u) = ({T - 1}, D_u) for T={T} "
+            f"observations, got {ctl.shape}"
+        )
+    walls = _float_array(src, "walls", tr.walls, 2)
+    if walls.shape[1:] != (4,):
+        raise DatasetError(f"{src}: field 'walls' must have shape (W, 4), got {walls.shape}")
+    angles = _float_array(src, "beam_angles", tr.beam_angles, 1)
+    if angles.shape != (B,):
+        raise DatasetError(
+            f"{src}: field 'beam_angles' must have shape ({B},) to match {B} observation beams, "
+            f"got {angles.shape}"
+        )
+    if tr.poses is not None:
+        poses = _float_array(src, "poses", tr.poses, 2)
+        if poses.shape != (T, 3):
+            raise DatasetError(f"{src}: field 'poses' must have shape {(T, 3)}, got {poses.shape}")
+        tr.poses = poses.astype(np.float32) if poses.dtype != np.float64 else poses
+    if tr.images is not None:
+        img = _float_array(src, "images", tr.images, 3)
+        if img.shape[0] != T:
+            raise DatasetError(f"{src}: field 'images' must have {T} frames, got {img.shape[0]}")
+        if img.size and (img.min() < 0 or img.max() > 1):
+            raise DatasetError(f"{src}: field 'images' must lie in [0, 1]")
+        tr.images = img.astype(np.float32)
+    if tr.timestamps is not None:
+        ts = _float_array(src, "timestamps", tr.timestamps, 1)
+        if ts.shape != (T,):
+            raise DatasetError(f"{src}: field 'timestamps' must have shape ({T},), got {ts.shape}")
+        if T > 1 and np.any(np.diff(ts) < 0):
+            i = int(np.argmax(np.diff(ts) < 0))
+            raise DatasetError(f"{src}: field 'timestamps' decreases at step {i + 1}")
+        tr.timestamps = ts.astype(np.float64)
+    if not isinstance(tr.metadata, dict):
+        raise DatasetError(f"{src}: field 'metadata' must be a dict, got {type(tr.metadata)}")
+    tr.observations = obs.astype(np.float32) if obs.dtype != np.float64 else obs
+    tr.controls = ctl.astype(obs.dtype if obs.dtype == np.float64 else np.float32)
+    tr.walls = walls.astype(np.float64)
+    tr.beam_angles = angles.astype(np.float64)
+    tr.max_range = float(tr.max_range)
+    tr.obs_mask = mask
+    return tr
+
+
+def load(path: str | os.PathLike) -> Traversal:
+    """Read and validate a traversal written by :meth:`Traversal.save`."""
+    path = Path(path)
+    src = str(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{src}: no such dataset file")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            data = {k: f[k] for k in f.files}
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, KeyError) as e:
+        raise DatasetError(f"{src}: not a readable .npz dataset ({type(e).__name__}: {e})") from e
+    missing = [k for k in REQUIRED_FIELDS if k not in data]
+    if missing:
+        raise DatasetError(f"{src}: missing field(s) {', '.join(repr(m) for m in missing)}")
+    version = int(data.get("format_version", FORMAT_VERSION))
+    if version > FORMAT_VERSION:
+        raise DatasetError(f"{src}: format_version {version} is newer than supported")
+    try:
+        metadata = json.loads(str(data["metadata"])) if "metadata" in data else {}
+    except json.JSONDecodeError as e:
+        raise DatasetError(f"{src}: field 'metadata' is not valid JSON ({e})") from e
+    if np.asarray(data["max_range"]).shape != ():
+        raise DatasetError(f"{src}: field 'max_range' must be a scalar")
+    tr = Traversal.__new__(Traversal)
+    tr.observations = data["observations"]
+    tr.controls = data["controls"]
+    tr.walls = data["walls"]
+    tr.beam_angles = data["beam_angles"]
+    tr.max_range = float(data["max_range"])
+    for name in OPTIONAL_FIELDS:
+        setattr(tr, name, data.get(name))
+    tr.metadata = metadata
+    return validate(tr, src)
