@@ -1,0 +1,258 @@
+"""Trajectory data for PF-net (Karkus et al. 2018, Sec. V-A), scaled to our mazes.
+
+Scale: a ``6 x 6``-cell maze of side 1.0 has corridors 1/6 wide, read as 1 m
+(:data:`pyro_slam.pfnet.METRE`). The paper's motions then become: forward with probability
+0.8, a distance ``U[20 cm, 80 cm]`` = ``U[0.033, 0.133]`` units, else rotate by
+``U[15, 60]`` degrees (random sign); an action whose forward motion would collide is re-drawn.
+The initial belief is ``N(c, diag(30 cm, 30 cm, 30 deg)^2)`` = ``diag(0.05, 0.05, 0.52 rad)``
+around a centre ``c`` that is itself drawn from that Gaussian around the true start (so the
+true start is distributed as ``N(c, .)`` as in the paper).
+
+Odometry is the true robot-frame relative pose ``(dx, dy, dtheta)`` of consecutive steps plus
+Gaussian noise (``ODOM_NOISE``: 2 cm per axis, 2 deg).
+
+The sensor readings come from a *world* object (the simulator, or any stand-in) passed to
+:func:`generate`; it is driven through :class:`WorldAdapter`, so only that class knows the
+simulator's method names.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from pyro_slam.pfnet import INIT_STD, METRE, rasterize_floor_map
+
+T_STEPS = 24
+FORWARD_RANGE = (0.2 * METRE, 0.8 * METRE)
+ROTATE_RANGE = (math.radians(15), math.radians(60))
+P_FORWARD = 0.8
+ODOM_NOISE = (0.02 * METRE, 0.02 * METRE, math.radians(2.0))
+
+
+def wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def relative_pose(z0: np.ndarray, z1: np.ndarray) -> np.ndarray:
+    """Robot-frame increment ``(dx, dy, dtheta)`` from ``z0`` to ``z1`` (inverse of
+    :func:`pyro_slam.geometry.odometry_delta`)."""
+    c, s = np.cos(z0[..., 2]), np.sin(z0[..., 2])
+    dx, dy = z1[..., 0] - z0[..., 0], z1[..., 1] - z0[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap(z1[..., 2] - z0[..., 2])], -1)
+
+
+@dataclass
+class PFNetDataset:
+    """A set of fixed-length trajectories with floor maps, in memory (numpy).
+
+    Fields (``N`` trajectories, ``T`` steps, ``M`` mazes):
+        poses [N, T, 3], odom [N, T-1, 3], lidar [N, T, n_beams], depth [N, T, h, w] or None,
+        maze_index [N] (into ``maps`` / ``walls``), maps [M, R, R] floor rasters (walls only),
+        walls: list of [W, 4], map_side, init_mean [N, 3] (fixed belief centres, used when
+        ``fresh_init`` is False), beam_angles [n_beams], max_range.
+    ``sensor`` selects what :meth:`batch` returns as ``obs``; ``fresh_init`` draws a new belief
+    centre per call (training-time augmentation).
+    """
+
+    poses: np.ndarray
+    odom: np.ndarray
+    lidar: np.ndarray
+    depth: np.ndarray | None
+    maze_index: np.ndarray
+    maps: np.ndarray
+    walls: list
+    map_side: float
+    init_mean: np.ndarray
+    beam_angles: np.ndarray
+    max_range: float
+    sensor: str = "lidar"
+    fresh_init: bool = False
+    meta: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.poses.shape[0])
+
+    def with_sensor(self, sensor: str, fresh_init: bool | None = None) -> PFNetDataset:
+        if sensor == "depth" and self.depth is None:
+            raise ValueError("this dataset has no depth images")
+        fi = self.fresh_init if fresh_init is None else fresh_init
+        return replace(self, sensor=sensor, fresh_init=fi)
+
+    def subset(self, idx) -> PFNetDataset:
+        idx = np.asarray(idx)
+        return replace(
+            self,
+            poses=self.poses[idx],
+            odom=self.odom[idx],
+            lidar=self.lidar[idx],
+            depth=None if self.depth is None else self.depth[idx],
+            maze_index=self.maze_index[idx],
+            init_mean=self.init_mean[idx],
+        )
+
+    def batch(self, idx, generator: torch.Generator | None = None) -> dict:
+        """Tensors for trajectories ``idx`` (see :mod:`pyro_slam.pfnet` for the keys)."""
+        idx = np.asarray(idx)
+        poses = torch.as_tensor(self.poses[idx], dtype=torch.float32)
+        obs = self.lidar[idx] if self.sensor == "lidar" else self.depth[idx]
+        if self.fresh_init:
+            eps = torch.randn(len(idx), 3, generator=generator) * torch.tensor(INIT_STD)
+            init = poses[:, 0] + eps
+            init[:, 2] = torch.remainder(init[:, 2] + math.pi, 2 * math.pi) - math.pi
+        else:
+            init = torch.as_tensor(self.init_mean[idx], dtype=torch.float32)
+        return {
+            "maps": torch.as_tensor(self.maps[self.maze_index[idx]], dtype=torch.float32)[:, None],
+            "map_side": self.map_side,
+            "walls": [self.walls[m] for m in self.maze_index[idx]],
+            "obs": torch.as_tensor(obs, dtype=torch.float32),
+            "odom": torch.as_tensor(self.odom[idx], dtype=torch.float32),
+            "init_mean": init,
+            "init_std": torch.tensor(INIT_STD),
+            "poses": poses,
+            "beam_angles": torch.as_tensor(self.beam_angles, dtype=torch.float32),
+            "max_range": self.max_range,
+        }
+
+    def save(self, path) -> None:
+        arrays = {k: getattr(self, k) for k in ("poses", "odom", "lidar", "maze_index", "maps")}
+        arrays.update(init_mean=self.init_mean, beam_angles=self.beam_angles)
+        if self.depth is not None:
+            arrays["depth"] = self.depth
+        arrays["walls_flat"] = np.concatenate(self.walls)
+        arrays["walls_len"] = np.array([len(w) for w in self.walls])
+        arrays["scalars"] = np.array([self.map_side, self.max_range])
+        np.savez_compressed(path, **arrays)
+
+    @classmethod
+    def load(cls, path) -> PFNetDataset:
+        with np.load(path) as f:
+            d = {k: f[k] for k in f.files}
+        walls = np.split(d["walls_flat"], np.cumsum(d["walls_len"])[:-1])
+        return cls(
+            poses=d["poses"],
+            odom=d["odom"],
+            lidar=d["lidar"],
+            depth=d.get("depth"),
+            maze_index=d["maze_index"],
+            maps=d["maps"],
+            walls=walls,
+            map_side=float(d["scalars"][0]),
+            init_mean=d["init_mean"],
+            beam_angles=d["beam_angles"],
+            max_range=float(d["scalars"][1]),
+        )
+
+
+class WorldAdapter:
+    """Drives a simulator world: ``reset(pose)``, ``step(u)``, ``pose``, ``lidar()``, ``depth()``.
+
+    The default implementation expects the ``simulators.World`` API; stand-ins in the tests
+    implement these five members directly and are used as they are.
+    """
+
+    def __init__(self, world):
+        self.world = world
+
+    def reset(self, pose):
+        self.world.reset(np.asarray(pose, dtype=float))
+
+    def step(self, u):
+        self.world.step(np.asarray(u, dtype=float))
+
+    @property
+    def pose(self) -> np.ndarray:
+        return np.asarray(self.world.pose, dtype=float)
+
+    def lidar(self) -> np.ndarray:
+        return np.asarray(self.world.lidar(), dtype=np.float32)
+
+    def depth(self) -> np.ndarray:
+        return np.asarray(self.world.depth(), dtype=np.float32)
+
+
+def sample_trajectory(world: WorldAdapter, start, rng: np.random.Generator, T=T_STEPS, depth=True):
+    """One collision-free trajectory of ``T`` steps from ``start``.
+
+    Returns poses [T, 3], odometry [T-1, 3] (noisy), lidar [T, B], depth [T, h, w] or None.
+    """
+    world.reset(start)
+    poses, scans, imgs = [world.pose], [world.lidar()], [world.depth() if depth else None]
+    for _ in range(T - 1):
+        prev = world.pose
+        for _attempt in range(20):
+            if rng.random() < P_FORWARD:
+                u = (0.0, rng.uniform(*FORWARD_RANGE))
+            else:
+                u = (rng.choice([-1.0, 1.0]) * rng.uniform(*ROTATE_RANGE), 0.0)
+            world.step(u)
+            moved = np.hypot(*(world.pose[:2] - prev[:2]))
+            if moved >= 0.98 * u[1]:
+                break
+            world.reset(prev)  # collision: re-draw the action
+        else:  # boxed in: turn around
+            world.step((math.pi, 0.0))
+        poses.append(world.pose)
+        scans.append(world.lidar())
+        imgs.append(world.depth() if depth else None)
+    poses = np.stack(poses)
+    poses[:, 2] = wrap(poses[:, 2])
+    odom = relative_pose(poses[:-1], poses[1:])
+    odom = odom + rng.normal(size=odom.shape) * np.array(ODOM_NOISE)
+    return poses, odom, np.stack(scans), (np.stack(imgs) if depth else None)
+
+
+def generate(
+    mazes: list,
+    make_world,
+    n_per_maze: int,
+    seed: int = 0,
+    T: int = T_STEPS,
+    depth: bool = True,
+    map_resolution: int = 64,
+    progress: bool = False,
+) -> PFNetDataset:
+    """Trajectories in each of ``mazes`` (objects with ``walls``, ``side``,
+    ``random_free_pose(rng)``); ``make_world(maze, seed)`` returns an object with the members
+    of :class:`WorldAdapter` (``beam_angles`` and ``max_range`` too), e.g. a wrapped
+    ``simulators.World``."""
+    from tqdm.auto import tqdm
+
+    rng = np.random.default_rng(seed)
+    P, O, L, D, idx, init = [], [], [], [], [], []
+    maps, walls = [], []
+    bar = tqdm(total=len(mazes) * n_per_maze, desc="trajectories", disable=not progress)
+    for m, maze in enumerate(mazes):
+        maps.append(rasterize_floor_map(maze.walls, maze.side, map_resolution))
+        walls.append(np.asarray(maze.walls, dtype=np.float64))
+        world = make_world(maze, int(rng.integers(2**31)))
+        for _ in range(n_per_maze):
+            start = np.asarray(maze.random_free_pose(rng), dtype=float)
+            p, o, s, d = sample_trajectory(world, start, rng, T, depth)
+            P.append(p)
+            O.append(o)
+            L.append(s)
+            D.append(d)
+            idx.append(m)
+            c = p[0] + rng.normal(size=3) * np.array(INIT_STD)
+            c[2] = wrap(c[2])
+            init.append(c)
+            bar.update(1)
+    bar.close()
+    return PFNetDataset(
+        poses=np.stack(P).astype(np.float32),
+        odom=np.stack(O).astype(np.float32),
+        lidar=np.stack(L).astype(np.float32),
+        depth=np.stack(D).astype(np.float32) if depth else None,
+        maze_index=np.asarray(idx),
+        maps=np.stack(maps),
+        walls=walls,
+        map_side=float(mazes[0].side),
+        init_mean=np.stack(init).astype(np.float32),
+        beam_angles=np.asarray(getattr(world, "beam_angles", np.zeros(L[0].shape[-1]))),
+        max_range=float(getattr(world, "max_range", np.max(L[0]))),
+    )
