@@ -57,8 +57,8 @@ class OdometryNoise:
     moderate-medium traversal ends ~0.1-0.2 away from the true position (paper: 0.14 +- 0.1).
     """
 
-    rotation_std: float = 4e-3
-    forward_std: float = 0.02
+    rotation_std: float = 6e-3
+    forward_std: float = 0.03
 
     @classmethod
     def coerce(cls, noise) -> OdometryNoise:
