@@ -1,0 +1,106 @@
+"""Simulate one long driven traversal of a maze and package it as a :class:`Traversal`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pyro_slam.data import Traversal
+from simulators.camera import Camera, CameraConfig
+from simulators.driver import DriverConfig, ExploringDriver
+from simulators.maze import Maze, make_maze
+from simulators.world import AGENT_RADIUS, LidarConfig, OdometryNoise, World, wrap_angle
+
+SIMULATOR_VERSION = "0.1.0"
+
+
+def integrate_controls(start, controls) -> np.ndarray:
+    """Dead reckoning with the rotate-then-forward model: ``[3]``, ``[T-1, 2]`` -> ``[T, 3]``."""
+    controls = np.asarray(controls, dtype=np.float64)
+    heading = start[2] + np.concatenate([[0.0], np.cumsum(controls[:, 0])])  # [T]
+    step = controls[:, 1:2] * np.stack([np.cos(heading[1:]), np.sin(heading[1:])], -1)  # [T-1, 2]
+    xy = start[:2] + np.concatenate([np.zeros((1, 2)), np.cumsum(step, 0)])  # [T, 2]
+    return np.concatenate([xy, wrap_angle(heading)[:, None]], -1)
+
+
+def simulate_traversal(
+    maze: str | Maze = "moderate-medium",
+    steps: int = 3000,
+    seed: int = 1,
+    images: bool = False,
+    distractors: int = 0,
+    noise: OdometryNoise | dict | None = None,
+    lidar: LidarConfig = LidarConfig(),  # noqa: B008 (frozen dataclass)
+    camera: CameraConfig = CameraConfig(),  # noqa: B008
+    driver: DriverConfig = DriverConfig(),  # noqa: B008
+) -> Traversal:
+    """Drive the scripted explorer through a maze for ``steps`` time steps.
+
+    Args:
+        maze: a scale name (generated with ``seed``) or a ready :class:`Maze`.
+        steps: number of time steps ``T`` (observations); there are ``T - 1`` controls.
+        seed: seeds maze, distractor layout, start pose, actuation noise and driver.
+        images: also render first-person camera frames ``[T, 24, 32]``.
+        distractors: number of boxes visible to the sensors but absent from ``walls``.
+        noise: actuation noise, see :class:`OdometryNoise` (``None`` = calibrated defaults,
+            ``0`` = noiseless).
+    Returns:
+        a :class:`Traversal` with LiDAR observations ``[T, B]``, commanded controls
+        ``[T-1, 2]``, true poses ``[T, 3]`` and the maze walls.
+    """
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    maze = make_maze(maze, seed) if isinstance(maze, str) else maze
+    world = World(maze, lidar, noise, distractors=distractors, seed=seed)
+    agent = ExploringDriver(
+        maze, lidar.beam_angles, seed=np.random.SeedSequence([seed, 1]), config=driver
+    )
+    obs = np.empty((steps, lidar.n_beams))  # [T, B]
+    poses = np.empty((steps, 3))  # [T, 3]
+    controls = np.empty((steps - 1, 2))  # [T-1, 2]
+    for t in range(steps):
+        poses[t], obs[t] = world.pose, world.lidar()
+        if t < steps - 1:
+            controls[t] = agent.act(obs[t], poses[t])
+            world.step(controls[t])
+    frames = None
+    if images:
+        frames = Camera(maze.walls, maze.corridor_width, world.distractor_segments, camera).render(
+            poses
+        )
+    metadata = {
+        "simulator": "simulators (pymunk maze)",
+        "simulator_version": SIMULATOR_VERSION,
+        "seed": int(seed),
+        "maze": {
+            "name": maze.name,
+            "seed": maze.seed,
+            "side": maze.side,
+            "cells": maze.cells,
+            "corridor_width": maze.corridor_width,
+        },
+        "sensor": {
+            "type": "lidar",
+            "n_beams": lidar.n_beams,
+            "max_range": lidar.max_range,
+            "method": lidar.method,
+        },
+        "camera": camera.to_dict() if images else None,
+        "noise": world.noise.to_dict(),
+        "control_model": "rotate_forward",
+        "agent": {"radius": AGENT_RADIUS, "clearance": world.clearance},
+        "driver": driver.to_dict(),
+        "distractors": int(distractors),
+        "distractor_segments": world.distractor_segments.tolist(),
+        "collisions": world.collisions,
+        "coverage": agent.coverage(),
+    }
+    return Traversal(
+        observations=obs.astype(np.float32),
+        controls=controls,
+        walls=maze.walls,
+        beam_angles=lidar.beam_angles,
+        max_range=lidar.max_range,
+        poses=poses,
+        images=frames,
+        metadata=metadata,
+    )
