@@ -147,31 +147,104 @@ def local_map_crops(
 # --------------------------------------------------------------------------------------------
 
 
-class LidarEncoder(nn.Module):
-    """1-D CNN over a range scan ``[N, n_beams]`` (circular padding) -> ``[N, C, G, G]``."""
+def crop_cell_polar(size: int, half_extent: float, forward_offset: float):
+    """Robot-frame polar coordinates ``(rho, phi)`` ``[S, S]`` of the local-map crop's cells.
 
-    def __init__(self, n_beams: int, max_range: float, channels: int = 8, grid: int = 8):
+    Same layout as :func:`local_map_crops`: column = forward, row = left.
+    """
+    c = (2 * torch.arange(size, dtype=torch.float32) + 1) / size - 1  # cell centres in [-1, 1]
+    fwd = forward_offset + half_extent * c[None, :]  # [1, S]
+    left = half_extent * c[:, None]  # [S, 1]
+    fwd, left = torch.broadcast_tensors(fwd, left)
+    return torch.hypot(fwd, left), torch.atan2(left, fwd)
+
+
+class ScanTopDown(nn.Module):
+    """Parameter-free projection of a range scan into the local-map crop frame.
+
+    Each crop cell looks up the beam whose direction is nearest to the cell's bearing and gets
+    three channels: *hit* (Gaussian in ``rho - range``, only for returns below ``max_range``),
+    *free* (``rho`` before the return) and *seen* (the bearing lies within a beam's sector).
+    This is the geometric prior that lets the observation model compare the scan with the
+    map crop cell by cell; everything downstream is learned.
+
+    Args:
+        beam_angles: beam directions relative to the heading ``[n_beams]`` (rad).
+        max_range: readings ``>= max_range`` are "no return".
+    """
+
+    def __init__(self, beam_angles, max_range, size, half_extent, forward_offset):
         super().__init__()
-        self.max_range, self.channels, self.grid = max_range, channels, grid
-        self.conv = nn.Sequential(
-            nn.Conv1d(1, 16, 5, padding=2, padding_mode="circular"),
-            nn.ReLU(),
-            nn.Conv1d(16, 16, 5, padding=2, padding_mode="circular"),
+        a = torch.as_tensor(np.asarray(beam_angles), dtype=torch.float32)  # [n]
+        rho, phi = crop_cell_polar(size, half_extent, forward_offset)  # [S, S]
+        diff = wrap_angle(phi.reshape(-1, 1) - a.reshape(1, -1)).abs()  # [S*S, n]
+        d, idx = diff.min(-1)
+        spacing = wrap_angle(torch.diff(a, append=a[:1] + 2 * math.pi)).abs().min()
+        self.register_buffer("idx", idx)  # [S*S] nearest beam per cell
+        self.register_buffer("seen", (d <= spacing / 2 + 1e-6).float())  # [S*S]
+        self.register_buffer("rho", rho.reshape(-1))  # [S*S]
+        self.max_range, self.size = float(max_range), size
+        self.sigma = 2 * half_extent / size  # one cell
+
+    def forward(self, ranges: torch.Tensor) -> torch.Tensor:
+        r = ranges[:, self.idx]  # [N, S*S]
+        valid = (r < self.max_range * 0.999).float()
+        hit = torch.exp(-0.5 * ((self.rho - r) / self.sigma) ** 2) * valid * self.seen
+        free = torch.sigmoid((r - self.rho) / self.sigma) * self.seen
+        out = torch.stack([hit, free, self.seen.expand_as(hit)], 1)  # [N, 3, S*S]
+        return out.reshape(-1, 3, self.size, self.size)
+
+
+def _crop_cnn(c_in: int, channels: int) -> nn.Sequential:
+    """``[N, c_in, S, S] -> [N, channels, S/4, S/4]``."""
+    return nn.Sequential(
+        nn.Conv2d(c_in, 8, 5, stride=2, padding=2),
+        nn.ReLU(),
+        nn.Conv2d(8, channels, 3, stride=2, padding=1),
+        nn.ReLU(),
+    )
+
+
+class LidarEncoder(nn.Module):
+    """LiDAR scan ``[N, n_beams]`` -> ``[N, C, G, G]``: top-down projection + 2-D CNN, plus a
+    1-D CNN branch (circular padding) on the raw scan mapped to the grid by an FC layer."""
+
+    def __init__(self, beam_angles, max_range, crop, channels: int = 8):
+        super().__init__()
+        size, half, off = crop
+        n = len(beam_angles)
+        self.grid, self.channels, self.max_range = size // 4, channels, max_range
+        self.topdown = ScanTopDown(beam_angles, max_range, size, half, off)
+        self.cnn = _crop_cnn(3, channels)
+        self.conv1d = nn.Sequential(
+            nn.Conv1d(1, 8, 5, padding=2, padding_mode="circular"),
             nn.ReLU(),
         )
-        self.fc = nn.Linear(16 * n_beams, channels * grid * grid)
+        self.fc = nn.Linear(8 * n, channels * self.grid**2)
 
     def forward(self, scan: torch.Tensor) -> torch.Tensor:
-        h = self.conv((scan / self.max_range).unsqueeze(1))  # [N, 16, n_beams]
-        return F.relu(self.fc(h.flatten(1))).reshape(-1, self.channels, self.grid, self.grid)
+        g = self.grid
+        h1 = self.cnn(self.topdown(scan))  # [N, C, G, G]
+        h2 = self.fc(self.conv1d((scan / self.max_range).unsqueeze(1)).flatten(1))
+        return torch.cat([h1, F.relu(h2).reshape(-1, self.channels, g, g)], 1)  # [N, 2C, G, G]
 
 
 class ImageEncoder(nn.Module):
-    """2-D CNN over a depth (or grayscale) image ``[N, h, w]`` -> ``[N, C, G, G]``."""
+    """Depth image ``[N, h, w]`` (values = z-depth / ``depth_scale``) -> ``[N, 2C, G, G]``.
 
-    def __init__(self, image_shape=(24, 32), scale: float = 1.0, channels: int = 8, grid: int = 8):
+    Branch 1: the horizon rows give a virtual laser scan over the camera's field of view
+    (``range = z / cos(column angle)``), projected top-down (:class:`ScanTopDown`) + 2-D CNN.
+    Branch 2: a 2-D CNN over the whole image, mapped to the grid by an FC layer.
+    """
+
+    def __init__(self, image_shape, column_angles, depth_scale, max_range, crop, channels=8):
         super().__init__()
-        self.scale, self.channels, self.grid = scale, channels, grid
+        size, half, off = crop
+        self.grid, self.channels = size // 4, channels
+        self.depth_scale, self.max_range = depth_scale, max_range
+        self.register_buffer("cos", torch.cos(torch.as_tensor(column_angles, dtype=torch.float32)))
+        self.topdown = ScanTopDown(column_angles, max_range, size, half, off)
+        self.cnn = _crop_cnn(3, channels)
         self.conv = nn.Sequential(
             nn.Conv2d(1, 16, 3, padding=1),
             nn.ReLU(),
@@ -181,11 +254,18 @@ class ImageEncoder(nn.Module):
             nn.MaxPool2d(2),
         )
         h, w = image_shape
-        self.fc = nn.Linear(16 * (h // 4) * (w // 4), channels * grid * grid)
+        self.fc = nn.Linear(16 * (h // 4) * (w // 4), channels * self.grid**2)
+
+    def virtual_scan(self, img: torch.Tensor) -> torch.Tensor:
+        h = img.shape[-2]
+        z = img[:, h // 2 - 1 : h // 2 + 1].mean(1) * self.depth_scale  # [N, w]
+        return torch.clamp(z / self.cos, max=self.max_range)
 
     def forward(self, img: torch.Tensor) -> torch.Tensor:
-        h = self.conv((img / self.scale).unsqueeze(1))  # [N, 16, h/4, w/4]
-        return F.relu(self.fc(h.flatten(1))).reshape(-1, self.channels, self.grid, self.grid)
+        g = self.grid
+        h1 = self.cnn(self.topdown(self.virtual_scan(img)))
+        h2 = F.relu(self.fc(self.conv(img.unsqueeze(1)).flatten(1)))
+        return torch.cat([h1, h2.reshape(-1, self.channels, g, g)], 1)
 
 
 class MapEncoder(nn.Module):
@@ -193,12 +273,7 @@ class MapEncoder(nn.Module):
 
     def __init__(self, channels: int = 16):
         super().__init__()
-        self.net = nn.Sequential(
-            nn.Conv2d(1, 8, 5, stride=2, padding=2),
-            nn.ReLU(),
-            nn.Conv2d(8, channels, 3, stride=2, padding=1),
-            nn.ReLU(),
-        )
+        self.net = _crop_cnn(1, channels)
 
     def forward(self, crops: torch.Tensor) -> torch.Tensor:
         return self.net(crops.unsqueeze(1))
@@ -228,9 +303,11 @@ class LocallyConnected(nn.Module):
 @dataclass
 class ObsModelConfig:
     sensor: str = "lidar"  # "lidar" | "depth"
-    n_beams: int = 20
-    max_range: float = 0.53
+    beam_angles: tuple = tuple(2 * math.pi * i / 20 for i in range(20))  # LiDAR, rel. heading
+    max_range: float = 0.53  # LiDAR range; also caps the depth camera's virtual scan
     image_shape: tuple = (24, 32)
+    column_angles: tuple = tuple(math.pi / 4 - (c + 0.5) * math.pi / 2 / 32 for c in range(32))
+    depth_scale: float = 0.53  # depth image value 1 = this z-depth (world units)
     crop_size: int = 32
     crop_half_extent: float = 0.3  # world units (~1.8 m)
     crop_forward_offset: float = 0.1
@@ -248,14 +325,22 @@ class ObservationModel(nn.Module):
         cfg = cfg or ObsModelConfig(**kw)
         self.cfg = cfg
         G = cfg.crop_size // 4
+        crop = (cfg.crop_size, cfg.crop_half_extent, cfg.crop_forward_offset)
         if cfg.sensor == "lidar":
-            self.obs_enc = LidarEncoder(cfg.n_beams, cfg.max_range, cfg.obs_channels, G)
-        elif cfg.sensor in ("depth", "image"):
-            self.obs_enc = ImageEncoder(cfg.image_shape, 1.0, cfg.obs_channels, G)
+            self.obs_enc = LidarEncoder(cfg.beam_angles, cfg.max_range, crop, cfg.obs_channels)
+        elif cfg.sensor == "depth":
+            self.obs_enc = ImageEncoder(
+                cfg.image_shape,
+                cfg.column_angles,
+                cfg.depth_scale,
+                cfg.max_range,
+                crop,
+                cfg.obs_channels,
+            )
         else:
             raise ValueError(f"unknown sensor {cfg.sensor!r}")
         self.map_enc = MapEncoder(cfg.map_channels)
-        self.lfc = LocallyConnected(cfg.map_channels, cfg.obs_channels, cfg.lfc_channels, G)
+        self.lfc = LocallyConnected(cfg.map_channels, 2 * cfg.obs_channels, cfg.lfc_channels, G)
         self.head = nn.Sequential(
             nn.Linear(G * G * cfg.lfc_channels, 32), nn.ReLU(), nn.Linear(32, 1)
         )
@@ -508,7 +593,7 @@ def train(
             if cfg.grad_clip:
                 nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
             optimizer.step()
-            total += float(loss)
+            total += loss.item()
             bar.update(1)
             bar.set_postfix(epoch=epoch, loss=f"{float(loss):.3f}")
         cfg.history.append(total / steps)
@@ -518,6 +603,46 @@ def train(
             break
     bar.close()
     return cfg
+
+
+def pretrain_observation_model(
+    obs_model: nn.Module,
+    dataset,
+    steps: int = 300,
+    batch_size: int = 32,
+    candidates: int = 16,
+    lr: float = 1e-3,
+    seed: int = 0,
+    progress: bool = False,
+) -> list:
+    """Warm start for ``obs_model`` before end-to-end training (optional, not in the paper).
+
+    Per step: pick ``batch_size`` random (trajectory, time) pairs, draw ``candidates - 1``
+    poses from the initial-belief Gaussian around the true pose, and minimise the softmax
+    cross-entropy of the true pose among the candidates' log-likelihoods -- i.e. a one-step
+    particle-filter weight update that should put its mass on the truth. Returns the losses.
+    """
+    from tqdm.auto import trange
+
+    g = torch.Generator().manual_seed(seed)
+    opt = torch.optim.RMSprop(obs_model.parameters(), lr=lr)
+    losses = []
+    for _ in trange(steps, desc="pretrain obs", disable=not progress, leave=False):
+        idx = torch.randint(len(dataset), (batch_size,), generator=g)
+        b = dataset.batch(idx, g)
+        T = b["poses"].shape[1]
+        t = torch.randint(T, (batch_size,), generator=g)
+        rows = torch.arange(batch_size)
+        pose, obs = b["poses"][rows, t], b["obs"][rows, t]  # [N, 3], [N, ...]
+        cand = sample_initial_particles(pose, b["init_std"], candidates, g)  # [N, C, 3]
+        cand[:, 0] = pose
+        ll = obs_model(obs_model.encode_obs(obs), b["maps"], cand, b["map_side"])  # [N, C]
+        loss = -torch.log_softmax(ll, -1)[:, 0].mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    return losses
 
 
 @torch.no_grad()

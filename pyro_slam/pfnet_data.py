@@ -8,29 +8,33 @@ The initial belief is ``N(c, diag(30 cm, 30 cm, 30 deg)^2)`` = ``diag(0.05, 0.05
 around a centre ``c`` that is itself drawn from that Gaussian around the true start (so the
 true start is distributed as ``N(c, .)`` as in the paper).
 
-Odometry is the true robot-frame relative pose ``(dx, dy, dtheta)`` of consecutive steps plus
-Gaussian noise (``ODOM_NOISE``: 2 cm per axis, 2 deg).
+Odometry is the robot-frame increment ``(dx, dy, dtheta)`` of the *commanded* motion; the
+simulator executes it with its calibrated actuation noise (3 % of the distance, 0.34 deg).
 
-The sensor readings come from a *world* object (the simulator, or any stand-in) passed to
-:func:`generate`; it is driven through :class:`WorldAdapter`, so only that class knows the
-simulator's method names.
+Sensors: the simulator's LiDAR (20 beams over 360 deg, range 0.53 ~ 3.2 m) and the z-depth
+image ``[24, 32]`` of its first-person camera (90 deg field of view), divided by
+:data:`DEPTH_SCALE` and clipped to [0, 1]. The "distractors" setting adds
+:data:`N_DISTRACTORS` boxes per maze that both sensors see but the floor map lacks.
+
+The sensor readings come from a *world* object passed to :func:`generate`; only
+:class:`SimWorld` knows the simulator's API (tests use a numpy stand-in).
 """
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 
-from pyro_slam.pfnet import INIT_STD, METRE, rasterize_floor_map
+from pyro_slam.pfnet import INIT_STD, METRE, ObsModelConfig, rasterize_floor_map
 
 T_STEPS = 24
 FORWARD_RANGE = (0.2 * METRE, 0.8 * METRE)
 ROTATE_RANGE = (math.radians(15), math.radians(60))
 P_FORWARD = 0.8
-ODOM_NOISE = (0.02 * METRE, 0.02 * METRE, math.radians(2.0))
 
 
 def wrap(a):
@@ -82,6 +86,20 @@ class PFNetDataset:
         fi = self.fresh_init if fresh_init is None else fresh_init
         return replace(self, sensor=sensor, fresh_init=fi)
 
+    def obs_model_config(self, sensor: str | None = None, **kw) -> ObsModelConfig:
+        """An :class:`~pyro_slam.pfnet.ObsModelConfig` matching this data's sensors."""
+        cfg = dict(
+            sensor=sensor or self.sensor,
+            beam_angles=tuple(float(a) for a in self.beam_angles),
+            max_range=self.max_range,
+        )
+        if self.depth is not None:
+            cfg["image_shape"] = tuple(self.depth.shape[-2:])
+            cfg["column_angles"] = tuple(self.meta.get("column_angles", ()))
+            cfg["depth_scale"] = DEPTH_SCALE
+        cfg.update(kw)
+        return ObsModelConfig(**cfg)
+
     def subset(self, idx) -> PFNetDataset:
         idx = np.asarray(idx)
         return replace(
@@ -126,6 +144,7 @@ class PFNetDataset:
         arrays["walls_flat"] = np.concatenate(self.walls)
         arrays["walls_len"] = np.array([len(w) for w in self.walls])
         arrays["scalars"] = np.array([self.map_side, self.max_range])
+        arrays["meta"] = np.asarray(json.dumps(self.meta))
         np.savez_compressed(path, **arrays)
 
     @classmethod
@@ -145,65 +164,99 @@ class PFNetDataset:
             init_mean=d["init_mean"],
             beam_angles=d["beam_angles"],
             max_range=float(d["scalars"][1]),
+            meta=json.loads(str(d["meta"])) if "meta" in d else {},
         )
 
 
-class WorldAdapter:
-    """Drives a simulator world: ``reset(pose)``, ``step(u)``, ``pose``, ``lidar()``, ``depth()``.
+DEPTH_SCALE = 0.53  # depth-image value 1.0 = z-depth 0.53 (the LiDAR range); clipped above
+N_DISTRACTORS = 12  # boxes per maze in the "distractors" setting (a third of the cells)
 
-    The default implementation expects the ``simulators.World`` API; stand-ins in the tests
-    implement these five members directly and are used as they are.
+
+class SimWorld:
+    """Adapter from ``simulators.World`` + ``simulators.Camera`` to what :func:`generate` uses.
+
+    Members: ``reset(pose)``, ``step(u) -> bool`` (False if the move hit something),
+    ``pose``, ``lidar() -> [B]``, ``depth_images(poses [T, 3]) -> [T, h, w]`` in [0, 1],
+    ``random_start(rng) -> [3]``, ``beam_angles``, ``max_range``, ``column_angles``.
+    Test stand-ins implement the same members.
     """
 
-    def __init__(self, world):
-        self.world = world
+    def __init__(self, maze, distractors: int = 0, seed: int = 0, n_beams=20, max_range=0.53):
+        import simulators
+
+        self.maze = maze
+        self.world = simulators.World(
+            maze,
+            lidar=simulators.LidarConfig(n_beams=n_beams, max_range=max_range),
+            distractors=distractors,
+            seed=seed,
+        )
+        cfg = simulators.CameraConfig()
+        self.camera = simulators.Camera(
+            maze.walls, maze.corridor_width, self.world.distractor_segments, cfg
+        )
+        self.beam_angles = self.world.lidar_config.beam_angles
+        self.max_range = float(max_range)
+        self.column_angles = cfg.column_offsets
+
+    def random_start(self, rng) -> np.ndarray:
+        from simulators.world import point_segment_distance
+
+        d = self.world.distractor_segments
+        for _ in range(1000):
+            pose = self.maze.random_free_pose(rng)
+            if not len(d) or point_segment_distance(pose[:2], d).min() > 0.25 * METRE:
+                return pose
+        raise RuntimeError("no free start pose")
 
     def reset(self, pose):
-        self.world.reset(np.asarray(pose, dtype=float))
+        self.world.reset(pose)
 
-    def step(self, u):
+    def step(self, u) -> bool:
+        n = self.world.collisions
         self.world.step(np.asarray(u, dtype=float))
+        return self.world.collisions == n
 
     @property
     def pose(self) -> np.ndarray:
-        return np.asarray(self.world.pose, dtype=float)
+        return self.world.pose
 
     def lidar(self) -> np.ndarray:
-        return np.asarray(self.world.lidar(), dtype=np.float32)
+        return self.world.lidar()
 
-    def depth(self) -> np.ndarray:
-        return np.asarray(self.world.depth(), dtype=np.float32)
+    def depth_images(self, poses) -> np.ndarray:
+        return np.clip(self.camera.depth(poses) / DEPTH_SCALE, 0.0, 1.0)
 
 
-def sample_trajectory(world: WorldAdapter, start, rng: np.random.Generator, T=T_STEPS, depth=True):
-    """One collision-free trajectory of ``T`` steps from ``start``.
+def sample_trajectory(world, start, rng: np.random.Generator, T=T_STEPS, depth=True):
+    """One collision-free trajectory of ``T`` steps from ``start`` in ``world`` (a
+    :class:`SimWorld` or stand-in). A move that would collide is undone and re-drawn.
 
-    Returns poses [T, 3], odometry [T-1, 3] (noisy), lidar [T, B], depth [T, h, w] or None.
+    Returns poses [T, 3], odometry [T-1, 3] (robot-frame increment of the *commanded* motion,
+    so it carries the simulator's actuation noise), lidar [T, B], depth [T, h, w] or None.
     """
     world.reset(start)
-    poses, scans, imgs = [world.pose], [world.lidar()], [world.depth() if depth else None]
+    poses, scans, odom = [world.pose], [world.lidar()], []
     for _ in range(T - 1):
         prev = world.pose
-        for _attempt in range(20):
+        for _attempt in range(50):
             if rng.random() < P_FORWARD:
                 u = (0.0, rng.uniform(*FORWARD_RANGE))
             else:
                 u = (rng.choice([-1.0, 1.0]) * rng.uniform(*ROTATE_RANGE), 0.0)
-            world.step(u)
-            moved = np.hypot(*(world.pose[:2] - prev[:2]))
-            if moved >= 0.98 * u[1]:
+            if world.step(u):
                 break
             world.reset(prev)  # collision: re-draw the action
-        else:  # boxed in: turn around
-            world.step((math.pi, 0.0))
+        else:  # boxed in: turn on the spot
+            u = (math.pi / 2, 0.0)
+            world.step(u)
+        odom.append([u[1] * math.cos(u[0]), u[1] * math.sin(u[0]), u[0]])
         poses.append(world.pose)
         scans.append(world.lidar())
-        imgs.append(world.depth() if depth else None)
     poses = np.stack(poses)
     poses[:, 2] = wrap(poses[:, 2])
-    odom = relative_pose(poses[:-1], poses[1:])
-    odom = odom + rng.normal(size=odom.shape) * np.array(ODOM_NOISE)
-    return poses, odom, np.stack(scans), (np.stack(imgs) if depth else None)
+    img = world.depth_images(poses) if depth else None
+    return poses, np.asarray(odom), np.stack(scans), img
 
 
 def generate(
@@ -216,10 +269,11 @@ def generate(
     map_resolution: int = 64,
     progress: bool = False,
 ) -> PFNetDataset:
-    """Trajectories in each of ``mazes`` (objects with ``walls``, ``side``,
-    ``random_free_pose(rng)``); ``make_world(maze, seed)`` returns an object with the members
-    of :class:`WorldAdapter` (``beam_angles`` and ``max_range`` too), e.g. a wrapped
-    ``simulators.World``."""
+    """``n_per_maze`` trajectories in each of ``mazes`` (objects with ``walls`` and ``side``).
+
+    ``make_world(maze, seed)`` returns a :class:`SimWorld` (or a stand-in with its members).
+    The floor maps are rasterised from ``maze.walls`` only, so distractors never appear on them.
+    """
     from tqdm.auto import tqdm
 
     rng = np.random.default_rng(seed)
@@ -231,8 +285,7 @@ def generate(
         walls.append(np.asarray(maze.walls, dtype=np.float64))
         world = make_world(maze, int(rng.integers(2**31)))
         for _ in range(n_per_maze):
-            start = np.asarray(maze.random_free_pose(rng), dtype=float)
-            p, o, s, d = sample_trajectory(world, start, rng, T, depth)
+            p, o, s, d = sample_trajectory(world, world.random_start(rng), rng, T, depth)
             P.append(p)
             O.append(o)
             L.append(s)
@@ -253,6 +306,7 @@ def generate(
         walls=walls,
         map_side=float(mazes[0].side),
         init_mean=np.stack(init).astype(np.float32),
-        beam_angles=np.asarray(getattr(world, "beam_angles", np.zeros(L[0].shape[-1]))),
-        max_range=float(getattr(world, "max_range", np.max(L[0]))),
+        beam_angles=np.asarray(world.beam_angles, dtype=np.float64),
+        max_range=float(world.max_range),
+        meta={"column_angles": np.asarray(world.column_angles).tolist()},
     )

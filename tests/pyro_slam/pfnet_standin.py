@@ -97,7 +97,11 @@ class StandInWorld:
         self.maze, self.max_range = maze, max_range
         self.beam_angles = np.linspace(-math.pi, math.pi, n_beams, endpoint=False)
         self.image_shape, self.fov = image_shape, fov
+        self.column_angles = fov / 2 - (np.arange(image_shape[1]) + 0.5) * fov / image_shape[1]
         self.pose = np.zeros(3)
+
+    def random_start(self, rng):
+        return self.maze.random_free_pose(rng)
 
     def reset(self, pose):
         self.pose = np.array(pose, dtype=float)
@@ -106,6 +110,7 @@ class StandInWorld:
         h = self.pose[2] + u[0]
         free = raycast(self.maze.walls, self.pose[None, :2], np.array([[h]]), 10.0)[0, 0]
         f = min(u[1], max(free - 0.01, 0.0))
+        blocked = f < u[1]
         self.pose = np.array(
             [
                 self.pose[0] + f * np.cos(h),
@@ -113,10 +118,18 @@ class StandInWorld:
                 (h + np.pi) % (2 * np.pi) - np.pi,
             ]
         )
+        return not blocked
 
     def lidar(self):
         a = self.pose[2] + self.beam_angles
         return raycast(self.maze.walls, self.pose[None, :2], a[None], self.max_range)[0]
+
+    def depth_images(self, poses):
+        out = []
+        for p in poses:
+            self.pose = np.asarray(p, dtype=float)
+            out.append(self.depth())
+        return np.stack(out)
 
     def depth(self):
         H, W = self.image_shape
