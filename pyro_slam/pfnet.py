@@ -504,7 +504,7 @@ def pose_loss(estimates: torch.Tensor, poses: torch.Tensor, beta: float = 0.1) -
 
 def rmse_cm(estimates: torch.Tensor, poses: torch.Tensor) -> float:
     """RMSE of the (x, y) components over all sequences and steps, in centimetres."""
-    d = (estimates[..., :2] - poses[..., :2]) / METRE * 100.0
+    d = (estimates.detach()[..., :2] - poses[..., :2]) / METRE * 100.0
     return float(torch.sqrt((d**2).sum(-1).mean()))
 
 
@@ -595,7 +595,7 @@ def train(
             optimizer.step()
             total += loss.item()
             bar.update(1)
-            bar.set_postfix(epoch=epoch, loss=f"{float(loss):.3f}")
+            bar.set_postfix(epoch=epoch, loss=f"{loss.item():.3f}")
         cfg.history.append(total / steps)
         if checkpoint is not None:
             save_checkpoint(checkpoint, model, optimizer, epoch + 1, cfg)

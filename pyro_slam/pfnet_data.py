@@ -169,7 +169,7 @@ class PFNetDataset:
 
 
 DEPTH_SCALE = 0.53  # depth-image value 1.0 = z-depth 0.53 (the LiDAR range); clipped above
-N_DISTRACTORS = 12  # boxes per maze in the "distractors" setting (a third of the cells)
+N_DISTRACTORS = 36  # boxes per maze in the "distractors" setting (one per cell on average)
 
 
 class SimWorld:
