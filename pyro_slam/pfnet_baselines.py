@@ -66,7 +66,7 @@ class BeamModelPF(PFNet):
         z_short=0.05,
         z_max=0.05,
         z_rand=0.1,
-        sigma_hit=0.02,
+        sigma_hit=0.04,
         lambda_short=10.0,
         resample="ess",
     ):
