@@ -210,6 +210,16 @@ class World:
                 out[i] = hit.alpha * r
         return out
 
+    def camera(self, config=None, depth: bool = False) -> np.ndarray:
+        """First-person image ``[24, 32]`` (or depth image with ``depth=True``) at the pose."""
+        from simulators.camera import Camera, CameraConfig
+
+        config = config or CameraConfig()
+        if getattr(self, "_camera", None) is None or self._camera.config != config:
+            w = self.maze.corridor_width
+            self._camera = Camera(self.maze.walls, w, self.distractor_segments, config)
+        return (self._camera.depth if depth else self._camera.render)(self.pose)[0]
+
 
 def point_segment_distance(p, segments: np.ndarray) -> np.ndarray:
     """Euclidean distance from point ``p`` ``[2]`` to each segment ``[S, 4]`` -> ``[S]``."""
