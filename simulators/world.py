@@ -110,7 +110,8 @@ class World:
         self._noise_rng = np.random.default_rng(noise_seq)
         self.distractor_segments = _place_distractors(maze, distractors, layout_seq)  # [D, 4]
         self.segments = np.concatenate([maze.walls, self.distractor_segments])  # [W + D, 4]
-        self.collisions = 0
+        self.collisions = 0  # number of blocked moves so far
+        self._camera = None  # built on the first camera() call
         self._build_space()
         self.reset(pose if pose is not None else self._free_start(np.random.default_rng(pose_seq)))
 
@@ -215,7 +216,7 @@ class World:
         from simulators.camera import Camera, CameraConfig
 
         config = config or CameraConfig()
-        if getattr(self, "_camera", None) is None or self._camera.config != config:
+        if self._camera is None or self._camera.config != config:
             w = self.maze.corridor_width
             self._camera = Camera(self.maze.walls, w, self.distractor_segments, config)
         return (self._camera.depth if depth else self._camera.render)(self.pose)[0]
