@@ -53,6 +53,7 @@ SCAN_MESSAGES = ("FLASER", "ROBOTLASER1")
 FOV_PARAMS = ("laser_front_laser_fov",)  # degrees
 MAX_RANGE_PARAMS = ("robot_front_laser_max", "laser_front_laser_max_range")  # metres
 MAX_REASONS = 5  # skip reasons kept in metadata
+MAX_ABS = 1e15  # |pose| / |timestamp| beyond this is corruption, not a robot (keeps maths finite)
 
 
 @dataclass
@@ -93,6 +94,8 @@ def _fields(tokens: list[str], start: int, n: int, what: str) -> np.ndarray:
     vals = np.array([parse_float(t) for t in tokens[start : start + n]])
     if not np.all(np.isfinite(vals)):
         raise ValueError(f"non-finite value in {what}: {' '.join(tokens[start : start + n])}")
+    if np.any(np.abs(vals) > MAX_ABS):
+        raise ValueError(f"value out of range (|v| > {MAX_ABS:g}) in {what}")
     return vals
 
 
@@ -139,8 +142,8 @@ def parse_robotlaser1(tokens: list[str], line: int) -> Scan:
     _expect_len(tokens, n + k + 24, f"ROBOTLASER1 with {n} readings and {k} remissions")
     ranges = parse_floats(tokens[9 : 9 + n])
     parse_floats(tokens[10 + n : 10 + n + k])
-    rest = _fields(tokens, 10 + n + k, 12, "poses / velocities")
-    time = _fields(tokens, 22 + n + k, 1, "ipc_timestamp")[0]
+    rest = _fields(tokens, 10 + n + k, 11, "poses / velocities")  # laser, robot, 5 more
+    time = _fields(tokens, 21 + n + k, 1, "ipc_timestamp")[0]
     laser, robot = rest[:3], rest[3:6]
     config = (head[0], head[2], head[3], float(wrap(laser[2] - robot[2])))
     return Scan("ROBOTLASER1", line, ranges, robot, robot.copy(), float(time), config)
@@ -249,14 +252,15 @@ def _is_anchor(scan: Scan | None, pose: np.ndarray, time: float) -> bool:
 # --- CarmenLog -> Traversal ----------------------------------------------------------------------
 
 
-def _param(log: CarmenLog, names: tuple[str, ...]) -> float | None:
+def _param(log: CarmenLog, names: tuple[str, ...], upper: float = MAX_ABS) -> float | None:
+    """The first of the ``PARAM`` values ``names`` that is a number in ``(0, upper]``."""
     for key in names:
         if key in log.params:
             try:
                 value = parse_float(log.params[key])
             except ValueError:
                 continue
-            if math.isfinite(value) and value > 0:
+            if 0 < value <= upper:
                 return value
     return None
 
@@ -311,7 +315,7 @@ def carmen_to_traversal(
     n = ranges.shape[1]
     sensor: dict = {"type": kind, "num_beams_raw": n}
     if kind == "FLASER":
-        fov = math.radians(_param(log, FOV_PARAMS) or 180.0)
+        fov = math.radians(_param(log, FOV_PARAMS, upper=360.0) or 180.0)
         angles = np.linspace(-fov / 2, fov / 2, n) if n > 1 else np.zeros(1)
         sensor["fov_deg"] = math.degrees(fov)
         logged_max = _param(log, MAX_RANGE_PARAMS)

@@ -7,6 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from pyro_slam.data import Traversal
+from pyro_slam.io import odometry_poses
+
 
 def flaser(ranges, pose=(0.0, 0.0, 0.0), odom=None, t=0.0) -> str:
     """A valid FLASER line."""
@@ -30,3 +33,22 @@ def raw_flaser_fields(path: Path) -> tuple[np.ndarray, np.ndarray]:
             ranges.append([float(v) for v in tok[2 : 2 + n]])
             tails.append([float(v) for v in tok[2 + n : 9 + n]])
     return np.array(ranges), np.array(tails)
+
+
+def synthetic_traversal(T=6, B=5, seed=0) -> Traversal:
+    rng = np.random.default_rng(seed)
+    obs = rng.uniform(0.2, 6.0, (T, B))
+    mask = obs < 5.0
+    controls = rng.normal(0, 0.3, (T - 1, 3))
+    start = np.array([1.0, -2.0, 0.3])
+    poses = odometry_poses(
+        Traversal(obs, controls, np.zeros((0, 4)), np.zeros(B), 5.0,
+                  metadata={"control_model": "odometry_delta", "odometry_origin": list(start)})
+    ) + rng.normal(0, 0.05, (T, 3))  # fmt: skip
+    poses[:, 2] = (poses[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    return Traversal(
+        observations=np.where(mask, obs, 5.0), controls=controls, walls=np.zeros((0, 4)),
+        beam_angles=np.linspace(-1.2, 1.2, B), max_range=5.0, poses=poses, obs_mask=mask,
+        timestamps=np.arange(T) * 0.25 + 100,
+        metadata={"control_model": "odometry_delta", "odometry_origin": list(start)},
+    )  # fmt: skip
