@@ -273,7 +273,8 @@ def _odometry_from_odom_lines(log: CarmenLog, scans: list[Scan], method: str):
     """
     rec_pose = np.array(log.odom_pose)  # [K, 3]
     rec_time = np.array(log.odom_time)  # [K]
-    anchors = np.array([s.line for s in log.scans if s.anchor is not None], dtype=np.int64)
+    anchored = [s for s in log.scans if s.anchor is not None]
+    anchors = np.array([s.line for s in anchored], dtype=np.int64)  # segment boundaries
     rec_seg = np.searchsorted(anchors, np.array(log.odom_line), side="left")  # [K]
     scan_seg = np.searchsorted(anchors, np.array([s.line for s in scans]), side="left")  # [T]
     times = np.array([s.time for s in scans])
@@ -283,10 +284,12 @@ def _odometry_from_odom_lines(log: CarmenLog, scans: list[Scan], method: str):
         at, rec = scan_seg == seg, rec_seg == seg
         if rec.any():
             end[at], gap[at] = poses_at(times[at], rec_time[rec], rec_pose[rec], method)
-        else:  # no odometry since the last anchor: the robot did not move as far as we know
+        elif seg > 0:  # no odometry since the last anchor: no motion as far as we know
             fallback += int(at.sum())
-            prev = [s.anchor for s in log.scans if s.anchor is not None][seg - 1] if seg else None
-            end[at] = prev if prev is not None else np.array([s.odom for s in scans])[at]
+            end[at] = anchored[seg - 1].anchor
+        else:  # no ODOM before the first anchor: the scans' own odometry fields
+            fallback += int(at.sum())
+            end[at] = [s.odom for s, here in zip(scans, at) if here]
     start = np.array([s.anchor if s.anchor is not None else e for s, e in zip(scans, end)])
     info = {
         "odometry_anchors": len(anchors),

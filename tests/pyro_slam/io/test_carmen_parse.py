@@ -273,3 +273,17 @@ def test_fuzz_lenient_never_crashes(base, bad):
     tr = carmen_to_traversal(log)
     check_traversal(tr)
     assert tr.num_steps >= 1 and log.skipped <= len(bad)
+
+
+def test_reanchored_segment_without_odometry_means_no_motion():
+    lines = [
+        flaser([1.0], pose=(0, 0, 0), t=1.0),
+        odom_line((0, 0, 0), 0),
+        odom_line((0.5, 0, 0), 2.0),
+        flaser([1.0], pose=(0.4, 0, 0), t=2.0),
+        odom_line((0.4, 0, 0), 0),
+        flaser([1.0], pose=(0.4, 0, 0), t=3.0),  # no ODOM since the last anchor
+    ]
+    tr = carmen_to_traversal(parse_carmen(lines), max_range=5.0)
+    np.testing.assert_allclose(tr.controls, [[0.5, 0, 0], [0, 0, 0]], atol=1e-12)
+    assert tr.metadata["odometry_fallbacks"] == 2  # also scan 0: no ODOM before it
