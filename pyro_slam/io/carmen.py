@@ -158,14 +158,15 @@ def parse_odom(tokens: list[str]) -> tuple[np.ndarray, float]:
 # --- the file loop -----------------------------------------------------------------------------
 
 
-def _open_lines(source) -> tuple[str, Iterable[str]]:
+def _open_lines(source) -> tuple[str, Iterable[str], bool]:
+    """``(name, lines, opened_here)`` for a path (``.gz`` transparently) or an iterable."""
     if isinstance(source, (str, os.PathLike)):
         path = Path(source)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such CARMEN log")
         opener = gzip.open if path.suffix == ".gz" else open
-        return str(path), opener(path, "rt", encoding="utf-8", errors="replace")
-    return "<lines>", source
+        return str(path), opener(path, "rt", encoding="utf-8", errors="replace"), True
+    return "<lines>", source, False
 
 
 def parse_carmen(source, *, lenient: bool = False, name: str | None = None) -> CarmenLog:
@@ -181,7 +182,7 @@ def parse_carmen(source, *, lenient: bool = False, name: str | None = None) -> C
     output writes the corrected pose there, with a zero / garbage timestamp, and continues the
     odometry from it); it is stored as ``scan.anchor`` instead of as an odometry record.
     """
-    src, lines = _open_lines(source)
+    src, lines, opened = _open_lines(source)
     src = name or src
     log = CarmenLog(src)
     first: dict[str, Scan] = {}
@@ -236,7 +237,7 @@ def parse_carmen(source, *, lenient: bool = False, name: str | None = None) -> C
                 continue
             log.counts[kind] += 1
     finally:
-        if hasattr(lines, "close"):
+        if opened:
             lines.close()
     return log
 
