@@ -236,6 +236,8 @@ def parse_carmen(source, *, lenient: bool = False, name: str | None = None) -> C
                     log.skip_reasons.append(f"{src}:{lineno}: {e}")
                 continue
             log.counts[kind] += 1
+    except (OSError, EOFError) as e:  # e.g. a truncated or corrupt .gz
+        raise ParseError(src, None, f"cannot read ({type(e).__name__}: {e})") from e
     finally:
         if opened:
             lines.close()

@@ -121,6 +121,10 @@ def test_gzip_and_undecodable_bytes(tmp_path):
     with pytest.raises(ParseError, match="bytes.clf:6: "):
         read_carmen(raw)
     assert read_carmen(raw, lenient=True).metadata["skipped_lines"] == 1
+    corrupt = tmp_path / "corrupt.clf.gz"
+    corrupt.write_bytes(path.read_bytes()[:-12])
+    with pytest.raises(ParseError, match="corrupt.clf.gz: cannot read"):
+        read_carmen(corrupt)
 
 
 def test_param_field_of_view(tmp_path):
