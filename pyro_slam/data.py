@@ -82,7 +82,9 @@ class Traversal:
     def slice(self, start: int, stop: int) -> Traversal:
         """Steps ``start:stop`` as a new traversal (controls trimmed to match)."""
         if not 0 <= start < stop <= self.num_steps:
-            raise IndexError(f"slice [{start}:{stop}] outside a traversal of {self.num_steps} steps")
+            raise IndexError(
+                f"slice [{start}:{stop}] outside a traversal of {self.num_steps} steps"
+            )
 
         def cut(a):
             return None if a is None else a[start:stop]
