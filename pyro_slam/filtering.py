@@ -111,7 +111,10 @@ class ParticleFilter:
         self.generator = generator
 
     def _weigh(self, z, M, x, mask, logw, step):
-        """Emission weights at ``z [..., K, 3]``; returns new particles and log-evidence ``[...]``."""
+        """Emission weights at ``z [..., K, 3]``.
+
+        Returns new particles and the log-evidence ``[...]``.
+        """
         sigma = self.sigma_emission
         if isinstance(M, MapBelief):
             s0 = self.model.sigma_emission if sigma is None else sigma
@@ -223,7 +226,7 @@ class ParticleCache:
         return self.z.shape[1]
 
     def store(self, t: torch.Tensor, p: Particles, generator=None) -> None:
-        """Store particles ``p`` (batch ``[C]``) at steps ``t [C]``, resampled to ``N`` by weight."""
+        """Store particles ``p`` (batch ``[C]``) at steps ``t [C]``, resampled to N by weight."""
         N = self.num_particles
         K = p.num_particles
         logw = p.logw.detach()

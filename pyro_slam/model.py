@@ -136,7 +136,10 @@ class DVBFLM(nn.Module):
         return self.grid.attend(M, z[..., :2])
 
     def emission_mean(self, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """Predicted body-frame scan ``rotate(mu_E(m_t), heading)``: ``z [..., 3]`` -> ``[..., B]``."""
+        """Predicted body-frame scan ``rotate(mu_E(m_t), heading)``.
+
+        ``z [..., 3]`` -> ``[..., B]``.
+        """
         return rotate_scan(self.emission(self.chart(M, z)), z[..., 2], self.beam_angles)
 
     def emission_dist(self, mean: torch.Tensor, mask: torch.Tensor | None = None, sigma=None):

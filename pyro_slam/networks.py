@@ -108,6 +108,6 @@ class TransitionMLP(nn.Module):
         self.out_scale.copy_(deltas.std(0).clamp_min(1e-6))
 
     def forward(self, z: torch.Tensor, u: torch.Tensor, scan: torch.Tensor) -> torch.Tensor:
-        """``z [..., 3]``, ``u [..., D_u]``, ``scan [..., n_scan]`` -> mean next pose ``[..., 3]``."""
+        """``z [..., 3]``, ``u [..., D_u]``, ``scan [..., n_scan]`` -> next pose ``[..., 3]``."""
         x = (self.features(z, u, scan) - self.in_loc) / self.in_scale
         return z + self.net(x) * self.out_scale

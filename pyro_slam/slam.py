@@ -34,8 +34,8 @@ from tqdm.auto import tqdm
 
 from .data import Traversal, atomic_write
 from .filtering import (
-    MapBelief,
     ChunkBatch,
+    MapBelief,
     ParticleCache,
     ParticleChunkELBO,
     ParticleFilter,
