@@ -110,7 +110,8 @@ class World:
         self._noise_rng = np.random.default_rng(noise_seq)
         self.distractor_segments = _place_distractors(maze, distractors, layout_seq)  # [D, 4]
         self.segments = np.concatenate([maze.walls, self.distractor_segments])  # [W + D, 4]
-        self.collisions = 0
+        self.collisions = 0  # number of blocked moves so far
+        self._camera = None  # built on the first camera() call
         self._build_space()
         self.reset(pose if pose is not None else self._free_start(np.random.default_rng(pose_seq)))
 
@@ -209,6 +210,16 @@ class World:
             if hit is not None:
                 out[i] = hit.alpha * r
         return out
+
+    def camera(self, config=None, depth: bool = False) -> np.ndarray:
+        """First-person image ``[24, 32]`` (or depth image with ``depth=True``) at the pose."""
+        from simulators.camera import Camera, CameraConfig
+
+        config = config or CameraConfig()
+        if self._camera is None or self._camera.config != config:
+            w = self.maze.corridor_width
+            self._camera = Camera(self.maze.walls, w, self.distractor_segments, config)
+        return (self._camera.depth if depth else self._camera.render)(self.pose)[0]
 
 
 def point_segment_distance(p, segments: np.ndarray) -> np.ndarray:

@@ -1,0 +1,388 @@
+"""The differentiable, batched bootstrap particle filter and the asynchronous particle cache.
+
+:class:`ParticleFilter` is the custom SMC guide over poses of DVBF-LM (paper III-C): particles
+are proposed from the transition and weighted by the emission likelihood under a (sampled) map,
+in log space, with ESS-triggered resampling. Unlike :class:`pyro.infer.SMCFilter` it keeps the
+autograd graph from the map and emission parameters to the log-evidence estimate
+
+    log p^(x_{1:T} | M) = sum_t log sum_k w_{t-1,k} p(x_t | z_t^k, M)
+
+(resampling indices and particle positions are treated as samples, i.e. no gradient flows
+through them), so the same step serves training (:class:`ParticleChunkELBO`) and filtering.
+Particles may carry any batch shape: ``[..., K, 3]``.
+
+:class:`ParticleCache` is the asynchronous particle representation of paper eq. (3): ``N``
+cached particles per time step, from which a chunk of consecutive steps starts (moment-matched
+Gaussian or categorical proposal), refreshed by every chunk that runs over them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from pyro import poutine
+from pyro.infer import ELBO
+from torch.distributions import kl_divergence
+
+from . import resampling
+from .geometry import wrap_angle
+from .model import DVBFLM
+
+
+@dataclass
+class MapBelief:
+    """A Gaussian map belief, ``loc`` and ``scale`` ``[w, h, D]`` (e.g. a mean-field ``q(M)``)."""
+
+    loc: torch.Tensor
+    scale: torch.Tensor
+
+
+@dataclass
+class Particles:
+    """A weighted particle set. ``z [..., K, 3]``, ``logw [..., K]`` (normalised),
+    ``scan [..., K, B]`` predicted scan at ``z`` (the transition's input), detached."""
+
+    z: torch.Tensor
+    logw: torch.Tensor
+    scan: torch.Tensor | None = None
+
+    @property
+    def num_particles(self) -> int:
+        return self.z.shape[-2]
+
+    def mean(self) -> torch.Tensor:
+        """Weighted mean pose ``[..., 3]`` (circular mean of the heading, wrapped)."""
+        w = self.logw.exp().unsqueeze(-1)
+        xy = (w * self.z[..., :2]).sum(-2)
+        h = self.z[..., 2:3]
+        c, s = (w * torch.cos(h)).sum(-2), (w * torch.sin(h)).sum(-2)
+        return torch.cat([xy, torch.atan2(s, c)], -1)
+
+    def resample(self, generator=None, scheme="systematic") -> Particles:
+        idx = resampling.SCHEMES[scheme](self.logw, generator)
+        scan = None if self.scan is None else resampling.gather_particles(self.scan, idx)
+        return Particles(
+            resampling.gather_particles(self.z, idx),
+            torch.full_like(self.logw, -math.log(self.num_particles)),
+            scan,
+        )
+
+    def detach(self) -> Particles:
+        return Particles(
+            self.z.detach(), self.logw.detach(), None if self.scan is None else self.scan.detach()
+        )
+
+
+class ParticleFilter:
+    """Bootstrap particle filter over DVBF-LM poses.
+
+    Args:
+        model: the :class:`~pyro_slam.model.DVBFLM`.
+        ess_threshold: resample when ``ESS < ess_threshold * K``.
+        scheme: ``"systematic"`` or ``"multinomial"`` (:mod:`pyro_slam.resampling`).
+        sigma_emission: emission std used for the weights (default: the model's ``sigma_E``;
+            the paper filters with a smaller one, Appendix B-I).
+        uncertainty_gain: when the map is given as a belief ``(loc, scale)`` (a
+            :class:`MapBelief`), the weights use the map mean and an emission std inflated by the
+            chart's uncertainty, ``sigma / (1 - gain * mean_d var(m_t))`` (clamped): an
+            approximate marginalisation of ``q(M)`` that leaves the weights flat where the map
+            is still at its prior (``var = 1``) and sharp where it is well determined.
+        generator: ``torch.Generator`` for reproducible noise and resampling.
+    """
+
+    def __init__(
+        self,
+        model: DVBFLM,
+        ess_threshold: float = 0.5,
+        scheme: str = "systematic",
+        sigma_emission: float | None = None,
+        generator: torch.Generator | None = None,
+        uncertainty_gain: float = 1.0,
+    ):
+        self.uncertainty_gain = uncertainty_gain
+        if scheme not in resampling.SCHEMES:
+            raise ValueError(f"unknown resampling scheme {scheme!r}")
+        self.model = model
+        self.ess_threshold = ess_threshold
+        self.scheme = scheme
+        self.sigma_emission = sigma_emission
+        self.generator = generator
+
+    def _weigh(self, z, M, x, mask, logw, step):
+        """Emission weights at ``z [..., K, 3]``.
+
+        Returns new particles and the log-evidence ``[...]``.
+        """
+        sigma = self.sigma_emission
+        if isinstance(M, MapBelief):
+            s0 = self.model.sigma_emission if sigma is None else sigma
+            # chart variance relative to the prior's: sum a_i^2 s_i^2 / sum a_i^2, in [0, 1]
+            g, xy = self.model.grid, z[..., :2]
+            var = g.attend(M.scale**2, xy, power=2).mean(-1, keepdim=True)
+            var = var / g.attend(torch.ones_like(M.scale[..., :1]), xy, power=2)
+            # prior variance is 1: charts of unmapped cells (var -> 1) give flat weights
+            sigma = s0 / (1.0 - self.uncertainty_gain * var).clamp_min(1e-2)  # [..., K, 1]
+            M = M.loc
+        scan = self.model.emission_mean(M, z)  # [..., K, B]
+        loglik = self.model.emission_log_prob(
+            x.unsqueeze(-2), scan, None if mask is None else mask.unsqueeze(-2), sigma
+        )  # [..., K]
+        joint = logw + loglik
+        resampling.check_weights(joint.detach(), step)
+        inc = torch.logsumexp(joint, -1)  # [...]
+        return Particles(z, (joint - inc.unsqueeze(-1)).detach(), scan.detach()), inc
+
+    def init(self, z0, M, x, mask=None, step=0):
+        """Weigh initial particles ``z0 [..., K, 3]`` by ``x [..., B]``.
+
+        Returns ``(particles, log_evidence [...])`` with ``log p^(x_0) = log mean_k p(x_0|z^k)``.
+        """
+        K = z0.shape[-2]
+        logw = z0.new_full(z0.shape[:-1], -math.log(K))
+        return self._weigh(z0.detach(), M, x, mask, logw, step)
+
+    def propagate(self, p: Particles, u: torch.Tensor) -> torch.Tensor:
+        """Sample ``z_{t+1} ~ p(. | z_t, u_t, mu_E(m_t))``: ``[..., K, 3]`` (no gradient)."""
+        with torch.no_grad():
+            mean = self.model.transition.mean(p.z, u.unsqueeze(-2), p.scan)
+            eps = torch.randn(mean.shape, generator=self.generator, dtype=mean.dtype)
+            return mean + eps * self.model.transition.sigma
+
+    def step(self, p: Particles, M, x, u, mask=None, step=None):
+        """One filtering step: resample if needed, propagate with ``u [..., D_u]``, weigh ``x``.
+
+        Returns ``(particles, log_evidence_increment [...])``.
+        """
+        need = resampling.ess(p.logw) < self.ess_threshold * p.num_particles  # [...]
+        if bool(need.any()):
+            r = p.resample(self.generator, self.scheme)
+            if not bool(need.all()):
+                m = need.unsqueeze(-1)
+                r = Particles(
+                    torch.where(m.unsqueeze(-1), r.z, p.z),
+                    torch.where(m, r.logw, p.logw),
+                    None if p.scan is None else torch.where(m.unsqueeze(-1), r.scan, p.scan),
+                )
+            p = r
+        z = self.propagate(p, u)
+        return self._weigh(z, M, x, mask, p.logw, step)
+
+    @torch.no_grad()
+    def run(self, M, observations, controls, init_pose, num_particles, mask=None, init_scale=None):
+        """Filter a whole sequence with a fixed map (no gradients).
+
+        Args:
+            M: map ``[w, h, D]``; observations ``[T, B]``; controls ``[T-1, D_u]``;
+            init_pose ``[3]``; mask ``[T, B]`` or None.
+        Returns:
+            dict with ``mean [T, 3]`` (heading wrapped), ``std [T, 3]``, ``log_evidence`` (float)
+            and the final :class:`Particles`.
+        """
+        scale = self.model.init_scale if init_scale is None else torch.as_tensor(init_scale)
+        z0 = init_pose + scale * torch.randn(
+            num_particles, 3, generator=self.generator, dtype=init_pose.dtype
+        )
+        p, ev = self.init(z0, M, observations[0], None if mask is None else mask[0], step=0)
+        T = observations.shape[0]
+        means = [p.mean()]
+        stds = [_std(p)]
+        for t in range(1, T):
+            p, inc = self.step(
+                p, M, observations[t], controls[t - 1], None if mask is None else mask[t], step=t
+            )
+            ev = ev + inc
+            means.append(p.mean())
+            stds.append(_std(p))
+        return {
+            "mean": torch.stack(means),
+            "std": torch.stack(stds),
+            "log_evidence": float(ev),
+            "particles": p,
+        }
+
+
+def _std(p: Particles) -> torch.Tensor:
+    w = p.logw.exp().unsqueeze(-1)
+    m = (w * p.z).sum(-2, keepdim=True)
+    return ((w * (p.z - m) ** 2).sum(-2)).sqrt()
+
+
+class ParticleCache:
+    """``N`` cached pose particles for each of ``T`` steps (paper III-D2).
+
+    ``propose`` draws the start particles of a chunk from the moment-matched Gaussian
+    ``q^(z_t) = N(mean(xi_t), var(xi_t))`` (paper eq. 3) or, with ``kind="categorical"``, from
+    the cached particles plus a little noise (paper Appendix B-I).
+    """
+
+    def __init__(self, num_steps: int, num_particles: int = 50, dtype=torch.float32):
+        self.z = torch.zeros(num_steps, num_particles, 3, dtype=dtype)
+        self.filled = torch.zeros(num_steps, dtype=torch.bool)
+
+    @property
+    def num_particles(self) -> int:
+        return self.z.shape[1]
+
+    def store(self, t: torch.Tensor, p: Particles, generator=None) -> None:
+        """Store particles ``p`` (batch ``[C]``) at steps ``t [C]``, resampled to N by weight."""
+        N = self.num_particles
+        K = p.num_particles
+        logw = p.logw.detach()
+        if K != N:
+            # systematic resampling to N from K particles: replicate the log weights' grid
+            w = logw.exp()
+            cdf = torch.cumsum(w, -1)
+            cdf[..., -1] = 1.0
+            u0 = torch.rand(logw.shape[:-1] + (1,), generator=generator, dtype=w.dtype)
+            u = (u0 + torch.arange(N, dtype=w.dtype)) / N
+            idx = torch.searchsorted(cdf, u.contiguous()).clamp_(max=K - 1)
+        else:
+            idx = resampling.systematic(logw, generator)
+        self.z[t] = resampling.gather_particles(p.z.detach(), idx).to(self.z.dtype)
+        self.filled[t] = True
+
+    def moments(self, t: torch.Tensor):
+        """Mean and std ``[C, 3]`` of the cached particles at steps ``t [C]``."""
+        z = self.z[t]
+        return z.mean(-2), z.std(-2, unbiased=False)
+
+    def propose(
+        self, t: torch.Tensor, K: int, kind="gaussian", noise=1e-3, min_std=1e-4, generator=None
+    ):
+        """``K`` start particles ``[C, K, 3]`` for chunks starting at ``t [C]``."""
+        if not bool(self.filled[t].all()):
+            missing = t[~self.filled[t]].tolist()
+            raise ValueError(f"particle cache has no particles at steps {missing[:5]}")
+        if kind == "gaussian":
+            loc, scale = self.moments(t)
+            eps = torch.randn(len(t), K, 3, generator=generator, dtype=loc.dtype)
+            return loc.unsqueeze(1) + eps * scale.clamp_min(min_std).unsqueeze(1)
+        if kind == "categorical":
+            N = self.num_particles
+            idx = torch.randint(N, (len(t), K), generator=generator)
+            z = torch.gather(self.z[t], 1, idx.unsqueeze(-1).expand(-1, -1, 3))
+            return z + noise * torch.randn(z.shape, generator=generator, dtype=z.dtype)
+        raise ValueError(f"unknown proposal kind {kind!r}")
+
+    def state_dict(self):
+        return {"z": self.z.clone(), "filled": self.filled.clone()}
+
+    def load_state_dict(self, d):
+        self.z.copy_(d["z"])
+        self.filled.copy_(d["filled"])
+
+
+@dataclass
+class ChunkBatch:
+    """A minibatch of chunk start steps ``starts [C]`` of length ``length`` over one sequence."""
+
+    starts: torch.Tensor
+    length: int
+
+
+class ParticleChunkELBO(ELBO):
+    """Negative ELBO of paper eq. (3) for :class:`pyro.infer.SVI`, on chunks of one traversal.
+
+    ``model`` must sample the site ``"map"`` (e.g. :meth:`DVBFLM.map_model`) and ``guide`` any
+    guide over it (:class:`~pyro_slam.guide.MapGuide`, an autoguide, ...). For each chunk the
+    start particles come from the cache, the particle filter runs ``length`` steps under one
+    reparameterised map sample, and the cache is refreshed with the filtered particles (and one
+    step beyond the chunk through the transition). The loss, divided by ``T`` to keep the scale
+    per time step, is
+
+        -(T / (C L)) sum_chunks log p^(x_chunk | M) + KL(q(M) || p(M)),
+
+    with an analytic KL when both sides are Normal (Monte Carlo otherwise).
+
+    Args:
+        pf: the :class:`ParticleFilter` (shares the model).
+        cache: the :class:`ParticleCache`.
+        observations ``[T, B]``, controls ``[T-1, D_u]``, mask ``[T, B]`` or None.
+        num_particles: particles per chunk during training.
+        num_steps_seen: ``T`` in the scaling (online SLAM: steps seen so far); default all.
+    """
+
+    def __init__(
+        self,
+        pf: ParticleFilter,
+        cache: ParticleCache,
+        observations,
+        controls,
+        mask=None,
+        num_particles: int = 32,
+        proposal: str = "gaussian",
+        refresh: bool = True,
+    ):
+        super().__init__(num_particles=1)
+        self.pf, self.cache = pf, cache
+        self.observations, self.controls, self.mask = observations, controls, mask
+        self.K = num_particles
+        self.proposal = proposal
+        self.refresh = refresh
+        self.num_steps_seen = observations.shape[0]
+        self.last_log_evidence = None
+
+    def chunk_log_evidence(self, M, batch: ChunkBatch):
+        """Run the filter over the chunks; returns ``log p^ [C]`` and refreshes the cache."""
+        obs, ctl, mask = self.observations, self.controls, self.mask
+        T = obs.shape[0]
+        t = batch.starts
+        z0 = self.cache.propose(t, self.K, self.proposal, generator=self.pf.generator)
+        z0 = z0.to(obs.dtype)
+        p, ev = self.pf.init(z0, M, obs[t], None if mask is None else mask[t], step=int(t[0]))
+        self.cache.store(t, p, self.pf.generator)
+        for l in range(1, batch.length):
+            tl = t + l
+            p, inc = self.pf.step(
+                p, M, obs[tl], ctl[tl - 1], None if mask is None else mask[tl], step=int(tl[0])
+            )
+            ev = ev + inc
+            self.cache.store(tl, p, self.pf.generator)
+        if self.refresh:
+            nxt = t + batch.length
+            ok = nxt < min(T, self.num_steps_seen)
+            if bool(ok.any()):
+                p = p.detach()
+                q = Particles(p.z[ok], p.logw[ok], None if p.scan is None else p.scan[ok])
+                q = q.resample(self.pf.generator, self.pf.scheme)
+                z = self.pf.propagate(q, ctl[nxt[ok] - 1])
+                self.cache.store(nxt[ok], Particles(z, q.logw), self.pf.generator)
+        return ev
+
+    def differentiable_loss(self, model, guide, batch: ChunkBatch, *args, **kwargs):
+        guide_tr = poutine.trace(guide).get_trace()
+        model_tr = poutine.trace(poutine.replay(model, trace=guide_tr)).get_trace()
+        g, m = guide_tr.nodes["map"], model_tr.nodes["map"]
+        M = g["value"]
+        try:
+            kl = kl_divergence(g["fn"], m["fn"]).sum()
+        except NotImplementedError:
+            kl = g["fn"].log_prob(M).sum() - m["fn"].log_prob(M).sum()
+        # other guide sites (e.g. an autoguide's auxiliary latent) enter by Monte Carlo
+        for name, site in guide_tr.nodes.items():
+            if site["type"] == "sample" and name != "map" and not site["is_observed"]:
+                kl = kl + site["fn"].log_prob(site["value"]).sum()
+        ev = self.chunk_log_evidence(M, batch)  # [C]
+        self.last_log_evidence = ev.detach()
+        T = self.num_steps_seen
+        C, L = len(batch.starts), batch.length
+        return (-(T / (C * L)) * ev.sum() + kl) / T
+
+    def _get_trace(self, model, guide, args, kwargs):  # pragma: no cover - not trace-based
+        raise NotImplementedError("ParticleChunkELBO evaluates the pose part by filtering")
+
+    def loss(self, model, guide, *args, **kwargs):
+        with torch.no_grad():
+            return float(self.differentiable_loss(model, guide, *args, **kwargs))
+
+    def loss_and_grads(self, model, guide, *args, **kwargs):
+        loss = self.differentiable_loss(model, guide, *args, **kwargs)
+        loss.backward()
+        return float(loss)
+
+
+def heading_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Absolute wrapped heading difference."""
+    return wrap_angle(a - b).abs()

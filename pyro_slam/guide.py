@@ -1,0 +1,67 @@
+"""Guides (variational posteriors) of DVBF-LM.
+
+* :class:`MapGuide` -- mean-field Gaussian ``q(M) = prod_ij N(mu_ij, sigma_ij^2)`` with
+  ``pyro.param`` mean and scale (paper III-C); any Pyro guide over the site ``"map"`` (e.g.
+  ``AutoNormal(poutine.block(model.sample_map, ...))``) can replace it.
+* :class:`BootstrapGuide` -- the pose proposal of a bootstrap particle filter, as a guide object
+  with ``init``/``step`` for :class:`pyro.infer.SMCFilter`.
+* The custom SMC guide over poses used for *training* is the differentiable particle filter of
+  :mod:`pyro_slam.filtering`; it is bootstrap, so its weights are the emission likelihoods under
+  the sampled map.
+"""
+
+from __future__ import annotations
+
+import pyro
+import pyro.distributions as dist
+import torch
+from pyro.distributions import constraints
+
+from .model import DVBFLM
+
+
+class MapGuide:
+    """Mean-field Gaussian ``q(M)``; initialised at the prior (mean 0, scale 1).
+
+    Args:
+        shape: ``(w, h, D_m)``.
+        init_scale: initial std (paper: 1).
+        prefix: name prefix of the two ``pyro.param`` sites (``{prefix}_loc``, ``{prefix}_scale``).
+    """
+
+    def __init__(self, shape, init_scale: float = 1.0, prefix: str = "map"):
+        self.shape, self.init_scale, self.prefix = tuple(shape), init_scale, prefix
+
+    def params(self):
+        loc = pyro.param(f"{self.prefix}_loc", lambda: torch.zeros(self.shape))
+        scale = pyro.param(
+            f"{self.prefix}_scale",
+            lambda: torch.full(self.shape, self.init_scale),
+            constraint=constraints.positive,
+        )
+        return loc, scale
+
+    def distribution(self):
+        loc, scale = self.params()
+        return dist.Normal(loc, scale).to_event(1)
+
+    def __call__(self, *args, **kwargs) -> torch.Tensor:
+        w, h, _ = self.shape
+        with pyro.plate("map_x", w, dim=-2), pyro.plate("map_y", h, dim=-1):
+            return pyro.sample("map", self.distribution())
+
+    def mean(self) -> torch.Tensor:
+        return self.params()[0].detach()
+
+
+class BootstrapGuide:
+    """Proposal ``q(z_t | z_{t-1}) = p(z_t | z_{t-1}, u, m_{t-1})`` for :class:`SMCFilter`."""
+
+    def __init__(self, dvbflm: DVBFLM):
+        self.m = dvbflm
+
+    def init(self, state, init_pose, x=None, mask=None):
+        pyro.sample("z", dist.Normal(init_pose, self.m.init_scale).to_event(1))
+
+    def step(self, state, x, u, mask=None):
+        pyro.sample("z", self.m.transition_dist(state["z"], u, state["scan"]))

@@ -1,0 +1,441 @@
+"""CARMEN laser logs (``.clf`` / ``.log``, optionally gzipped) -> :class:`Traversal`.
+
+Parsed messages (everything else -- ``PARAM`` values aside, ``NEFF``, ``RAWLASER*``, ``#``
+comments, blank lines -- is counted in ``metadata["ignored"]`` and otherwise skipped)::
+
+    FLASER n r1..rn x y theta odom_x odom_y odom_theta ipc_timestamp hostname logger_timestamp
+    ODOM x y theta tv rv accel ipc_timestamp hostname logger_timestamp
+    ROBOTLASER1 laser_type start_angle fov angular_res max_range accuracy remission_mode
+        n r1..rn k rem1..remk laser_x laser_y laser_theta robot_x robot_y robot_theta
+        tv rv forward_safety side_safety turn_axis ipc_timestamp hostname logger_timestamp
+
+Conventions of the resulting traversal (see :func:`read_carmen`):
+
+* ``observations`` ``[T, B]`` metres, one row per scan (``FLASER``, or ``ROBOTLASER1`` when the
+  log has no ``FLASER``); ``obs_mask`` is False for no-return / invalid readings, which are
+  replaced by ``max_range``.
+* ``beam_angles`` ``[B]``: ``FLASER`` beams spread evenly over the field of view (180 deg, or
+  ``PARAM laser_front_laser_fov``), ends included, from right (-fov/2) to left (+fov/2);
+  ``ROBOTLASER1``: ``start_angle + i * angular_res`` plus the laser's mounting yaw.
+* ``controls`` ``[T-1, 3]`` robot-frame odometry increments (``control_model =
+  "odometry_delta"``), from ``ODOM`` lines when present (``prefer="odom"``), else from the
+  scans' odometry fields.
+* ``poses`` ``[T, 3]``: the scans' logged poses when they differ from the odometry (e.g.
+  ``intel.gfs.log``, whose ``FLASER`` poses are GMapping-corrected), else ``None``.
+  :func:`pyro_slam.io.odometry_poses` rebuilds the raw-odometry trajectory from the controls.
+"""
+
+from __future__ import annotations
+
+import gzip
+import math
+import os
+from collections import Counter
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pyro_slam.data import Traversal, atomic_write
+from pyro_slam.io.common import (
+    ParseError,
+    build_traversal,
+    odometry_poses,
+    parse_float,
+    parse_floats,
+    poses_at,
+    sentinel_max_range,
+    wrap,
+)
+
+SCAN_MESSAGES = ("FLASER", "ROBOTLASER1")
+FOV_PARAMS = ("laser_front_laser_fov",)  # degrees
+MAX_RANGE_PARAMS = ("robot_front_laser_max", "laser_front_laser_max_range")  # metres
+MAX_REASONS = 5  # skip reasons kept in metadata
+MAX_ABS = 1e15  # |pose| / |timestamp| beyond this is corruption, not a robot (keeps maths finite)
+
+
+@dataclass
+class Scan:
+    """One parsed scan line."""
+
+    kind: str  # "FLASER" | "ROBOTLASER1"
+    line: int
+    ranges: np.ndarray  # [n]
+    pose: np.ndarray  # [3] logged pose (FLASER x y theta, ROBOTLASER1 robot pose)
+    odom: np.ndarray  # [3] odometry fields (ROBOTLASER1: the robot pose again)
+    time: float  # ipc_timestamp
+    config: tuple = ()  # ROBOTLASER1: (start_angle, angular_res, max_range, laser yaw offset)
+    anchor: np.ndarray | None = None  # [3] pose an ODOM stream re-anchored at after this scan
+
+
+@dataclass
+class CarmenLog:
+    """Everything :func:`parse_carmen` extracted from a log, in file order."""
+
+    source: str
+    scans: list[Scan] = field(default_factory=list)
+    odom_pose: list[np.ndarray] = field(default_factory=list)  # K x [3]
+    odom_time: list[float] = field(default_factory=list)  # K
+    odom_line: list[int] = field(default_factory=list)  # K
+    params: dict[str, str] = field(default_factory=dict)
+    counts: Counter = field(default_factory=Counter)  # parsed messages by type
+    ignored: Counter = field(default_factory=Counter)  # ignored lines by type
+    skipped: int = 0
+    skip_reasons: list[str] = field(default_factory=list)
+
+
+# --- line parsers: tokens -> record, raising ValueError(reason) ------------------------------
+
+
+def _fields(tokens: list[str], start: int, n: int, what: str) -> np.ndarray:
+    """``n`` finite floats from ``tokens[start:]`` (``what`` names them in errors)."""
+    vals = np.array([parse_float(t) for t in tokens[start : start + n]])
+    if not np.all(np.isfinite(vals)):
+        raise ValueError(f"non-finite value in {what}: {' '.join(tokens[start : start + n])}")
+    if np.any(np.abs(vals) > MAX_ABS):
+        raise ValueError(f"value out of range (|v| > {MAX_ABS:g}) in {what}")
+    return vals
+
+
+def _count(tokens: list[str], i: int, what: str) -> int:
+    tok = tokens[i]
+    if not tok.isascii() or not tok.isdigit():
+        raise ValueError(f"{what} must be a non-negative integer, got {tok[:40]!r}")
+    return int(tok)
+
+
+def _expect_len(tokens: list[str], expected: int, what: str) -> None:
+    if len(tokens) != expected:
+        got = len(tokens)
+        raise ValueError(f"wrong number of fields for {what}: expected {expected}, got {got}")
+
+
+def parse_flaser(tokens: list[str], line: int) -> Scan:
+    if len(tokens) < 2:
+        raise ValueError("wrong number of fields for FLASER: missing num_readings")
+    n = _count(tokens, 1, "num_readings")
+    if n == 0:
+        raise ValueError("FLASER with 0 readings")
+    if len(tokens) != n + 11:
+        raise ValueError(
+            f"wrong number of fields: num_readings={n} needs {n + 11} fields "
+            f"(n readings + 6 pose + 3 time/host), got {len(tokens)}"
+        )
+    ranges = parse_floats(tokens[2 : 2 + n])
+    poses = _fields(tokens, 2 + n, 6, "poses")
+    time = _fields(tokens, 8 + n, 1, "ipc_timestamp")[0]
+    return Scan("FLASER", line, ranges, poses[:3], poses[3:], float(time))
+
+
+def parse_robotlaser1(tokens: list[str], line: int) -> Scan:
+    if len(tokens) < 10:
+        raise ValueError(f"wrong number of fields for ROBOTLASER1: got {len(tokens)}")
+    head = _fields(tokens, 2, 5, "laser config")  # start fov res max_range accuracy
+    n = _count(tokens, 8, "num_readings")
+    if n == 0:
+        raise ValueError("ROBOTLASER1 with 0 readings")
+    if len(tokens) < n + 10:
+        raise ValueError(f"wrong number of fields: num_readings={n} but only {len(tokens)} fields")
+    k = _count(tokens, 9 + n, "num_remissions")
+    _expect_len(tokens, n + k + 24, f"ROBOTLASER1 with {n} readings and {k} remissions")
+    ranges = parse_floats(tokens[9 : 9 + n])
+    parse_floats(tokens[10 + n : 10 + n + k])
+    rest = _fields(tokens, 10 + n + k, 11, "poses / velocities")  # laser, robot, 5 more
+    time = _fields(tokens, 21 + n + k, 1, "ipc_timestamp")[0]
+    laser, robot = rest[:3], rest[3:6]
+    config = (head[0], head[2], head[3], float(wrap(laser[2] - robot[2])))
+    return Scan("ROBOTLASER1", line, ranges, robot, robot.copy(), float(time), config)
+
+
+def parse_odom(tokens: list[str]) -> tuple[np.ndarray, float]:
+    _expect_len(tokens, 10, "ODOM")
+    vals = _fields(tokens, 1, 3, "pose")
+    return vals, float(_fields(tokens, 7, 1, "ipc_timestamp")[0])
+
+
+# --- the file loop -----------------------------------------------------------------------------
+
+
+def _open_lines(source) -> tuple[str, Iterable[str], bool]:
+    """``(name, lines, opened_here)`` for a path (``.gz`` transparently) or an iterable."""
+    if isinstance(source, (str, os.PathLike)):
+        path = Path(source)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such CARMEN log")
+        opener = gzip.open if path.suffix == ".gz" else open
+        return str(path), opener(path, "rt", encoding="utf-8", errors="replace"), True
+    return "<lines>", source, False
+
+
+def parse_carmen(source, *, lenient: bool = False, name: str | None = None) -> CarmenLog:
+    """Parse a CARMEN log (path, or any iterable of text lines) into a :class:`CarmenLog`.
+
+    Strict mode raises :class:`ParseError` ``file:line: reason`` at the first malformed line;
+    lenient mode skips it and counts it (``log.skipped``, first reasons in ``log.skip_reasons``).
+    Scans whose beam count (or ``ROBOTLASER1`` angle config) differs from the first scan of the
+    same type are malformed too.
+
+    An ``ODOM`` line that is the first ``ODOM`` after a scan, repeats that scan's logged pose and
+    is stamped earlier than it marks a re-anchored odometry stream (GMapping's ``.gfs.log``
+    output writes the corrected pose there, with a zero / garbage timestamp, and continues the
+    odometry from it); it is stored as ``scan.anchor`` instead of as an odometry record.
+    """
+    src, lines, opened = _open_lines(source)
+    src = name or src
+    log = CarmenLog(src)
+    first: dict[str, Scan] = {}
+    last_scan: Scan | None = None  # the scan still waiting for its first ODOM
+    try:
+        for lineno, raw in enumerate(lines, start=1):
+            tokens = raw.split()
+            if not tokens:
+                log.ignored["blank"] += 1
+                continue
+            kind = tokens[0]
+            if kind.startswith("#"):
+                log.ignored["#"] += 1
+                continue
+            try:
+                if kind in SCAN_MESSAGES:
+                    scan = (parse_flaser if kind == "FLASER" else parse_robotlaser1)(tokens, lineno)
+                    ref = first.setdefault(kind, scan)
+                    if len(scan.ranges) != len(ref.ranges):
+                        raise ValueError(
+                            f"n readings {len(scan.ranges)} does not match the first {kind}'s "
+                            f"{len(ref.ranges)} (line {ref.line})"
+                        )
+                    if scan.config[:2] != ref.config[:2]:
+                        raise ValueError(f"{kind} angle config differs from line {ref.line}")
+                    log.scans.append(scan)
+                    last_scan = scan
+                elif kind == "ODOM":
+                    pose, time = parse_odom(tokens)
+                    if _is_anchor(last_scan, pose, time):
+                        last_scan.anchor = pose
+                    else:
+                        log.odom_pose.append(pose)
+                        log.odom_time.append(time)
+                        log.odom_line.append(lineno)
+                    last_scan = None
+                elif kind == "PARAM":
+                    if len(tokens) < 3:
+                        raise ValueError("PARAM needs a name and a value")
+                    log.params[tokens[1]] = tokens[2]
+                    log.ignored[kind] += 1
+                    continue
+                else:
+                    log.ignored[kind[:32]] += 1
+                    continue
+            except ValueError as e:
+                if not lenient:
+                    raise ParseError(src, lineno, str(e)) from None
+                log.skipped += 1
+                if len(log.skip_reasons) < MAX_REASONS:
+                    log.skip_reasons.append(f"{src}:{lineno}: {e}")
+                continue
+            log.counts[kind] += 1
+    except (OSError, EOFError) as e:  # e.g. a truncated or corrupt .gz
+        raise ParseError(src, None, f"cannot read ({type(e).__name__}: {e})") from e
+    finally:
+        if opened:
+            lines.close()
+    return log
+
+
+def _is_anchor(scan: Scan | None, pose: np.ndarray, time: float) -> bool:
+    if scan is None or time >= scan.time:
+        return False
+    d = np.abs(pose - scan.pose)
+    d[2] = abs(float(wrap(d[2])))
+    return bool(np.all(d < 1e-6))
+
+
+# --- CarmenLog -> Traversal ----------------------------------------------------------------------
+
+
+def _param(log: CarmenLog, names: tuple[str, ...], upper: float = MAX_ABS) -> float | None:
+    """The first of the ``PARAM`` values ``names`` that is a number in ``(0, upper]``."""
+    for key in names:
+        if key in log.params:
+            try:
+                value = parse_float(log.params[key])
+            except ValueError:
+                continue
+            if 0 < value <= upper:
+                return value
+    return None
+
+
+def _odometry_from_odom_lines(log: CarmenLog, scans: list[Scan], method: str):
+    """Odometry at each scan ``[T, 3]`` and the pose each control starts from ``[T, 3]``.
+
+    Records are grouped into segments split at anchors; a scan's odometry is looked up (by
+    ``method``, see :func:`poses_at`) among the records of its own segment.
+    """
+    rec_pose = np.array(log.odom_pose)  # [K, 3]
+    rec_time = np.array(log.odom_time)  # [K]
+    anchored = [s for s in log.scans if s.anchor is not None]
+    anchors = np.array([s.line for s in anchored], dtype=np.int64)  # segment boundaries
+    rec_seg = np.searchsorted(anchors, np.array(log.odom_line), side="left")  # [K]
+    scan_seg = np.searchsorted(anchors, np.array([s.line for s in scans]), side="left")  # [T]
+    times = np.array([s.time for s in scans])
+    end, gap = np.empty((len(scans), 3)), np.zeros(len(scans))
+    fallback = 0
+    for seg in np.unique(scan_seg):
+        at, rec = scan_seg == seg, rec_seg == seg
+        if rec.any():
+            end[at], gap[at] = poses_at(times[at], rec_time[rec], rec_pose[rec], method)
+        elif seg > 0:  # no odometry since the last anchor: no motion as far as we know
+            fallback += int(at.sum())
+            end[at] = anchored[seg - 1].anchor
+        else:  # no ODOM before the first anchor: the scans' own odometry fields
+            fallback += int(at.sum())
+            end[at] = [s.odom for s, here in zip(scans, at) if here]
+    start = np.array([s.anchor if s.anchor is not None else e for s, e in zip(scans, end)])
+    info = {
+        "odometry_anchors": len(anchors),
+        "odometry_max_time_gap": float(gap.max()) if len(gap) else 0.0,
+        "odometry_fallbacks": fallback,
+    }
+    return start, end, info
+
+
+def carmen_to_traversal(
+    log: CarmenLog,
+    *,
+    beam_stride: int = 1,
+    max_range: float | None = None,
+    prefer: str = "odom",
+    pairing: str = "interp",
+) -> Traversal:
+    """Turn a parsed log into a traversal; arguments as in :func:`read_carmen`."""
+    if prefer not in ("odom", "flaser"):
+        raise ValueError(f"prefer must be 'odom' or 'flaser', got {prefer!r}")
+    kind = "FLASER" if log.counts["FLASER"] else "ROBOTLASER1"
+    scans = [s for s in log.scans if s.kind == kind]
+    if not scans:
+        raise ParseError(log.source, None, "no scans (FLASER / ROBOTLASER1 lines) in the log")
+    ranges = np.stack([s.ranges for s in scans])  # [T, n]
+    n = ranges.shape[1]
+    sensor: dict = {"type": kind, "num_beams_raw": n}
+    if kind == "FLASER":
+        fov = math.radians(_param(log, FOV_PARAMS, upper=360.0) or 180.0)
+        angles = np.linspace(-fov / 2, fov / 2, n) if n > 1 else np.zeros(1)
+        sensor["fov_deg"] = math.degrees(fov)
+        logged_max = _param(log, MAX_RANGE_PARAMS)
+        logged_how = "PARAM"
+    else:
+        start, res, logged_max, yaw = scans[0].config
+        angles = wrap(start + np.arange(n) * res + yaw)
+        sensor.update(fov_deg=math.degrees(res * (n - 1)), laser_yaw_offset=yaw)
+        logged_how = "ROBOTLASER1 max_range"
+    if max_range is not None:
+        sensor["max_range_source"] = "argument"
+    elif logged_max is not None and logged_max > 0:
+        max_range, sensor["max_range_source"] = logged_max, logged_how
+    else:
+        max_range, sensor["max_range_source"] = sentinel_max_range(ranges)
+
+    odom_fields = np.array([s.odom for s in scans])  # [T, 3]
+    meta_odom: dict = {}
+    if prefer == "odom" and log.odom_pose:
+        start, end, meta_odom = _odometry_from_odom_lines(log, scans, pairing)
+        meta_odom["odometry_source"] = f"ODOM lines ({pairing} in time to each scan)"
+    else:
+        start = end = odom_fields
+        meta_odom["odometry_source"] = f"{kind} odometry fields"
+
+    logged = np.array([s.pose for s in scans])  # [T, 3]
+    diff = np.abs(logged - end)
+    diff[:, 2] = np.abs(wrap(logged[:, 2] - end[:, 2]))
+    differs = float(diff.max()) > 1e-9
+    meta = {
+        "source": "carmen",
+        "file": log.source,
+        "scan_message": kind,
+        "counts": dict(log.counts),
+        "ignored": dict(log.ignored),
+        "skipped_lines": log.skipped,
+        "skip_reasons": list(log.skip_reasons),
+        "params": dict(log.params),
+        "pose_source": f"{kind} logged pose (differs from odometry)" if differs else None,
+        "sensor": sensor,
+        **meta_odom,
+    }
+    return build_traversal(
+        ranges,
+        angles,
+        max_range,
+        start,
+        end,
+        np.array([s.time for s in scans]),
+        logged if differs else None,
+        meta,
+        beam_stride=beam_stride,
+    )
+
+
+def read_carmen(
+    path: str | os.PathLike,
+    *,
+    lenient: bool = False,
+    beam_stride: int = 1,
+    max_range: float | None = None,
+    prefer: str = "odom",
+    pairing: str = "interp",
+) -> Traversal:
+    """Read a CARMEN log into a :class:`Traversal` (see the module docstring for conventions).
+
+    Args:
+        path: ``.clf`` / ``.log`` / ``.carmen`` file, optionally ``.gz``.
+        lenient: skip malformed lines (``metadata["skipped_lines"]``, ``["skip_reasons"]``)
+            instead of raising :class:`ParseError`.
+        beam_stride: keep every ``beam_stride``-th beam.
+        max_range: override the range limit; default: ``ROBOTLASER1``'s field, else ``PARAM
+            robot_front_laser_max``, else the data's repeated maximum (81.91 in mit-csail.clf).
+        prefer: ``"odom"`` takes odometry from ``ODOM`` lines when there are any, ``"flaser"``
+            always from the scans' own odometry fields.
+        pairing: ``"interp"`` or ``"nearest"``: how ``ODOM`` records are matched to scan times.
+    Raises:
+        ParseError: malformed line (strict mode) or no scans at all.
+    """
+    log = parse_carmen(path, lenient=lenient)
+    return carmen_to_traversal(
+        log, beam_stride=beam_stride, max_range=max_range, prefer=prefer, pairing=pairing
+    )
+
+
+def write_carmen(traversal: Traversal, path: str | os.PathLike) -> Path:
+    """Write ``traversal`` as ``PARAM`` + ``FLASER`` lines that :func:`read_carmen` reads back.
+
+    Logged pose = ``traversal.poses`` (or the odometry when absent), odometry fields =
+    :func:`odometry_poses`, timestamps = ``traversal.timestamps`` (or 0.1 s steps), masked
+    readings written as ``max_range``. Beams must be evenly spaced and symmetric about the
+    heading (FLASER cannot express anything else). Numbers are written in full precision.
+    """
+    a = traversal.beam_angles
+    step = np.diff(a)
+    if len(a) > 1 and (abs(a[0] + a[-1]) > 1e-9 or np.ptp(step) > 1e-9 or step[0] <= 0):
+        raise ValueError("write_carmen needs evenly spaced beam angles symmetric about 0")
+    odom = odometry_poses(traversal)  # [T, 3]
+    poses = odom if traversal.poses is None else np.asarray(traversal.poses, dtype=np.float64)
+    T = traversal.num_steps
+    ts = traversal.timestamps if traversal.timestamps is not None else np.arange(T) * 0.1
+    obs = np.asarray(traversal.observations, dtype=np.float64)
+    if traversal.obs_mask is not None:
+        obs = np.where(traversal.obs_mask, obs, traversal.max_range)
+    fov = math.degrees(a[-1] - a[0]) if len(a) > 1 else 180.0
+    out = [
+        "# written by pyro_slam.io.write_carmen",
+        f"PARAM {FOV_PARAMS[0]} {fov!r}",
+        f"PARAM {MAX_RANGE_PARAMS[0]} {float(traversal.max_range)!r}",
+    ]
+    for t in range(T):
+        nums = [*obs[t], *poses[t], *odom[t]]
+        stamp = repr(float(ts[t]))
+        out.append(f"FLASER {len(a)} {' '.join(map(repr, map(float, nums)))} {stamp} pyro {stamp}")
+    text = "\n".join(out) + "\n"
+    atomic_write(Path(path), lambda f: f.write(text.encode()))
+    return Path(path)

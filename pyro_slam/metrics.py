@@ -1,0 +1,106 @@
+"""Trajectory metrics: localisation error over time, error relative to distance travelled, ATE.
+
+Errors are Euclidean position errors in the traversal's units (the unit-square maze for the
+simulator, metres for real logs). ATE uses the `evo` package (a well-tested reference
+implementation of Sturm et al.'s absolute trajectory error) without alignment, since SLAM is
+anchored at the known start pose.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .data import Traversal
+
+
+def localisation_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """Euclidean position error per step: ``est, true [T, >=2]`` -> ``[T]``."""
+    est, true = np.asarray(est), np.asarray(true)
+    if est.shape[0] != true.shape[0]:
+        raise ValueError(f"trajectory lengths differ: {est.shape[0]} vs {true.shape[0]}")
+    return np.linalg.norm(est[:, :2] - true[:, :2], axis=1)
+
+
+def distance_travelled(true: np.ndarray) -> np.ndarray:
+    """Cumulative path length ``[T]`` (0 at the start)."""
+    steps = np.linalg.norm(np.diff(np.asarray(true)[:, :2], axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def relative_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """Localisation error divided by the distance travelled so far ``[T]`` (NaN-free: 0 at t=0)."""
+    d = distance_travelled(true)
+    e = localisation_error(est, true)
+    return np.divide(e, d, out=np.zeros_like(e), where=d > 0)
+
+
+def _to_evo(poses: np.ndarray, stamps: np.ndarray):
+    from evo.core.trajectory import PoseTrajectory3D
+
+    p = np.asarray(poses, dtype=np.float64)
+    xyz = np.column_stack([p[:, 0], p[:, 1], np.zeros(len(p))])
+    h = p[:, 2] / 2
+    quat = np.column_stack([np.cos(h), np.zeros(len(p)), np.zeros(len(p)), np.sin(h)])  # wxyz
+    return PoseTrajectory3D(positions_xyz=xyz, orientations_quat_wxyz=quat, timestamps=stamps)
+
+
+def ate(est: np.ndarray, true: np.ndarray, align: bool = False) -> dict:
+    """Absolute trajectory error (translation) via ``evo``: rmse / mean / std / max."""
+    from evo.core import metrics, sync
+
+    stamps = np.arange(len(true), dtype=np.float64)
+    ref, e = _to_evo(true, stamps), _to_evo(est, stamps)
+    ref, e = sync.associate_trajectories(ref, e)
+    if align:
+        e.align(ref, correct_scale=False)
+    m = metrics.APE(metrics.PoseRelation.translation_part)
+    m.process_data((ref, e))
+    s = m.get_all_statistics()
+    return {k: float(s[k]) for k in ("rmse", "mean", "std", "max")}
+
+
+def summary(est: np.ndarray, true: np.ndarray) -> dict:
+    """Final and mean errors, relative error and ATE for one run."""
+    e = localisation_error(est, true)
+    r = relative_error(est, true)
+    return {
+        "final_error": float(e[-1]),
+        "mean_error": float(e.mean()),
+        "final_relative_error": float(r[-1]),
+        "distance_travelled": float(distance_travelled(true)[-1]),
+        "ate": ate(est, true),
+    }
+
+
+def odometry_poses(traversal: Traversal) -> np.ndarray:
+    """Integrate the traversal's controls from its first pose (zeros if unknown): ``[T, 3]``."""
+    import torch
+
+    from .geometry import odometry_delta, rotate_forward
+
+    z = torch.zeros(3, dtype=torch.float64)
+    if traversal.poses is not None:
+        z = torch.as_tensor(traversal.poses[0], dtype=torch.float64)
+    f = (
+        odometry_delta
+        if traversal.metadata.get("control_model") == "odometry_delta"
+        else rotate_forward
+    )
+    u = torch.as_tensor(traversal.controls, dtype=torch.float64)
+    out = [z]
+    for t in range(u.shape[0]):
+        z = f(z, u[t])
+        out.append(z)
+    return torch.stack(out).numpy()
+
+
+def write_trajectory_tum(path, poses: np.ndarray, stamps: np.ndarray | None = None) -> None:
+    """Export ``[T, 3]`` poses in TUM format (``t x y z qx qy qz qw``), readable by evo."""
+    p = np.asarray(poses, dtype=np.float64)
+    stamps = np.arange(len(p), dtype=np.float64) if stamps is None else np.asarray(stamps)
+    h = p[:, 2] / 2
+    rows = np.column_stack(
+        [stamps, p[:, 0], p[:, 1], np.zeros(len(p)), np.zeros(len(p)), np.zeros(len(p)),
+         np.sin(h), np.cos(h)]
+    )  # fmt: skip
+    np.savetxt(path, rows, fmt="%.9f")

@@ -1,0 +1,243 @@
+"""The DVBF-LM generative model (Mirchev et al. 2019, section III-B) as a Pyro model.
+
+    M        ~ N(0, 1)                                  map, [w, h, D_m]  (pyro.plate x 2)
+    z_0      ~ N(z_init, sigma_0)                       initial pose, [3]
+    m_t      = f_m(z_t, M)                              chart: bilinear attention (4 cells)
+    x_t      ~ N(rotate(mu_E(m_t), heading_t), sigma_E)  emission, [B]
+    z_{t+1}  ~ N(mu_T(z_t, u_t, mu_E(m_t)), sigma_T)     transition, [3]
+
+:class:`DVBFLM` holds the networks and exposes each factor as a plain function of tensors
+(:meth:`chart`, :meth:`emission_mean`, :meth:`emission_log_prob`, :meth:`transition_dist`) so that
+the Pyro model (:meth:`DVBFLM.model`), the SMCFilter model (:class:`FilterModel`) and the fast
+differentiable particle filter (:mod:`pyro_slam.filtering`) all evaluate the *same* factors.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pyro
+import pyro.distributions as dist
+import torch
+from torch import nn
+
+from .networks import EmissionMLP, rotate_scan
+from .transitions import Transition
+
+
+@dataclass(frozen=True)
+class MapGrid:
+    """Geometry of the map grid: ``cells = (w, h)`` grid points spanning ``origin + [0, size]``.
+
+    Cell ``(i, j)`` sits at ``origin + (i * size_x / (w - 1), j * size_y / (h - 1))``; poses
+    outside the extent read the border cells.
+    """
+
+    cells: tuple[int, int] = (32, 32)
+    dim: int = 10
+    origin: tuple[float, float] = (0.0, 0.0)
+    size: tuple[float, float] = (1.0, 1.0)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (self.cells[0], self.cells[1], self.dim)
+
+    @classmethod
+    def covering(cls, xmin, ymin, xmax, ymax, resolution: float, dim: int, margin: float = 0.0):
+        """A grid over a bounding box with a given cell spacing (metric maps of real logs)."""
+        x0, y0 = xmin - margin, ymin - margin
+        sx, sy = xmax - xmin + 2 * margin, ymax - ymin + 2 * margin
+        w = max(2, int(round(sx / resolution)) + 1)
+        h = max(2, int(round(sy / resolution)) + 1)
+        return cls((w, h), dim, (float(x0), float(y0)), (float(sx), float(sy)))
+
+    def attend(self, M: torch.Tensor, xy: torch.Tensor, power: int = 1) -> torch.Tensor:
+        """Bilinear attention ``f_m``: charts at positions ``xy``.
+
+        Args:
+            M: map ``[w, h, D]`` or ``[S, w, h, D]`` (``S`` map samples).
+            xy: positions ``[..., 2]``; with a batched map, ``xy`` is ``[S, ..., 2]``.
+            power: raise the four interpolation weights to this power (``power=2`` on the map
+                variances gives the variance of the chart under a mean-field ``q(M)``).
+        Returns:
+            charts ``[..., D]`` (``[S, ..., D]`` with a batched map).
+        """
+        w, h = self.cells
+        D = M.shape[-1]
+        gx = (xy[..., 0] - self.origin[0]) * ((w - 1) / self.size[0])
+        gy = (xy[..., 1] - self.origin[1]) * ((h - 1) / self.size[1])
+        gx = gx.clamp(0, w - 1)
+        gy = gy.clamp(0, h - 1)
+        i0 = gx.detach().floor().clamp(max=w - 2)
+        j0 = gy.detach().floor().clamp(max=h - 2)
+        a = (gx - i0).unsqueeze(-1)  # [..., 1]
+        b = (gy - j0).unsqueeze(-1)
+        wa = (1 - a) ** power, a**power
+        wb = (1 - b) ** power, b**power
+        base = i0.long() * h + j0.long()  # [...] flat index of the lower-left cell
+        if M.dim() == 3:
+            flat = M.reshape(w * h, D)
+
+            def cell(offset):
+                return flat[base + offset]
+        else:
+            S = M.shape[0]
+            flat = M.reshape(S, w * h, D)
+            idx = base.reshape(S, -1)
+
+            def cell(offset):
+                out = torch.gather(flat, 1, (idx + offset).unsqueeze(-1).expand(-1, -1, D))
+                return out.reshape(*base.shape, D)
+
+        return (
+            wa[0] * wb[0] * cell(0)
+            + wa[1] * wb[0] * cell(h)
+            + wa[0] * wb[1] * cell(1)
+            + wa[1] * wb[1] * cell(h + 1)
+        )
+
+
+class DVBFLM(nn.Module):
+    """DVBF-LM with a LiDAR emission.
+
+    Args:
+        grid: map geometry (:class:`MapGrid`).
+        emission: ``mu_E`` (:class:`~pyro_slam.networks.EmissionMLP`).
+        transition: a :class:`~pyro_slam.transitions.Transition`.
+        beam_angles: ``[B]`` beam directions relative to the heading.
+        sigma_emission: ``sigma_E`` (paper: 0.1 for training).
+        init_scale: std of the initial-pose prior around the given start pose, ``[3]``.
+    """
+
+    def __init__(
+        self,
+        grid: MapGrid,
+        emission: EmissionMLP,
+        transition: Transition,
+        beam_angles,
+        sigma_emission: float = 0.1,
+        init_scale=(1e-3, 1e-3, 1e-3),
+    ):
+        super().__init__()
+        self.grid = grid
+        self.emission = emission
+        self.transition = transition
+        self.register_buffer(
+            "beam_angles", torch.as_tensor(beam_angles, dtype=torch.get_default_dtype())
+        )
+        self.sigma_emission = float(sigma_emission)
+        self.register_buffer(
+            "init_scale", torch.as_tensor(init_scale, dtype=torch.get_default_dtype())
+        )
+
+    # ----------------------------------------------------------------- factors as functions
+    def chart(self, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """``m_t = f_m(z_t, M)``: ``[..., D_m]``."""
+        return self.grid.attend(M, z[..., :2])
+
+    def emission_mean(self, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Predicted body-frame scan ``rotate(mu_E(m_t), heading)``.
+
+        ``z [..., 3]`` -> ``[..., B]``.
+        """
+        return rotate_scan(self.emission(self.chart(M, z)), z[..., 2], self.beam_angles)
+
+    def emission_dist(self, mean: torch.Tensor, mask: torch.Tensor | None = None, sigma=None):
+        """``p(x_t | m_t)`` as a Pyro distribution with event shape ``[B]``."""
+        d = dist.Normal(mean, self.sigma_emission if sigma is None else sigma)
+        if mask is not None:
+            d = d.mask(mask)
+        return d.to_event(1)
+
+    def emission_log_prob(self, x, mean, mask=None, sigma=None) -> torch.Tensor:
+        """``log p(x_t | m_t)`` summed over (unmasked) beams: ``[...]``.
+
+        Same value as ``emission_dist(mean, mask).log_prob(x)``, written out for speed.
+        """
+        s = torch.as_tensor(self.sigma_emission if sigma is None else sigma, dtype=mean.dtype)
+        r = (x - mean) / s
+        lp = -0.5 * r * r - (torch.log(s) + 0.9189385332046727)
+        if mask is not None:
+            lp = lp * mask
+        return lp.sum(-1)
+
+    def transition_dist(self, z, u, scan=None):
+        """``p(z_{t+1} | z_t, u_t, m_t)`` with event shape ``[3]``."""
+        return dist.Normal(self.transition.mean(z, u, scan), self.transition.sigma).to_event(1)
+
+    def map_prior(self):
+        """``p(M) = N(0, 1)`` per cell and feature (batch ``[w, h]``, event ``[D_m]``)."""
+        w, h, D = self.grid.shape
+        loc = self.beam_angles.new_zeros(D)
+        return dist.Normal(loc, torch.ones_like(loc)).to_event(1)
+
+    # ------------------------------------------------------------------------ Pyro model
+    learn_emission = True
+
+    def map_model(self, *args, **kwargs) -> torch.Tensor:
+        """The global part of the model: registers ``mu_E`` (if learned) and samples the map.
+
+        This is the ``model`` handed to :class:`pyro.infer.SVI` with
+        :class:`~pyro_slam.filtering.ParticleChunkELBO`, which adds the pose/observation part
+        by particle filtering.
+        """
+        if self.learn_emission:
+            pyro.module("emission", self.emission)
+        return self.sample_map()
+
+    def sample_map(self) -> torch.Tensor:
+        """The global map site ``"map"`` under its two plates; returns ``M [w, h, D_m]``."""
+        w, h, _ = self.grid.shape
+        with pyro.plate("map_x", w, dim=-2), pyro.plate("map_y", h, dim=-1):
+            return pyro.sample("map", self.map_prior())
+
+    def model(self, observations, controls, init_pose, mask=None):
+        """The full generative model of one traversal.
+
+        Args:
+            observations: ``[T, B]`` scans (or None to sample them).
+            controls: ``[T-1, D_u]``.
+            init_pose: ``[3]`` start pose (the map frame is anchored at it).
+            mask: optional ``[T, B]`` bool, False = missing reading.
+        Returns:
+            poses ``[T, 3]``.
+        """
+        pyro.module("dvbflm", self)
+        T = controls.shape[0] + 1
+        M = self.sample_map()
+        z = pyro.sample("z_0", dist.Normal(init_pose, self.init_scale).to_event(1))
+        poses = []
+        scan = None
+        for t in pyro.markov(range(T)):
+            if t > 0:
+                z = pyro.sample(f"z_{t}", self.transition_dist(z, controls[t - 1], scan))
+            scan = self.emission_mean(M, z)
+            obs_t = None if observations is None else observations[t]
+            mask_t = None if mask is None else mask[t]
+            pyro.sample(f"x_{t}", self.emission_dist(scan, mask_t), obs=obs_t)
+            poses.append(z)
+        return torch.stack(poses, -2)
+
+
+class FilterModel:
+    """The DVBF-LM time step as a model object for :class:`pyro.infer.SMCFilter`.
+
+    The map is fixed (e.g. the mean of a learned ``q(M)``). ``state["z"]`` holds the poses and
+    ``state["scan"]`` the predicted scan at them (the transition's input at the next step).
+    """
+
+    def __init__(self, dvbflm: DVBFLM, M: torch.Tensor):
+        self.m, self.M = dvbflm, M
+
+    def init(self, state, init_pose, x=None, mask=None):
+        z = pyro.sample("z", dist.Normal(init_pose, self.m.init_scale).to_event(1))
+        scan = self.m.emission_mean(self.M, z)
+        if x is not None:
+            pyro.sample("x", self.m.emission_dist(scan, mask), obs=x)
+        state["z"], state["scan"] = z, scan
+
+    def step(self, state, x, u, mask=None):
+        z = pyro.sample("z", self.m.transition_dist(state["z"], u, state["scan"]))
+        scan = self.m.emission_mean(self.M, z)
+        pyro.sample("x", self.m.emission_dist(scan, mask), obs=x)
+        state["z"], state["scan"] = z, scan

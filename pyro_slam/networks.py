@@ -1,0 +1,113 @@
+"""Neural networks of DVBF-LM (paper Appendix B, Table I) and the scan-rotation layer.
+
+* :class:`EmissionMLP`  -- ``mu_E``: chart ``m_t`` [..., D_m] -> world-frame range profile
+  [..., n_world] (4 x 256, softsign).
+* :func:`rotate_scan`   -- the "rotational shift of the beam outputs w.r.t. heading": samples a
+  world-frame profile at the beam directions ``heading + beam_angles`` (circular linear
+  interpolation, differentiable in the heading).
+* :class:`TransitionMLP` -- ``mu_T``: ``(cos h, sin h, u, mu_E(m_t))`` -> pose increment
+  (6 x 256, ReLU).
+
+Networks know nothing of Pyro; the model (:mod:`pyro_slam.model`) wires them into distributions.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+def mlp(n_in: int, n_out: int, hidden: int, layers: int, activation: type[nn.Module]):
+    """``layers`` hidden layers of ``hidden`` units, then a linear read-out."""
+    mods: list[nn.Module] = []
+    d = n_in
+    for _ in range(layers):
+        mods += [nn.Linear(d, hidden), activation()]
+        d = hidden
+    mods.append(nn.Linear(d, n_out))
+    return nn.Sequential(*mods)
+
+
+class EmissionMLP(nn.Module):
+    """``mu_E``: map chart -> world-frame range profile at ``n_world`` equally spaced angles.
+
+    Args:
+        map_dim: ``D_m``.
+        n_world: number of world-frame directions (``2 pi j / n_world``, j = 0..n_world-1).
+        scale: output scale (e.g. the sensor's max range); the output is ``scale * net(m)``, so
+            that the network works on O(1) numbers.
+    """
+
+    def __init__(
+        self, map_dim: int, n_world: int, hidden: int = 256, layers: int = 4, scale: float = 1.0
+    ):
+        super().__init__()
+        self.map_dim, self.n_world, self.scale = map_dim, n_world, float(scale)
+        self.net = mlp(map_dim, n_world, hidden, layers, nn.Softsign)
+
+    def forward(self, m: torch.Tensor) -> torch.Tensor:
+        """``m [..., D_m]`` -> ``[..., n_world]``."""
+        return self.scale * self.net(m)
+
+
+def rotate_scan(
+    world_scan: torch.Tensor, heading: torch.Tensor, beam_angles: torch.Tensor
+) -> torch.Tensor:
+    """Read a world-frame profile at body-frame beam directions.
+
+    Args:
+        world_scan: ``[..., n]`` values at world angles ``2 pi j / n``.
+        heading: ``[...]`` agent headings (rad, any range).
+        beam_angles: ``[B]`` beam directions relative to the heading (rad).
+    Returns:
+        ``[..., B]``: beam ``i`` reads the profile at world angle ``heading + beam_angles[i]``,
+        linearly interpolated between the two nearest world directions (wrapping around).
+    """
+    n = world_scan.shape[-1]
+    f = torch.remainder(heading.unsqueeze(-1) + beam_angles, 2 * math.pi) * (n / (2 * math.pi))
+    i0 = torch.floor(f)
+    a = f - i0  # [..., B]
+    i0 = i0.long().remainder(n)
+    i1 = (i0 + 1).remainder(n)
+    batch = torch.broadcast_shapes(world_scan.shape[:-1], i0.shape[:-1])
+    ws = world_scan.expand(*batch, n)
+    i0 = i0.expand(*batch, i0.shape[-1])
+    i1 = i1.expand(*batch, i1.shape[-1])
+    return torch.lerp(ws.gather(-1, i0), ws.gather(-1, i1), a.expand_as(i0).to(ws.dtype))
+
+
+class TransitionMLP(nn.Module):
+    """``mu_T``: predicts the pose increment from heading, control and predicted scan.
+
+    Input ``[cos h, sin h, u (D_u), scan (n_scan)]``; output ``(dx, dy, dh)`` added to ``z``.
+    Feeding the (predicted) scan ``mu_E(m_t)`` instead of ``m_t`` lets the network be pretrained
+    with ground-truth scans (paper Appendix B-B).
+    """
+
+    def __init__(self, control_dim: int, n_scan: int, hidden: int = 256, layers: int = 6):
+        super().__init__()
+        self.control_dim, self.n_scan = control_dim, n_scan
+        self.net = mlp(2 + control_dim + n_scan, 3, hidden, layers, nn.ReLU)
+        # input/output normalisation, set from data by `fit_normalisation`
+        self.register_buffer("in_loc", torch.zeros(2 + control_dim + n_scan))
+        self.register_buffer("in_scale", torch.ones(2 + control_dim + n_scan))
+        self.register_buffer("out_scale", torch.ones(3))
+
+    def features(self, z: torch.Tensor, u: torch.Tensor, scan: torch.Tensor) -> torch.Tensor:
+        h = z[..., 2:3]
+        u = u.expand(*z.shape[:-1], u.shape[-1])
+        scan = scan.expand(*z.shape[:-1], scan.shape[-1])
+        return torch.cat([torch.cos(h), torch.sin(h), u, scan], dim=-1)
+
+    def fit_normalisation(self, feats: torch.Tensor, deltas: torch.Tensor) -> None:
+        """Standardise inputs ``[N, F]`` and scale outputs ``[N, 3]`` from training data."""
+        self.in_loc.copy_(feats.mean(0))
+        self.in_scale.copy_(feats.std(0).clamp_min(1e-6))
+        self.out_scale.copy_(deltas.std(0).clamp_min(1e-6))
+
+    def forward(self, z: torch.Tensor, u: torch.Tensor, scan: torch.Tensor) -> torch.Tensor:
+        """``z [..., 3]``, ``u [..., D_u]``, ``scan [..., n_scan]`` -> next pose ``[..., 3]``."""
+        x = (self.features(z, u, scan) - self.in_loc) / self.in_scale
+        return z + self.net(x) * self.out_scale

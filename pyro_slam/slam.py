@@ -1,0 +1,450 @@
+"""SLAM with DVBF-LM: online (sweep t = 1..T) and offline (all steps), with checkpoints.
+
+The estimator is the paper's: SVI (Adam) on the particle-chunk ELBO (eq. 3) for the map belief
+``q(M)`` (and optionally the emission network), with the bootstrap particle filter as the pose
+guide and the asynchronous particle cache.
+
+* **online**: at every step the particle filter advances under the current map mean, its
+  particles enter the cache, and ``svi_steps`` SVI steps run on the newest chunk plus random
+  older chunks (replay), with the ELBO scaled to the steps seen so far.
+* **offline**: rounds of (a) one particle-filter pass over the whole traversal under the current
+  map mean, which refreshes the whole cache forward through the transition, and (b) SVI on random
+  chunks from anywhere in the traversal; a final filtering pass gives the pose posterior. The
+  first round starts from an online sweep (``offline_init="online"``) or from odometry alone
+  (``"odometry"``).
+
+Every long loop shows a tqdm bar and writes atomic checkpoints from which :meth:`SLAM.resume`
+continues with the same random stream.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyro
+import torch
+from pyro.infer import SVI
+from pyro.optim import Adam
+from tqdm.auto import tqdm
+
+from .data import Traversal, atomic_write
+from .filtering import (
+    ChunkBatch,
+    MapBelief,
+    ParticleCache,
+    ParticleChunkELBO,
+    ParticleFilter,
+    Particles,
+)
+from .guide import MapGuide
+from .model import DVBFLM, MapGrid
+from .networks import EmissionMLP
+from .transitions import KinematicTransition, Transition
+
+
+@dataclass
+class SLAMConfig:
+    """Hyper-parameters (defaults tuned on a held-out moderate-medium maze)."""
+
+    map_resolution: float = 1 / 31  # grid spacing, world units (32 x 32 for the unit maze)
+    map_dim: int = 10  # D_m
+    map_margin: float = 0.05
+    emission_hidden: int = 256
+    emission_layers: int = 4
+    sigma_emission: float = 0.1  # sigma_E for training
+    filter_sigma: float | None = 0.05  # sigma_E used to weigh the filter's particles
+    transition_sigma: tuple[float, float, float] = (1e-3, 1e-3, 5e-3)
+    uncertainty_gain: float = 1.0
+    filter_particles: int = 256
+    train_particles: int = 32
+    cache_particles: int = 50
+    chunk_length: int = 8
+    chunks_per_batch: int = 16
+    lr_map: float = 0.05
+    lr_map_scale: float | None = None  # lr of q(M)'s scale (default: lr_map)
+    lr_emission: float = 1e-3
+    learn_emission: bool = True
+    svi_every: int = 1
+    svi_steps: int = 1
+    offline_rounds: int = 3
+    offline_svi_steps: int = 1500
+    offline_init: str = "online"
+    proposal: str = "gaussian"
+    seed: int = 0
+    checkpoint_every: int = 1000
+
+    def to_dict(self):
+        return asdict(self)
+
+
+def build_model(
+    traversal: Traversal,
+    config: SLAMConfig,
+    transition: Transition | None = None,
+    emission: EmissionMLP | None = None,
+):
+    """A :class:`DVBFLM` and :class:`MapGuide` sized to the traversal's extent.
+
+    The grid covers the maze walls (or, for logs without walls, the odometry path plus sensor
+    range) with ``config.map_resolution`` spacing.
+    """
+    if traversal.walls.shape[0]:
+        lo = traversal.walls.reshape(-1, 2).min(0)
+        hi = traversal.walls.reshape(-1, 2).max(0)
+    else:
+        from .metrics import odometry_poses
+
+        path = odometry_poses(traversal)[:, :2]
+        lo = path.min(0) - traversal.max_range
+        hi = path.max(0) + traversal.max_range
+    grid = MapGrid.covering(*lo, *hi, config.map_resolution, config.map_dim, config.map_margin)
+    n_world = max(traversal.num_beams, 20)
+    if emission is None:
+        emission = EmissionMLP(
+            config.map_dim,
+            n_world,
+            config.emission_hidden,
+            config.emission_layers,
+            scale=traversal.max_range,
+        )
+    if transition is None:
+        control_model = traversal.metadata.get("control_model", "rotate_forward")
+        transition = KinematicTransition(config.transition_sigma, control_model)
+    model = DVBFLM(grid, emission, transition, traversal.beam_angles, config.sigma_emission)
+    model.learn_emission = config.learn_emission
+    guide = MapGuide(grid.shape)
+    return model, guide
+
+
+def _tensors(tr: Traversal):
+    dtype = torch.get_default_dtype()
+    obs = torch.as_tensor(tr.observations, dtype=dtype)
+    ctl = torch.as_tensor(tr.controls, dtype=dtype)
+    mask = None if tr.obs_mask is None else torch.as_tensor(tr.obs_mask)
+    if tr.poses is not None:
+        init = torch.as_tensor(tr.poses[0], dtype=dtype)
+    else:
+        init = torch.zeros(3, dtype=dtype)
+    return obs, ctl, mask, init
+
+
+@dataclass
+class SLAMState:
+    """Everything a run needs to continue: written to and read from checkpoints."""
+
+    mode: str
+    phase: str = "online"  # online | offline-svi | offline-filter | done
+    t: int = 0  # next time step (online) / next SVI step (offline)
+    round: int = 0
+    estimates: list = field(default_factory=list)  # per step [3]
+    stds: list = field(default_factory=list)
+    losses: list = field(default_factory=list)
+
+
+class SLAM:
+    """A SLAM run over one traversal.
+
+    Example::
+
+        tr = pyro_slam.data.load("traversal.npz")
+        slam = SLAM(tr, SLAMConfig(), checkpoint="run/ckpt.pt")
+        result = slam.run("online")          # dict: mean [T, 3], std [T, 3], losses
+    """
+
+    def __init__(
+        self,
+        traversal: Traversal,
+        config: SLAMConfig | None = None,
+        transition: Transition | None = None,
+        emission: EmissionMLP | None = None,
+        checkpoint: str | Path | None = None,
+    ):
+        self.tr = traversal
+        self.cfg = config or SLAMConfig()
+        self.obs, self.ctl, self.mask, self.init_pose = _tensors(traversal)
+        self.T = self.obs.shape[0]
+        pyro.clear_param_store()
+        pyro.set_rng_seed(self.cfg.seed)
+        self.gen = torch.Generator().manual_seed(self.cfg.seed)
+        self.model, self.guide = build_model(traversal, self.cfg, transition, emission)
+        self.pf = ParticleFilter(
+            self.model,
+            sigma_emission=self.cfg.filter_sigma,
+            generator=self.gen,
+            uncertainty_gain=self.cfg.uncertainty_gain,
+        )
+        self.cache = ParticleCache(self.T, self.cfg.cache_particles)
+        self.elbo = ParticleChunkELBO(
+            self.pf,
+            self.cache,
+            self.obs,
+            self.ctl,
+            self.mask,
+            num_particles=self.cfg.train_particles,
+            proposal=self.cfg.proposal,
+        )
+        lr = self.cfg
+
+        def per_param(name, _param):
+            if name.endswith("_scale") and lr.lr_map_scale is not None:
+                return {"lr": lr.lr_map_scale}
+            return {"lr": lr.lr_map if name.startswith("map") else lr.lr_emission}
+
+        self.optim = Adam(per_param)
+        self.svi = SVI(self.model.map_model, self.guide, self.optim, loss=self.elbo)
+        self.guide.params()  # create the map parameters now (checkpoints need them)
+        self.checkpoint = None if checkpoint is None else Path(checkpoint)
+        self.particles: Particles | None = None
+        self.state: SLAMState | None = None
+
+    # --------------------------------------------------------------------------- helpers
+    def map_mean(self):
+        """The map belief the filter weighs with: mean and scale of ``q(M)``."""
+        loc, scale = self.guide.params()
+        return MapBelief(loc.detach(), scale.detach())
+
+    def _svi_step(self, lo: int, hi: int, newest: int | None) -> float:
+        """One SVI step on chunks starting in ``[lo, hi]`` (plus the chunk at ``newest``)."""
+        C = self.cfg.chunks_per_batch
+        n_rand = C - (newest is not None)
+        starts = torch.randint(lo, hi + 1, (n_rand,), generator=self.gen)
+        if newest is not None:
+            starts = torch.cat([torch.tensor([newest]), starts])
+        loss = self.svi.step(ChunkBatch(starts, self.cfg.chunk_length))
+        if not math.isfinite(loss):
+            raise FloatingPointError(f"SVI loss became {loss} (step t={self.state.t})")
+        return loss
+
+    def _filter_step(self, t: int, M):
+        x = self.obs[t]
+        m = None if self.mask is None else self.mask[t]
+        if t == 0:
+            scale = self.model.init_scale
+            z0 = self.init_pose + scale * torch.randn(
+                self.cfg.filter_particles, 3, generator=self.gen, dtype=self.obs.dtype
+            )
+            self.particles, _ = self.pf.init(z0, M, x, m, step=0)
+        else:
+            self.particles, _ = self.pf.step(self.particles, M, x, self.ctl[t - 1], m, step=t)
+        self.cache.store(torch.tensor([t]), _batched(self.particles), self.gen)
+
+    # --------------------------------------------------------------------------- phases
+    def _online(self, progress: bool):
+        st, L = self.state, self.cfg.chunk_length
+        bar = tqdm(total=self.T, initial=st.t, desc="online SLAM", disable=not progress)
+        with torch.no_grad():
+            M = self.map_mean()
+        while st.t < self.T:
+            t = st.t
+            with torch.no_grad():
+                self._filter_step(t, M)
+            if st.phase == "online":
+                st.estimates.append(self.particles.mean().tolist())
+                st.stds.append(_std(self.particles).tolist())
+            if t >= L - 1 and t % self.cfg.svi_every == 0:
+                self.elbo.num_steps_seen = t + 1
+                for _ in range(self.cfg.svi_steps):
+                    st.losses.append(self._svi_step(0, t - L + 1, t - L + 1))
+                with torch.no_grad():
+                    M = self.map_mean()
+            st.t += 1
+            bar.update(1)
+            if self.checkpoint and st.t % self.cfg.checkpoint_every == 0:
+                self.save(self.checkpoint)
+        bar.close()
+        self.elbo.num_steps_seen = self.T
+
+    def _filter_pass(self, progress: bool, desc: str):
+        """Filter the whole traversal under the map mean (refreshes the cache)."""
+        M = self.map_mean()
+        means, stds = [], []
+        with torch.no_grad():
+            for t in tqdm(range(self.T), desc=desc, disable=not progress, leave=False):
+                self._filter_step(t, M)
+                means.append(self.particles.mean().tolist())
+                stds.append(_std(self.particles).tolist())
+        return means, stds
+
+    def _offline(self, progress: bool):
+        st, L = self.state, self.cfg.chunk_length
+        if st.phase == "online-init":
+            if self.cfg.offline_init == "online":
+                self._online(progress)
+            else:
+                self._filter_pass(progress, "odometry pass")
+            st.phase, st.t = "offline-svi", 0
+            if self.checkpoint:
+                self.save(self.checkpoint)
+        while st.round < self.cfg.offline_rounds:
+            if st.phase == "offline-filter":
+                self._filter_pass(progress, f"filter pass {st.round + 1}")
+                st.phase, st.t = "offline-svi", 0
+            n = self.cfg.offline_svi_steps
+            bar = tqdm(
+                total=n, initial=st.t, desc=f"offline SVI {st.round + 1}", disable=not progress
+            )
+            while st.t < n:
+                st.losses.append(self._svi_step(0, self.T - L, None))
+                st.t += 1
+                bar.update(1)
+                if self.checkpoint and st.t % self.cfg.checkpoint_every == 0:
+                    self.save(self.checkpoint)
+            bar.close()
+            st.round += 1
+            st.phase, st.t = "offline-filter", 0
+            if self.checkpoint:
+                self.save(self.checkpoint)
+        st.estimates, st.stds = self._filter_pass(progress, "final filter pass")
+
+    def run(self, mode: str = "online", progress: bool = True) -> dict:
+        """Run (or, after :meth:`resume`, continue) SLAM. Returns :meth:`result`."""
+        if mode not in ("online", "offline"):
+            raise ValueError(f"mode must be 'online' or 'offline', got {mode!r}")
+        if self.state is None:
+            self.state = SLAMState(mode, phase="online" if mode == "online" else "online-init")
+        if mode == "online":
+            self._online(progress)
+        else:
+            self._offline(progress)
+        self.state.phase = "done"
+        if self.checkpoint:
+            self.save(self.checkpoint)
+        return self.result()
+
+    def result(self) -> dict:
+        st = self.state
+        return {
+            "mean": np.asarray(st.estimates, dtype=np.float64).reshape(-1, 3),
+            "std": np.asarray(st.stds, dtype=np.float64).reshape(-1, 3),
+            "losses": np.asarray(st.losses),
+            "map_loc": self.guide.params()[0].detach().numpy(),
+            "map_scale": self.guide.params()[1].detach().numpy(),
+        }
+
+    # --------------------------------------------------------------------------- checkpoints
+    def state_dict(self) -> dict:
+        return {
+            "config": self.cfg.to_dict(),
+            "state": copy.deepcopy(self.state.__dict__),
+            "params": pyro.get_param_store().get_state(),
+            "optim": self.optim.get_state(),
+            "model": self.model.state_dict(),
+            "cache": self.cache.state_dict(),
+            "particles": None if self.particles is None else self.particles.__dict__,
+            "gen": self.gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "elbo_seen": self.elbo.num_steps_seen,
+        }
+
+    def save(self, path) -> None:
+        """Atomic checkpoint (temp file + rename)."""
+        buf = io.BytesIO()
+        torch.save(self.state_dict(), buf)
+        atomic_write(Path(path), lambda f: f.write(buf.getvalue()))
+
+    def resume(self, path) -> SLAM:
+        """Load a checkpoint written by :meth:`save`; :meth:`run` then continues from it."""
+        d = torch.load(path, weights_only=False)
+        pyro.get_param_store().set_state(d["params"])
+        self.model.load_state_dict(d["model"])
+        self.guide.params()
+        # run one no-op step to create optimiser slots, then load their state
+        self.optim.set_state(d["optim"])
+        self.cache.load_state_dict(d["cache"])
+        self.particles = None if d["particles"] is None else Particles(**d["particles"])
+        self.gen.set_state(d["gen"])
+        torch.set_rng_state(d["torch_rng"])
+        self.elbo.num_steps_seen = d["elbo_seen"]
+        self.state = SLAMState(**d["state"])
+        return self
+
+
+def _batched(p: Particles) -> Particles:
+    return Particles(
+        p.z.unsqueeze(0), p.logw.unsqueeze(0), None if p.scan is None else p.scan.unsqueeze(0)
+    )
+
+
+def _std(p: Particles) -> torch.Tensor:
+    w = p.logw.exp().unsqueeze(-1)
+    m = (w * p.z).sum(-2, keepdim=True)
+    return (w * (p.z - m) ** 2).sum(-2).sqrt()
+
+
+def path_integration(traversal: Traversal, transition: Transition, emission_scan=True):
+    """Dead reckoning with a transition's mean from the start pose: ``[T, 3]`` (heading wrapped).
+
+    Transitions that need a scan get the *observed* scan (what a pretrained transition saw).
+    """
+    from .geometry import wrap_angle
+
+    obs, ctl, _, z = _tensors(traversal)
+    out = [z]
+    with torch.no_grad():
+        for t in range(ctl.shape[0]):
+            z = transition.mean(z, ctl[t], obs[t] if transition.needs_scan else None)
+            out.append(z)
+    poses = torch.stack(out)
+    poses[:, 2] = wrap_angle(poses[:, 2])
+    return poses.numpy().astype(np.float64)
+
+
+def pretrain_emission(
+    traversals,
+    config: SLAMConfig,
+    *,
+    steps: int = 2000,
+    batch_size: int = 256,
+    lr_map: float = 0.05,
+    lr_emission: float = 1e-3,
+    seed: int = 0,
+    progress: bool = True,
+) -> tuple[EmissionMLP, dict]:
+    """Fit ``mu_E`` on traversals with ground-truth poses (one map belief per traversal).
+
+    Maximises ``E_q(M)[log p(x_t | z_t, M)] - KL(q(M) || p(M)) / T`` with the true poses
+    ``z_t``; the maps are discarded and the emission network is returned, to be reused (frozen or
+    fine-tuned) for SLAM in new mazes.
+    """
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    models, params, data = [], [], []
+    emission = None
+    for tr in traversals:
+        m, _ = build_model(tr, config, emission=emission)
+        emission = m.emission
+        loc = torch.zeros(m.grid.shape, requires_grad=True)
+        log_scale = torch.zeros(m.grid.shape, requires_grad=True)
+        obs, _, mask, _ = _tensors(tr)
+        models.append(m)
+        params += [loc, log_scale]
+        data.append((obs, mask, torch.as_tensor(tr.poses, dtype=obs.dtype), loc, log_scale))
+    opt = torch.optim.Adam(
+        [{"params": params, "lr": lr_map}, {"params": emission.parameters(), "lr": lr_emission}]
+    )
+    prior = torch.distributions.Normal(0.0, 1.0)
+    bar = tqdm(range(steps), desc="pretrain emission", disable=not progress)
+    for _ in bar:
+        loss = 0.0
+        for m, (obs, mask, poses, loc, log_scale) in zip(models, data):
+            T = obs.shape[0]
+            idx = torch.randint(T, (batch_size,), generator=gen)
+            q = torch.distributions.Normal(loc, log_scale.exp())
+            M = q.rsample()
+            mean = m.emission_mean(M, poses[idx])
+            ll = m.emission_log_prob(obs[idx], mean, None if mask is None else mask[idx])
+            kl = torch.distributions.kl_divergence(q, prior).sum()
+            loss = loss - ll.mean() + kl / T
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        bar.set_postfix(loss=f"{float(loss):.2f}")
+    with torch.no_grad():
+        m, (obs, mask, poses, loc, _) = models[0], data[0]
+        rmse = (m.emission_mean(loc, poses) - obs).pow(2).mean().sqrt().item()
+    return emission, {"final_loss": float(loss), "rmse_first_traversal": rmse}

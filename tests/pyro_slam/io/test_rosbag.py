@@ -1,0 +1,141 @@
+"""ROS bags written here with ``rosbags`` (ROS 2 directory and ROS 1 file), read back."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.typesys import Stores, get_typestore
+
+from pyro_slam.io import ParseError, read_any, read_rosbag
+from pyro_slam.io.common import relative
+
+B, T, RANGE_MAX = 7, 5, 8.0
+ANGLE_MIN, ANGLE_INC = -1.5, 0.5
+SCAN_TIMES = 100.0 + 0.2 * np.arange(T)
+
+
+def true_pose(t):
+    return np.array([0.3 * t, 0.1 * t * t, 0.4 * t - 2.0])
+
+
+def scan_ranges(k):
+    r = np.linspace(0.5, 6.0, B) + k
+    r[1], r[3], r[5] = np.nan, np.inf, RANGE_MAX  # invalid: masked
+    r[6] = 0.01  # below range_min
+    return r.astype(np.float32)
+
+
+def messages(store, ros1: bool):
+    """(topic, msgtype, t_ns, message) in time order: scans at SCAN_TIMES, odometry at 20 Hz."""
+    T_ = store.types
+    Header, Time = T_["std_msgs/msg/Header"], T_["builtin_interfaces/msg/Time"]
+
+    def header(t, frame):
+        stamp = Time(sec=int(t), nanosec=int(round((t % 1) * 1e9)))
+        return Header(seq=0, stamp=stamp, frame_id=frame) if ros1 else Header(stamp, frame)
+
+    out = []
+    for k, t in enumerate(SCAN_TIMES):
+        scan = T_["sensor_msgs/msg/LaserScan"](
+            header=header(t, "laser"), angle_min=ANGLE_MIN, angle_max=ANGLE_MIN + ANGLE_INC * 6,
+            angle_increment=ANGLE_INC, time_increment=0.0, scan_time=0.1, range_min=0.05,
+            range_max=RANGE_MAX, ranges=scan_ranges(k), intensities=np.zeros(0, np.float32),
+        )  # fmt: skip
+        out.append(("/scan", "sensor_msgs/msg/LaserScan", t, scan))
+    gm = "geometry_msgs/msg/"
+    for t in np.arange(99.9, 101.2, 0.05):
+        x, y, th = true_pose(t)
+        pose = T_[gm + "Pose"](
+            position=T_[gm + "Point"](x=x, y=y, z=0.0),
+            orientation=T_[gm + "Quaternion"](x=0.0, y=0.0, z=math.sin(th / 2), w=math.cos(th / 2)),
+        )
+        cov = np.zeros(36)
+        twist = T_[gm + "TwistWithCovariance"](
+            twist=T_[gm + "Twist"](
+                linear=T_[gm + "Vector3"](x=0.0, y=0.0, z=0.0),
+                angular=T_[gm + "Vector3"](x=0.0, y=0.0, z=0.0),
+            ),
+            covariance=cov,
+        )
+        odom = T_["nav_msgs/msg/Odometry"](
+            header=header(t, "odom"), child_frame_id="base_link",
+            pose=T_[gm + "PoseWithCovariance"](pose=pose, covariance=cov), twist=twist,
+        )  # fmt: skip
+        out.append(("/odom", "nav_msgs/msg/Odometry", t, odom))
+    return sorted(out, key=lambda m: m[2])
+
+
+def write_ros2(path, extra_scan_topic=False, with_odom=True):
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    with Writer2(path, version=9) as w:
+        conns = {}
+        for topic, msgtype, t, msg in messages(store, ros1=False):
+            if topic == "/odom" and not with_odom:
+                continue
+            topics = [topic, "/scan2"] if extra_scan_topic and topic == "/scan" else [topic]
+            for tp in topics:
+                if tp not in conns:
+                    conns[tp] = w.add_connection(tp, msgtype, typestore=store)
+                w.write(conns[tp], int(t * 1e9), store.serialize_cdr(msg, msgtype))
+    return path
+
+
+def write_ros1(path):
+    store = get_typestore(Stores.ROS1_NOETIC)
+    with Writer1(path) as w:
+        conns = {}
+        for topic, msgtype, t, msg in messages(store, ros1=True):
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, msgtype, typestore=store)
+            w.write(conns[topic], int(t * 1e9), store.serialize_ros1(msg, msgtype))
+    return path
+
+
+def check(tr):
+    raw = np.stack([scan_ranges(k) for k in range(T)]).astype(np.float64)
+    assert tr.observations.shape == (T, B) and tr.max_range == RANGE_MAX
+    np.testing.assert_allclose(tr.beam_angles, ANGLE_MIN + ANGLE_INC * np.arange(B))
+    valid = np.isfinite(raw) & (raw > 0.05) & (raw < RANGE_MAX)
+    np.testing.assert_array_equal(tr.obs_mask, valid)
+    np.testing.assert_array_equal(tr.observations, np.where(valid, raw, RANGE_MAX))
+    np.testing.assert_allclose(tr.timestamps, SCAN_TIMES, atol=1e-6)
+    odom = np.stack([true_pose(t) for t in SCAN_TIMES])  # odometry stamped at every scan time
+    np.testing.assert_allclose(tr.controls, relative(odom[:-1], odom[1:]), atol=1e-6)
+    assert tr.metadata["control_model"] == "odometry_delta" and tr.poses is None
+    assert tr.metadata["odometry_max_time_gap"] < 1e-6
+
+
+def test_ros2_bag_round_trip(tmp_path):
+    path = write_ros2(tmp_path / "bag2")
+    check(read_rosbag(path))
+    check(read_any(path))
+    assert read_rosbag(path, beam_stride=3).observations.shape == (T, 3)
+
+
+def test_ros1_bag_round_trip(tmp_path):
+    path = write_ros1(tmp_path / "run.bag")
+    check(read_any(path, pairing="interp"))
+
+
+def test_topic_selection_and_errors(tmp_path):
+    path = write_ros2(tmp_path / "two", extra_scan_topic=True)
+    with pytest.raises(ParseError, match="several sensor_msgs/msg/LaserScan topics"):
+        read_rosbag(path)
+    check(read_rosbag(path, scan_topic="/scan2"))
+    with pytest.raises(ParseError, match="no topic '/nope'"):
+        read_rosbag(path, scan_topic="/nope")
+    with pytest.raises(ParseError, match="is nav_msgs/msg/Odometry, not sensor_msgs"):
+        read_rosbag(path, scan_topic="/odom")
+    no_odom = read_rosbag(write_ros2(tmp_path / "scans_only", with_odom=False))
+    assert (no_odom.controls == 0).all() and no_odom.metadata["odom_topic"] is None
+
+
+def test_unreadable_bag(tmp_path):
+    bad = tmp_path / "junk.bag"
+    bad.write_bytes(b"not a bag at all")
+    with pytest.raises(ParseError, match="junk.bag: cannot open bag"):
+        read_rosbag(bad)
