@@ -12,8 +12,8 @@ Full-mode budget (single thread): 400 training trajectories (40 mazes x 10) and 
 trajectories (10 unseen mazes x 10) per setting, 24 steps each. PF-net: 400 warm-start steps
 of the observation model (32 poses x 16 candidates) + 2 epochs of end-to-end BPTT (2 x 50
 batches of 8, K = 30, ESS-triggered soft resampling alpha = 0.5); histogram filter: 4 epochs;
-LSTM: 6 epochs (HF / LSTM get roughly half of PF-net's training wall time). Trained models are checkpointed under ``--out`` and reused
-when the script is run again.
+LSTM: 6 epochs (HF / LSTM get roughly half of PF-net's training wall time). Trained models
+are checkpointed under ``--out`` and reused when the script is run again.
 """
 
 from __future__ import annotations

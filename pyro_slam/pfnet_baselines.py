@@ -163,8 +163,14 @@ class HistogramFilterNet(nn.Module):
             self.obs_scale = 1.0
         self.sensor = obs_cfg.sensor
         self.head = nn.Sequential(nn.ReLU(), nn.Conv2d(ch, 16, 1), nn.ReLU(), nn.Conv2d(16, 1, 1))
-        self.blur_xy = nn.Parameter(torch.zeros(3, 3))  # softmax -> transition noise kernel
+        # softmax -> transition noise kernels; start with 87 % (xy) / 96 % (heading) of the mass
+        # on the centre, not uniform: a uniform 3x3 blur per step alone spreads the belief
+        # wider than the propagated uncertainty (checked: 140 vs 86 cm without observations)
+        self.blur_xy = nn.Parameter(torch.zeros(3, 3))
         self.blur_h = nn.Parameter(torch.zeros(3))
+        with torch.no_grad():
+            self.blur_xy[1, 1] = 4.0
+            self.blur_h[1] = 4.0
         self.min_likelihood = 0.004
 
     def heading_centres(self):

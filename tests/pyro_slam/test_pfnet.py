@@ -1,4 +1,5 @@
-"""Fast tests of PF-net (pyro_slam.pfnet) and its baselines, on a numpy stand-in world."""
+"""Fast tests of PF-net (pyro_slam.pfnet) and its baselines, on a numpy stand-in world (plus
+one check of the adapter to the pymunk simulator)."""
 
 from __future__ import annotations
 
@@ -219,6 +220,24 @@ def test_pretrain_reduces_loss(data):
     assert np.mean(losses[-10:]) < np.mean(losses[:10])
 
 
+def test_simworld_adapter_on_the_real_simulator():
+    """pfnet_data.SimWorld (pymunk simulator): odometry = relative motion up to actuation noise,
+    sensors in range, floor map = walls only (distractors are seen but not mapped)."""
+    pytest.importorskip("pymunk")
+    import simulators
+
+    maze = simulators.make_maze("moderate-medium", 0)
+    ds = pfnet_data.generate(
+        [maze], lambda m, s: pfnet_data.SimWorld(m, distractors=6, seed=s), 2, seed=0, T=6
+    )
+    assert ds.poses.shape == (2, 6, 3) and ds.depth.shape == (2, 6, 24, 32)
+    rel = pfnet_data.relative_pose(ds.poses[:, :-1], ds.poses[:, 1:])
+    assert np.abs(rel[..., :2] - ds.odom[..., :2]).max() < 0.01  # 6 cm
+    assert np.abs(rel[..., 2] - ds.odom[..., 2]).max() < 0.05  # 3 deg
+    assert ds.lidar.max() <= ds.max_range + 1e-6 and 0 <= ds.depth.min() <= ds.depth.max() <= 1
+    np.testing.assert_array_equal(ds.maps[0], pfnet.rasterize_floor_map(maze.walls, maze.side))
+
+
 # ---------------------------------------------------------------------------- baselines
 
 
@@ -240,6 +259,24 @@ def test_histogram_filter_transition_moves_mass():
     before = hf.estimate(logb, 1.0)
     after = hf.estimate(hf.transition(logb, torch.tensor([[0.25, 0.0, 0.0]]), 1.0), 1.0)
     assert (after[0, 0] - before[0, 0]).item() > 0.1  # moved along +x (heading ~ 0)
+
+
+def test_histogram_filter_initial_blur_is_narrow():
+    """Untrained, a step without motion adds < 0.2 cell^2 of position variance (a uniform 3x3
+    blur would add 2/3 cell^2 and out-spread the propagated uncertainty)."""
+    G = 16
+    hf = bl.HistogramFilterNet(pfnet.ObsModelConfig(), grid=G, headings=8)
+    logb = hf.initial_belief(torch.tensor([[0.5, 0.5, 0.0]]), torch.tensor([0.05, 0.05, 0.3]), 1.0)
+    c = (torch.arange(G) + 0.5) / G
+
+    def var_x(lb):
+        px = torch.exp(lb).sum((1, 2))[0]  # [G] marginal over x
+        return float((px * c**2).sum() - (px * c).sum() ** 2) * G**2  # in cells^2
+
+    with torch.no_grad():
+        after = hf.transition(logb, torch.zeros(1, 3), 1.0)
+    added = var_x(after) - var_x(logb)
+    assert 0.0 < added < 0.2
 
 
 def test_beam_model_prefers_true_pose(data):
