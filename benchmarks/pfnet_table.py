@@ -6,7 +6,7 @@ beam-model PF on walls-only LiDAR data, and report the (x, y) RMSE in cm (1 m = 
 on trajectories of separate test mazes. Prints a Markdown table and writes JSON.
 
     python benchmarks/pfnet_table.py --smoke            # seconds: plumbing check
-    python benchmarks/pfnet_table.py --out out/pfnet    # full: ~20 min on 1 core
+    python benchmarks/pfnet_table.py --out out/pfnet    # full: ~22 min on 1 core
 
 Full-mode budget (single thread): 400 training trajectories (40 mazes x 10) and 100 test
 trajectories (10 unseen mazes x 10) per setting, 24 steps each. PF-net: 400 warm-start steps
