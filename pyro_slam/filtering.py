@@ -100,8 +100,11 @@ class ParticleFilter:
         sigma_emission: float | None = None,
         generator: torch.Generator | None = None,
         uncertainty_gain: float = 1.0,
+        weighting: str = "marginal",
     ):
-        self.uncertainty_gain = uncertainty_gain
+        if weighting not in ("marginal", "tempered"):
+            raise ValueError(f"weighting must be 'marginal' or 'tempered', got {weighting!r}")
+        self.uncertainty_gain, self.weighting = uncertainty_gain, weighting
         if scheme not in resampling.SCHEMES:
             raise ValueError(f"unknown resampling scheme {scheme!r}")
         self.model = model
@@ -115,7 +118,7 @@ class ParticleFilter:
 
         Returns new particles and the log-evidence ``[...]``.
         """
-        sigma = self.sigma_emission
+        sigma, beta = self.sigma_emission, None
         if isinstance(M, MapBelief):
             s0 = self.model.sigma_emission if sigma is None else sigma
             # chart variance relative to the prior's: sum a_i^2 s_i^2 / sum a_i^2, in [0, 1]
@@ -123,12 +126,21 @@ class ParticleFilter:
             var = g.attend(M.scale**2, xy, power=2).mean(-1, keepdim=True)
             var = var / g.attend(torch.ones_like(M.scale[..., :1]), xy, power=2)
             # prior variance is 1: charts of unmapped cells (var -> 1) give flat weights
-            sigma = s0 / (1.0 - self.uncertainty_gain * var).clamp_min(1e-2)  # [..., K, 1]
+            trust = (1.0 - self.uncertainty_gain * var).clamp_min(1e-2)  # [..., K, 1]
             M = M.loc
+            if self.weighting == "tempered":
+                # p(x | z, E[M])^beta with beta = trust^2: the same as inflating sigma_E by
+                # 1 / trust but without the normaliser, so charts of unmapped cells are neutral
+                # (beta -> 0) instead of being out-weighed by any mapped cell
+                beta = trust.squeeze(-1) ** 2  # [..., K]
+            else:
+                sigma = s0 / trust
         scan = self.model.emission_mean(M, z)  # [..., K, B]
         loglik = self.model.emission_log_prob(
             x.unsqueeze(-2), scan, None if mask is None else mask.unsqueeze(-2), sigma
         )  # [..., K]
+        if beta is not None:
+            loglik = beta * loglik
         joint = logw + loglik
         resampling.check_weights(joint.detach(), step)
         inc = torch.logsumexp(joint, -1)  # [...]
@@ -380,7 +392,7 @@ class ParticleChunkELBO(ELBO):
     def loss_and_grads(self, model, guide, *args, **kwargs):
         loss = self.differentiable_loss(model, guide, *args, **kwargs)
         loss.backward()
-        return float(loss)
+        return float(loss.detach())
 
 
 def heading_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

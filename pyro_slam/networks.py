@@ -89,6 +89,7 @@ class TransitionMLP(nn.Module):
     def __init__(self, control_dim: int, n_scan: int, hidden: int = 256, layers: int = 6):
         super().__init__()
         self.control_dim, self.n_scan = control_dim, n_scan
+        self.hidden, self.layers = hidden, layers
         self.net = mlp(2 + control_dim + n_scan, 3, hidden, layers, nn.ReLU)
         # input/output normalisation, set from data by `fit_normalisation`
         self.register_buffer("in_loc", torch.zeros(2 + control_dim + n_scan))

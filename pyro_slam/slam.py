@@ -60,6 +60,7 @@ class SLAMConfig:
     filter_sigma: float | None = 0.05  # sigma_E used to weigh the filter's particles
     transition_sigma: tuple[float, float, float] = (1e-3, 1e-3, 5e-3)
     uncertainty_gain: float = 1.0
+    weighting: str = "marginal"  # filter weights under q(M): "marginal" | "tempered"
     filter_particles: int = 256
     train_particles: int = 32
     cache_particles: int = 50
@@ -177,6 +178,7 @@ class SLAM:
             sigma_emission=self.cfg.filter_sigma,
             generator=self.gen,
             uncertainty_gain=self.cfg.uncertainty_gain,
+            weighting=self.cfg.weighting,
         )
         self.cache = ParticleCache(self.T, self.cfg.cache_particles)
         self.elbo = ParticleChunkELBO(

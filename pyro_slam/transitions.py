@@ -87,6 +87,21 @@ class LearnedTransition(Transition):
             raise ValueError("LearnedTransition needs the predicted scan mu_E(m_t)")
         return self.net(z, u, scan)
 
+    def to_state(self) -> dict:
+        """A ``torch.save``-able dict (weights only) that :meth:`from_state` reads back."""
+        n = self.net
+        meta = {"control_dim": n.control_dim, "n_scan": n.n_scan}
+        meta["hidden"], meta["layers"] = n.hidden, n.layers
+        return {"meta": meta, "state_dict": self.state_dict()}
+
+    @classmethod
+    def from_state(cls, blob: dict) -> LearnedTransition:
+        m = blob["meta"]
+        net = TransitionMLP(m["control_dim"], m["n_scan"], m["hidden"], m["layers"])
+        out = cls(net, torch.zeros(3))
+        out.load_state_dict(blob["state_dict"])
+        return out
+
 
 def pretrain_transition(
     traversals,
