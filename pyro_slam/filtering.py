@@ -136,11 +136,15 @@ class ParticleFilter:
             else:
                 sigma = s0 / trust
         scan = self.model.emission_mean(M, z)  # [..., K, B]
-        loglik = self.model.emission_log_prob(
-            x.unsqueeze(-2), scan, None if mask is None else mask.unsqueeze(-2), sigma
-        )  # [..., K]
-        if beta is not None:
-            loglik = beta * loglik
+        m = None if mask is None else mask.unsqueeze(-2)
+        if beta is None:
+            loglik = self.model.emission_log_prob(x.unsqueeze(-2), scan, m, sigma)  # [..., K]
+        else:
+            # log-likelihood relative to a perfect match (no normaliser), so an unmapped chart
+            # (beta = 0) scores the same as a perfectly predicted scan: no pull towards mapped
+            # cells at the frontier of the map
+            r2 = ((x.unsqueeze(-2) - scan) / s0).pow(2)
+            loglik = -0.5 * beta * (r2 if m is None else r2 * m).sum(-1)  # [..., K]
         joint = logw + loglik
         resampling.check_weights(joint.detach(), step)
         inc = torch.logsumexp(joint, -1)  # [...]
