@@ -380,7 +380,7 @@ class ParticleChunkELBO(ELBO):
     def loss_and_grads(self, model, guide, *args, **kwargs):
         loss = self.differentiable_loss(model, guide, *args, **kwargs)
         loss.backward()
-        return float(loss)
+        return float(loss.detach())
 
 
 def heading_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
