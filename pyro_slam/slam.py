@@ -309,6 +309,8 @@ class SLAM:
             raise ValueError(f"mode must be 'online' or 'offline', got {mode!r}")
         if self.state is None:
             self.state = SLAMState(mode, phase="online" if mode == "online" else "online-init")
+        elif self.state.phase == "done":  # resumed from the final checkpoint: nothing to redo
+            return self.result()
         if mode == "online":
             self._online(progress)
         else:
@@ -354,6 +356,10 @@ class SLAM:
         d = torch.load(path, weights_only=False)
         pyro.get_param_store().set_state(d["params"])
         self.model.load_state_dict(d["model"])
+        if self.model.learn_emission:
+            # the store now holds *loaded* tensors: make the emission network use (and SVI
+            # update) those, as it did before the checkpoint, not its own parameter copies
+            pyro.module("emission", self.model.emission, update_module_params=True)
         self.guide.params()
         # run one no-op step to create optimiser slots, then load their state
         self.optim.set_state(d["optim"])
