@@ -101,7 +101,9 @@ class ParticleFilter:
         generator: torch.Generator | None = None,
         uncertainty_gain: float = 1.0,
         weighting: str = "marginal",
+        outlier_prob: float = 0.0,
     ):
+        self.outlier_prob = outlier_prob
         if weighting not in ("marginal", "tempered"):
             raise ValueError(f"weighting must be 'marginal' or 'tempered', got {weighting!r}")
         self.uncertainty_gain, self.weighting = uncertainty_gain, weighting
@@ -143,8 +145,12 @@ class ParticleFilter:
             # log-likelihood relative to a perfect match (no normaliser), so an unmapped chart
             # (beta = 0) scores the same as a perfectly predicted scan: no pull towards mapped
             # cells at the frontier of the map
-            r2 = ((x.unsqueeze(-2) - scan) / s0).pow(2)
-            loglik = -0.5 * beta * (r2 if m is None else r2 * m).sum(-1)  # [..., K]
+            lb = -0.5 * ((x.unsqueeze(-2) - scan) / s0).pow(2)  # [..., K, B]
+            if self.outlier_prob > 0:
+                # per-beam mixture with an outlier floor: one wrong beam cannot dominate
+                eps = self.outlier_prob
+                lb = torch.logaddexp(lb + math.log1p(-eps), lb.new_tensor(math.log(eps)))
+            loglik = beta * (lb if m is None else lb * m).sum(-1)  # [..., K]
         joint = logw + loglik
         resampling.check_weights(joint.detach(), step)
         inc = torch.logsumexp(joint, -1)  # [...]
@@ -265,16 +271,27 @@ class ParticleCache:
         return z.mean(-2), z.std(-2, unbiased=False)
 
     def propose(
-        self, t: torch.Tensor, K: int, kind="gaussian", noise=1e-3, min_std=1e-4, generator=None
+        self,
+        t: torch.Tensor,
+        K: int,
+        kind="gaussian",
+        noise=1e-3,
+        min_std=1e-4,
+        generator=None,
+        shrink: float = 1.0,
     ):
-        """``K`` start particles ``[C, K, 3]`` for chunks starting at ``t [C]``."""
+        """``K`` start particles ``[C, K, 3]`` for chunks starting at ``t [C]``.
+
+        ``shrink`` scales the moment-matched std (``< 1`` concentrates the map's training poses
+        around the cached posterior mean).
+        """
         if not bool(self.filled[t].all()):
             missing = t[~self.filled[t]].tolist()
             raise ValueError(f"particle cache has no particles at steps {missing[:5]}")
         if kind == "gaussian":
             loc, scale = self.moments(t)
             eps = torch.randn(len(t), K, 3, generator=generator, dtype=loc.dtype)
-            return loc.unsqueeze(1) + eps * scale.clamp_min(min_std).unsqueeze(1)
+            return loc.unsqueeze(1) + eps * (shrink * scale).clamp_min(min_std).unsqueeze(1)
         if kind == "categorical":
             N = self.num_particles
             idx = torch.randint(N, (len(t), K), generator=generator)
@@ -329,13 +346,14 @@ class ParticleChunkELBO(ELBO):
         mask=None,
         num_particles: int = 32,
         proposal: str = "gaussian",
+        proposal_shrink: float = 1.0,
         refresh: bool = True,
     ):
         super().__init__(num_particles=1)
         self.pf, self.cache = pf, cache
         self.observations, self.controls, self.mask = observations, controls, mask
         self.K = num_particles
-        self.proposal = proposal
+        self.proposal, self.proposal_shrink = proposal, proposal_shrink
         self.refresh = refresh
         self.num_steps_seen = observations.shape[0]
         self.last_log_evidence = None
@@ -345,7 +363,9 @@ class ParticleChunkELBO(ELBO):
         obs, ctl, mask = self.observations, self.controls, self.mask
         T = obs.shape[0]
         t = batch.starts
-        z0 = self.cache.propose(t, self.K, self.proposal, generator=self.pf.generator)
+        z0 = self.cache.propose(
+            t, self.K, self.proposal, generator=self.pf.generator, shrink=self.proposal_shrink
+        )
         z0 = z0.to(obs.dtype)
         p, ev = self.pf.init(z0, M, obs[t], None if mask is None else mask[t], step=int(t[0]))
         self.cache.store(t, p, self.pf.generator)

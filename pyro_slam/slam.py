@@ -61,6 +61,7 @@ class SLAMConfig:
     transition_sigma: tuple[float, float, float] = (1e-3, 1e-3, 5e-3)
     uncertainty_gain: float = 1.0
     weighting: str = "marginal"  # filter weights under q(M): "marginal" | "tempered"
+    outlier_prob: float = 0.0  # per-beam outlier floor of the tempered weights
     filter_particles: int = 256
     train_particles: int = 32
     cache_particles: int = 50
@@ -76,6 +77,7 @@ class SLAMConfig:
     offline_svi_steps: int = 1500
     offline_init: str = "online"
     proposal: str = "gaussian"
+    proposal_shrink: float = 1.0  # scale of the cache proposal's std for map training
     seed: int = 0
     checkpoint_every: int = 1000
 
@@ -179,6 +181,7 @@ class SLAM:
             generator=self.gen,
             uncertainty_gain=self.cfg.uncertainty_gain,
             weighting=self.cfg.weighting,
+            outlier_prob=self.cfg.outlier_prob,
         )
         self.cache = ParticleCache(self.T, self.cfg.cache_particles)
         self.elbo = ParticleChunkELBO(
@@ -189,6 +192,7 @@ class SLAM:
             self.mask,
             num_particles=self.cfg.train_particles,
             proposal=self.cfg.proposal,
+            proposal_shrink=self.cfg.proposal_shrink,
         )
         lr = self.cfg
 
