@@ -76,7 +76,9 @@ BENCH_CONFIG = dict(
     train_particles=16,
     chunks_per_batch=4,
     chunk_length=4,
-    weighting="tempered",
+    lr_map=0.02,
+    offline_rounds=2,
+    offline_svi_steps=800,
 )
 
 

@@ -37,6 +37,7 @@ class MapBelief:
 
     loc: torch.Tensor
     scale: torch.Tensor
+    usable: torch.Tensor | None = None  # [w, h] in [0, 1]: cells the weights may use
 
 
 @dataclass
@@ -129,6 +130,8 @@ class ParticleFilter:
             var = var / g.attend(torch.ones_like(M.scale[..., :1]), xy, power=2)
             # prior variance is 1: charts of unmapped cells (var -> 1) give flat weights
             trust = (1.0 - self.uncertainty_gain * var).clamp_min(1e-2)  # [..., K, 1]
+            if M.usable is not None:
+                trust = trust * g.attend(M.usable.unsqueeze(-1), xy)  # [..., K, 1]
             M = M.loc
             if self.weighting == "tempered":
                 # p(x | z, E[M])^beta with beta = trust^2: the same as inflating sigma_E by

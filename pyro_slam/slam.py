@@ -78,6 +78,7 @@ class SLAMConfig:
     offline_init: str = "online"
     proposal: str = "gaussian"
     proposal_shrink: float = 1.0  # scale of the cache proposal's std for map training
+    revisit_gap: int = 0  # online: cells first mapped < gap steps ago do not weigh particles
     seed: int = 0
     checkpoint_every: int = 1000
 
@@ -184,6 +185,8 @@ class SLAM:
             outlier_prob=self.cfg.outlier_prob,
         )
         self.cache = ParticleCache(self.T, self.cfg.cache_particles)
+        w, h, _ = self.model.grid.shape
+        self.first_seen = torch.full((w, h), float("inf"))  # [w, h] step of first mapping
         self.elbo = ParticleChunkELBO(
             self.pf,
             self.cache,
@@ -209,10 +212,29 @@ class SLAM:
         self.state: SLAMState | None = None
 
     # --------------------------------------------------------------------------- helpers
-    def map_mean(self):
-        """The map belief the filter weighs with: mean and scale of ``q(M)``."""
+    def map_mean(self, t: int | None = None):
+        """The map belief the filter weighs with: mean and scale of ``q(M)``.
+
+        Online (``t`` given, ``revisit_gap > 0``), cells first mapped less than ``revisit_gap``
+        steps before ``t`` are masked: a map written from the last few poses repeats what
+        odometry already says, and matching against it pulls the estimate back along the path;
+        only revisits of older map regions (loop closures) correct drift.
+        """
         loc, scale = self.guide.params()
-        return MapBelief(loc.detach(), scale.detach())
+        usable = None
+        if t is not None and self.cfg.revisit_gap > 0:
+            usable = (t - self.first_seen >= self.cfg.revisit_gap).to(loc.dtype)
+        return MapBelief(loc.detach(), scale.detach(), usable)
+
+    def _mark_seen(self, t: int) -> None:
+        """Record the first time each grid cell near the pose estimate was mapped."""
+        g, z = self.model.grid, self.particles.mean()
+        w, h, _ = g.shape
+        gx = (z[0] - g.origin[0]) * ((w - 1) / g.size[0])
+        gy = (z[1] - g.origin[1]) * ((h - 1) / g.size[1])
+        i0, j0 = int(gx.floor().clamp(0, w - 1)), int(gy.floor().clamp(0, h - 1))
+        block = self.first_seen[max(i0 - 1, 0) : i0 + 3, max(j0 - 1, 0) : j0 + 3]
+        block.clamp_(max=t)
 
     def _svi_step(self, lo: int, hi: int, newest: int | None) -> float:
         """One SVI step on chunks starting in ``[lo, hi]`` (plus the chunk at ``newest``)."""
@@ -243,12 +265,11 @@ class SLAM:
     def _online(self, progress: bool):
         st, L = self.state, self.cfg.chunk_length
         bar = tqdm(total=self.T, initial=st.t, desc="online SLAM", disable=not progress)
-        with torch.no_grad():
-            M = self.map_mean()
         while st.t < self.T:
             t = st.t
             with torch.no_grad():
-                self._filter_step(t, M)
+                self._filter_step(t, self.map_mean(t))
+                self._mark_seen(t)
             if st.phase == "online":
                 st.estimates.append(self.particles.mean().tolist())
                 st.stds.append(_std(self.particles).tolist())
@@ -256,8 +277,6 @@ class SLAM:
                 self.elbo.num_steps_seen = t + 1
                 for _ in range(self.cfg.svi_steps):
                     st.losses.append(self._svi_step(0, t - L + 1, t - L + 1))
-                with torch.no_grad():
-                    M = self.map_mean()
             st.t += 1
             bar.update(1)
             if self.checkpoint and st.t % self.cfg.checkpoint_every == 0:
@@ -347,6 +366,7 @@ class SLAM:
             "gen": self.gen.get_state(),
             "torch_rng": torch.get_rng_state(),
             "elbo_seen": self.elbo.num_steps_seen,
+            "first_seen": self.first_seen.clone(),
         }
 
     def save(self, path) -> None:
@@ -372,6 +392,7 @@ class SLAM:
         self.gen.set_state(d["gen"])
         torch.set_rng_state(d["torch_rng"])
         self.elbo.num_steps_seen = d["elbo_seen"]
+        self.first_seen.copy_(d["first_seen"])
         self.state = SLAMState(**d["state"])
         return self
 
