@@ -6,7 +6,7 @@ simulated moderate-medium traversal, in one process, one after the other. Prints
 steps/s of each and their ratio, and the peak RSS of a long online run (our filter) after 10%
 and 100% of its steps -- flat memory means the run keeps no per-step history.
 
-    python benchmarks/filter_speed.py                      # K = 1000, 500 timed steps, 100k long run
+    python benchmarks/filter_speed.py           # K = 1000, 500 timed steps, 100k-step run
     python benchmarks/filter_speed.py --long-steps 10000   # quicker memory check
 """
 

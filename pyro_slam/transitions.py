@@ -134,8 +134,9 @@ def pretrain_transition(
 
     The network regresses ``z_{t+1} - z_t`` (heading difference wrapped) from ``(z_t, u_t,
     x_t)`` -- with ``residual=True`` minus the kinematic increment of the traversals'
-    ``control_model``, see :class:`LearnedTransition`; ``sigma_T`` is set to the residual std on the held-out last ``val_fraction`` of the
-    data ("noise learned"). Returns the transition and a dict of training statistics.
+    ``control_model``, see :class:`LearnedTransition`; ``sigma_T`` is set to the residual std
+    on the held-out last ``val_fraction`` of the data ("noise learned"). Returns the transition
+    and a dict of training statistics.
     """
     from .geometry import wrap_angle
 
