@@ -42,11 +42,12 @@ def setup(steps: int, seed: int = 0):
     return model, M, obs, ctl, init
 
 
-def ours(model, M, obs, ctl, init, K, steps, checkpoints=()):
+def ours(model, M, obs, ctl, init, K, steps, checkpoints=(), autocast_dtype=None):
     """Our filter; returns (steps/s, {step: peak RSS MiB})."""
     from pyro_slam.filtering import ParticleFilter
 
-    pf = ParticleFilter(model, generator=torch.Generator().manual_seed(0))
+    g = torch.Generator().manual_seed(0)
+    pf = ParticleFilter(model, generator=g, autocast_dtype=autocast_dtype)
     T = obs.shape[0]
     rss = {}
     with torch.no_grad():
@@ -95,6 +96,10 @@ def main(argv=None) -> dict:
     smcfilter(model, M, obs, ctl, init, args.particles, 20)
     r_smc = smcfilter(model, M, obs, ctl, init, args.particles, args.steps)
     r_ours, _ = ours(model, M, obs, ctl, init, args.particles, args.steps)
+    ours(model, M, obs, ctl, init, args.particles, 20, autocast_dtype=torch.bfloat16)
+    r_bf16, _ = ours(
+        model, M, obs, ctl, init, args.particles, args.steps, autocast_dtype=torch.bfloat16
+    )
     n = args.long_steps
     marks = (n // 10, n)
     t0 = time.perf_counter()
@@ -105,6 +110,8 @@ def main(argv=None) -> dict:
         "ours_steps_per_s": round(r_ours, 1),
         "smcfilter_steps_per_s": round(r_smc, 1),
         "speedup": round(r_ours / r_smc, 2),
+        "ours_bf16_emission_steps_per_s": round(r_bf16, 1),
+        "speedup_bf16": round(r_bf16 / r_smc, 2),
         "long_run_steps": n,
         "long_run_steps_per_s": round(r_long, 1),
         "long_run_wall_s": round(time.perf_counter() - t0, 1),

@@ -91,6 +91,11 @@ class ParticleFilter:
             approximate marginalisation of ``q(M)`` that leaves the weights flat where the map
             is still at its prior (``var = 1``) and sharp where it is well determined.
         generator: ``torch.Generator`` for reproducible noise and resampling.
+        weighting: ``"marginal"`` (inflated sigma, above) or ``"tempered"`` (likelihood raised to
+            ``trust^2`` without the normaliser, so unmapped charts are neutral).
+        outlier_prob: per-beam outlier floor of the tempered weights.
+        autocast_dtype: e.g. ``torch.bfloat16``: run the emission MLP in reduced precision when
+            no gradient is needed (filtering); ~2-3x faster on CPU, range error ~1e-3.
     """
 
     def __init__(
@@ -103,8 +108,10 @@ class ParticleFilter:
         uncertainty_gain: float = 1.0,
         weighting: str = "marginal",
         outlier_prob: float = 0.0,
+        autocast_dtype: torch.dtype | None = None,
     ):
         self.outlier_prob = outlier_prob
+        self.autocast_dtype = autocast_dtype
         if weighting not in ("marginal", "tempered"):
             raise ValueError(f"weighting must be 'marginal' or 'tempered', got {weighting!r}")
         self.uncertainty_gain, self.weighting = uncertainty_gain, weighting
@@ -140,7 +147,12 @@ class ParticleFilter:
                 beta = trust.squeeze(-1) ** 2  # [..., K]
             else:
                 sigma = s0 / trust
-        scan = self.model.emission_mean(M, z)  # [..., K, B]
+        if self.autocast_dtype is not None and not torch.is_grad_enabled():
+            # reduced-precision emission MLP for filtering only (training keeps full precision)
+            with torch.autocast(z.device.type, dtype=self.autocast_dtype):
+                scan = self.model.emission_mean(M, z).to(z.dtype)  # [..., K, B]
+        else:
+            scan = self.model.emission_mean(M, z)  # [..., K, B]
         m = None if mask is None else mask.unsqueeze(-2)
         if beta is None:
             loglik = self.model.emission_log_prob(x.unsqueeze(-2), scan, m, sigma)  # [..., K]
