@@ -61,3 +61,16 @@ def test_bad_inputs_exit_2_with_message(traversal, tmp_path, capsys):
     assert rc == 2 and "nope" in capsys.readouterr().err
     rc = cli.main(["slam", str(traversal), "--out", str(tmp_path / "r"), "--resume"])
     assert rc == 2 and "checkpoint" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_demo_end_to_end(tmp_path):
+    """`make demo` at reduced length: simulation, SLAM, plots and metrics (slow suite)."""
+    out = tmp_path / "out"
+    assert cli.main(["demo", "--out", str(out), "--steps", "400"]) == 0
+    report = json.loads((out / "metrics.json").read_text())
+    assert report["steps"] == 400
+    for name in ("traversal.npz", "traversal.png", "slam.png", "error.png"):
+        assert (out / name).is_file()
+    # SLAM stays within a corridor width of the truth over 400 steps
+    assert report["slam"]["final_error"] < 1 / 6
