@@ -37,6 +37,7 @@ import json
 import os
 import tempfile
 import zipfile
+import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -164,7 +165,10 @@ def validate(tr: Traversal, src: str = "traversal") -> Traversal:
         raise DatasetError(f"{src}: field 'observations' is empty (0 time steps)")
     if B == 0:
         raise DatasetError(f"{src}: field 'observations' has 0 beams")
-    if not np.isfinite(tr.max_range) or tr.max_range <= 0:
+    max_range = np.asarray(tr.max_range)
+    if max_range.shape != () or max_range.dtype.kind not in "fiu":
+        raise DatasetError(f"{src}: field 'max_range' must be a number, got {tr.max_range!r}")
+    if not np.isfinite(max_range) or max_range <= 0:
         raise DatasetError(f"{src}: field 'max_range' must be positive, got {tr.max_range}")
     mask = tr.obs_mask
     if mask is not None:
@@ -232,11 +236,19 @@ def load(path: str | os.PathLike) -> Traversal:
     src = str(path)
     if not path.exists():
         raise FileNotFoundError(f"{src}: no such dataset file")
+    # corrupt members surface as zlib.error (bad deflate stream) or NotImplementedError (bit
+    # flips in a zip header's compression method / flags), not only as BadZipFile
+    unreadable = (zipfile.BadZipFile, zlib.error, NotImplementedError, OSError, EOFError)
+    data = None
     try:
-        with np.load(path, allow_pickle=False) as f:
-            data = {k: f[k] for k in f.files}
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError, KeyError) as e:
+        f = np.load(path, allow_pickle=False)
+        if isinstance(f, np.lib.npyio.NpzFile):  # not a bare .npy array
+            with f:
+                data = {k: f[k] for k in f.files}
+    except (*unreadable, ValueError, KeyError) as e:
         raise DatasetError(f"{src}: not a readable .npz dataset ({type(e).__name__}: {e})") from e
+    if data is None:
+        raise DatasetError(f"{src}: not a .npz dataset (a single .npy array)")
     missing = [k for k in REQUIRED_FIELDS if k not in data]
     if missing:
         raise DatasetError(f"{src}: missing field(s) {', '.join(repr(m) for m in missing)}")

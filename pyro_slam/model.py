@@ -42,6 +42,11 @@ class MapGrid:
     def shape(self) -> tuple[int, int, int]:
         return (self.cells[0], self.cells[1], self.dim)
 
+    def extent(self) -> tuple[float, float, float, float]:
+        """``(x0, x1, y0, y1)`` spanned by the grid points (for ``imshow``)."""
+        (x0, y0), (sx, sy) = self.origin, self.size
+        return (x0, x0 + sx, y0, y0 + sy)
+
     @classmethod
     def covering(cls, xmin, ymin, xmax, ymax, resolution: float, dim: int, margin: float = 0.0):
         """A grid over a bounding box with a given cell spacing (metric maps of real logs)."""

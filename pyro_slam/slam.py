@@ -58,23 +58,27 @@ class SLAMConfig:
     emission_layers: int = 4
     sigma_emission: float = 0.1  # sigma_E for training
     filter_sigma: float | None = 0.05  # sigma_E used to weigh the filter's particles
-    transition_sigma: tuple[float, float, float] = (1e-3, 1e-3, 5e-3)
+    transition_sigma: tuple[float, float, float] = (5e-4, 5e-4, 8e-3)
     uncertainty_gain: float = 1.0
-    filter_particles: int = 256
-    train_particles: int = 32
+    weighting: str = "marginal"  # filter weights under q(M): "marginal" | "tempered"
+    outlier_prob: float = 0.0  # per-beam outlier floor of the tempered weights
+    filter_particles: int = 128
+    train_particles: int = 16
     cache_particles: int = 50
-    chunk_length: int = 8
-    chunks_per_batch: int = 16
-    lr_map: float = 0.05
+    chunk_length: int = 4
+    chunks_per_batch: int = 4
+    lr_map: float = 0.02
     lr_map_scale: float | None = None  # lr of q(M)'s scale (default: lr_map)
     lr_emission: float = 1e-3
     learn_emission: bool = True
     svi_every: int = 1
     svi_steps: int = 1
-    offline_rounds: int = 3
-    offline_svi_steps: int = 1500
+    offline_rounds: int = 2
+    offline_svi_steps: int = 800
     offline_init: str = "online"
     proposal: str = "gaussian"
+    proposal_shrink: float = 1.0  # scale of the cache proposal's std for map training
+    revisit_gap: int = 0  # online: cells first mapped < gap steps ago do not weigh particles
     seed: int = 0
     checkpoint_every: int = 1000
 
@@ -177,8 +181,12 @@ class SLAM:
             sigma_emission=self.cfg.filter_sigma,
             generator=self.gen,
             uncertainty_gain=self.cfg.uncertainty_gain,
+            weighting=self.cfg.weighting,
+            outlier_prob=self.cfg.outlier_prob,
         )
         self.cache = ParticleCache(self.T, self.cfg.cache_particles)
+        w, h, _ = self.model.grid.shape
+        self.first_seen = torch.full((w, h), float("inf"))  # [w, h] step of first mapping
         self.elbo = ParticleChunkELBO(
             self.pf,
             self.cache,
@@ -187,6 +195,7 @@ class SLAM:
             self.mask,
             num_particles=self.cfg.train_particles,
             proposal=self.cfg.proposal,
+            proposal_shrink=self.cfg.proposal_shrink,
         )
         lr = self.cfg
 
@@ -203,10 +212,29 @@ class SLAM:
         self.state: SLAMState | None = None
 
     # --------------------------------------------------------------------------- helpers
-    def map_mean(self):
-        """The map belief the filter weighs with: mean and scale of ``q(M)``."""
+    def map_mean(self, t: int | None = None):
+        """The map belief the filter weighs with: mean and scale of ``q(M)``.
+
+        Online (``t`` given, ``revisit_gap > 0``), cells first mapped less than ``revisit_gap``
+        steps before ``t`` are masked: a map written from the last few poses repeats what
+        odometry already says, and matching against it pulls the estimate back along the path;
+        only revisits of older map regions (loop closures) correct drift.
+        """
         loc, scale = self.guide.params()
-        return MapBelief(loc.detach(), scale.detach())
+        usable = None
+        if t is not None and self.cfg.revisit_gap > 0:
+            usable = (t - self.first_seen >= self.cfg.revisit_gap).to(loc.dtype)
+        return MapBelief(loc.detach(), scale.detach(), usable)
+
+    def _mark_seen(self, t: int) -> None:
+        """Record the first time each grid cell near the pose estimate was mapped."""
+        g, z = self.model.grid, self.particles.mean()
+        w, h, _ = g.shape
+        gx = (z[0] - g.origin[0]) * ((w - 1) / g.size[0])
+        gy = (z[1] - g.origin[1]) * ((h - 1) / g.size[1])
+        i0, j0 = int(gx.floor().clamp(0, w - 1)), int(gy.floor().clamp(0, h - 1))
+        block = self.first_seen[max(i0 - 1, 0) : i0 + 3, max(j0 - 1, 0) : j0 + 3]
+        block.clamp_(max=t)
 
     def _svi_step(self, lo: int, hi: int, newest: int | None) -> float:
         """One SVI step on chunks starting in ``[lo, hi]`` (plus the chunk at ``newest``)."""
@@ -237,12 +265,11 @@ class SLAM:
     def _online(self, progress: bool):
         st, L = self.state, self.cfg.chunk_length
         bar = tqdm(total=self.T, initial=st.t, desc="online SLAM", disable=not progress)
-        with torch.no_grad():
-            M = self.map_mean()
         while st.t < self.T:
             t = st.t
             with torch.no_grad():
-                self._filter_step(t, M)
+                self._filter_step(t, self.map_mean(t))
+                self._mark_seen(t)
             if st.phase == "online":
                 st.estimates.append(self.particles.mean().tolist())
                 st.stds.append(_std(self.particles).tolist())
@@ -250,8 +277,6 @@ class SLAM:
                 self.elbo.num_steps_seen = t + 1
                 for _ in range(self.cfg.svi_steps):
                     st.losses.append(self._svi_step(0, t - L + 1, t - L + 1))
-                with torch.no_grad():
-                    M = self.map_mean()
             st.t += 1
             bar.update(1)
             if self.checkpoint and st.t % self.cfg.checkpoint_every == 0:
@@ -307,6 +332,8 @@ class SLAM:
             raise ValueError(f"mode must be 'online' or 'offline', got {mode!r}")
         if self.state is None:
             self.state = SLAMState(mode, phase="online" if mode == "online" else "online-init")
+        elif self.state.phase == "done":  # resumed from the final checkpoint: nothing to redo
+            return self.result()
         if mode == "online":
             self._online(progress)
         else:
@@ -339,6 +366,7 @@ class SLAM:
             "gen": self.gen.get_state(),
             "torch_rng": torch.get_rng_state(),
             "elbo_seen": self.elbo.num_steps_seen,
+            "first_seen": self.first_seen.clone(),
         }
 
     def save(self, path) -> None:
@@ -352,6 +380,10 @@ class SLAM:
         d = torch.load(path, weights_only=False)
         pyro.get_param_store().set_state(d["params"])
         self.model.load_state_dict(d["model"])
+        if self.model.learn_emission:
+            # the store now holds *loaded* tensors: make the emission network use (and SVI
+            # update) those, as it did before the checkpoint, not its own parameter copies
+            pyro.module("emission", self.model.emission, update_module_params=True)
         self.guide.params()
         # run one no-op step to create optimiser slots, then load their state
         self.optim.set_state(d["optim"])
@@ -360,6 +392,7 @@ class SLAM:
         self.gen.set_state(d["gen"])
         torch.set_rng_state(d["torch_rng"])
         self.elbo.num_steps_seen = d["elbo_seen"]
+        self.first_seen.copy_(d["first_seen"])
         self.state = SLAMState(**d["state"])
         return self
 

@@ -1,0 +1,126 @@
+"""Online filter throughput and memory: our batched particle filter vs ``pyro.infer.SMCFilter``.
+
+Both run the same DVBF-LM time step (paper emission MLP, 4 x 256 softsign, 20 beams; kinematic
+transition; a fixed map, as when filtering on a learned map) with K = 1000 particles on one
+simulated moderate-medium traversal, in one process, one after the other. Prints JSON with
+steps/s of each and their ratio, and the peak RSS of a long online run (our filter) after 10%
+and 100% of its steps -- flat memory means the run keeps no per-step history.
+
+    python benchmarks/filter_speed.py           # K = 1000, 500 timed steps, 100k-step run
+    python benchmarks/filter_speed.py --long-steps 10000   # quicker memory check
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def setup(steps: int, seed: int = 0):
+    from pyro_slam.slam import SLAMConfig, build_model
+    from simulators import simulate_traversal
+
+    tr = simulate_traversal("moderate-medium", steps=steps, seed=seed)
+    model, guide = build_model(tr, SLAMConfig())
+    g = torch.Generator().manual_seed(seed)
+    M = torch.randn(model.grid.shape, generator=g)  # a fixed map: speed does not depend on it
+    obs = torch.as_tensor(tr.observations, dtype=torch.float32)
+    ctl = torch.as_tensor(tr.controls, dtype=torch.float32)
+    init = torch.as_tensor(tr.poses[0], dtype=torch.float32)
+    return model, M, obs, ctl, init
+
+
+def ours(model, M, obs, ctl, init, K, steps, checkpoints=(), autocast_dtype=None):
+    """Our filter; returns (steps/s, {step: peak RSS MiB})."""
+    from pyro_slam.filtering import ParticleFilter
+
+    g = torch.Generator().manual_seed(0)
+    pf = ParticleFilter(model, generator=g, autocast_dtype=autocast_dtype)
+    T = obs.shape[0]
+    rss = {}
+    with torch.no_grad():
+        p, _ = pf.init(init + 1e-3 * torch.randn(K, 3), M, obs[0])
+        t0 = time.perf_counter()
+        for t in range(1, steps + 1):
+            i = t % T  # cycle over the traversal for very long runs
+            p, _ = pf.step(p, M, obs[i], ctl[(i - 1) % (T - 1)], step=t)
+            _ = p.mean()  # the online estimate
+            if t in checkpoints:
+                rss[t] = peak_rss_mib()
+        rate = steps / (time.perf_counter() - t0)
+    return rate, rss
+
+
+def smcfilter(model, M, obs, ctl, init, K, steps):
+    """pyro.infer.SMCFilter running the same model step (model.py: FilterModel)."""
+    import pyro
+    from pyro.infer import SMCFilter
+
+    from pyro_slam.guide import BootstrapGuide
+    from pyro_slam.model import FilterModel
+
+    pyro.set_rng_seed(0)
+    smc = SMCFilter(FilterModel(model, M), BootstrapGuide(model), K, max_plate_nesting=0)
+    with torch.no_grad():
+        smc.init(init_pose=init, x=obs[0])
+        t0 = time.perf_counter()
+        for t in range(1, steps + 1):
+            smc.step(obs[t], ctl[t - 1])
+            _ = smc.get_empirical()["z"].mean
+        return steps / (time.perf_counter() - t0)
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--particles", type=int, default=1000)
+    p.add_argument("--steps", type=int, default=500, help="timed steps per filter")
+    p.add_argument("--long-steps", type=int, default=100_000)
+    p.add_argument("--threads", type=int, default=2)
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    model, M, obs, ctl, init = setup(max(args.steps + 1, 3000))
+    # warm-up both (allocator, lazy init) before timing
+    ours(model, M, obs, ctl, init, args.particles, 20)
+    smcfilter(model, M, obs, ctl, init, args.particles, 20)
+    r_smc = smcfilter(model, M, obs, ctl, init, args.particles, args.steps)
+    r_ours, _ = ours(model, M, obs, ctl, init, args.particles, args.steps)
+    ours(model, M, obs, ctl, init, args.particles, 20, autocast_dtype=torch.bfloat16)
+    r_bf16, _ = ours(
+        model, M, obs, ctl, init, args.particles, args.steps, autocast_dtype=torch.bfloat16
+    )
+    n = args.long_steps
+    marks = (n // 10, n)
+    t0 = time.perf_counter()
+    r_long, rss = ours(model, M, obs, ctl, init, args.particles, n, checkpoints=marks)
+    out = {
+        "particles": args.particles,
+        "threads": torch.get_num_threads(),
+        "ours_steps_per_s": round(r_ours, 1),
+        "smcfilter_steps_per_s": round(r_smc, 1),
+        "speedup": round(r_ours / r_smc, 2),
+        "ours_bf16_emission_steps_per_s": round(r_bf16, 1),
+        "speedup_bf16": round(r_bf16 / r_smc, 2),
+        "long_run_steps": n,
+        "long_run_steps_per_s": round(r_long, 1),
+        "long_run_wall_s": round(time.perf_counter() - t0, 1),
+        f"peak_rss_mib_at_{marks[0]}": round(rss[marks[0]], 1),
+        f"peak_rss_mib_at_{marks[1]}": round(rss[marks[1]], 1),
+    }
+    print(json.dumps(out, indent=2))
+    return out
+
+
+if __name__ == "__main__":
+    main()

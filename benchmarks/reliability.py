@@ -1,0 +1,161 @@
+"""Reliability figures (issue 10), printed as JSON.
+
+* ``bad_input``: each malformed input and the exception it raises at the API boundary.
+* ``nan_free``: online SLAM on the default maze with 10 seeds: all losses and estimates finite.
+* ``kill_resume``: an online SLAM process killed with SIGKILL mid-training (at a random moment,
+  not right after a checkpoint) is resumed from its last checkpoint in a new process and
+  finishes with the same map parameters and poses as an uninterrupted run (max abs difference).
+* ``memory``: peak RSS of a long online particle-filter run after 10% and 100% of its steps.
+
+    python benchmarks/reliability.py                    # full (100k-step filter run)
+    python benchmarks/reliability.py --long-steps 10000 --nan-seeds 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+SMALL = dict(filter_particles=64, train_particles=8, chunks_per_batch=4, chunk_length=4)
+
+
+def bad_input_cases(tmp: Path) -> list[dict]:
+    from pyro_slam.data import load
+    from simulators import simulate_traversal
+
+    tr = simulate_traversal("simple-small", steps=20, seed=0)
+    good = tr.save(tmp / "good.npz")
+    d = dict(np.load(good))
+
+    def variant(name, **change):
+        arrays = {**d, **change}
+        path = tmp / f"{name}.npz"
+        np.savez(path, **arrays)
+        return path
+
+    obs = d["observations"]
+    cases = {
+        "nan observation": variant("nan", observations=np.where(np.eye(*obs.shape), np.nan, obs)),
+        "inf observation": variant("inf", observations=np.full_like(obs, np.inf)),
+        "negative range": variant("neg", observations=-obs),
+        "wrong beam count": variant("beams", observations=obs[:, :7]),
+        "controls length": variant("ctl", controls=d["controls"][:-3]),
+        "poses length": variant("poses", poses=d["poses"][:5]),
+        "string dtype": variant("dtype", observations=obs.astype(str)),
+        "empty sequence": variant("empty", observations=obs[:0], controls=d["controls"][:0]),
+    }
+    raw = good.read_bytes()
+    (tmp / "truncated.npz").write_bytes(raw[: len(raw) // 2])
+    cases["truncated file"] = tmp / "truncated.npz"
+    (tmp / "garbage.npz").write_bytes(b"\x00garbage" * 10)
+    cases["garbage file"] = tmp / "garbage.npz"
+    out = []
+    for name, path in cases.items():
+        try:
+            load(path)
+            out.append({"case": name, "raised": None})
+        except Exception as e:  # noqa: BLE001 -- we report whatever is raised
+            out.append({"case": name, "raised": type(e).__name__, "message": str(e)[:160]})
+    return out
+
+
+def nan_free(seeds: int, steps: int) -> dict:
+    from pyro_slam.slam import SLAM, SLAMConfig
+    from simulators import simulate_traversal
+
+    tr = simulate_traversal("moderate-medium", steps=steps, seed=1)
+    finite = []
+    for s in range(seeds):
+        res = SLAM(tr, SLAMConfig(seed=s, **SMALL)).run("online", progress=False)
+        ok = all(np.isfinite(res[k]).all() for k in ("mean", "std", "losses", "map_loc"))
+        finite.append(bool(ok))
+    return {"runs": seeds, "steps": steps, "all_finite": all(finite), "finite": finite}
+
+
+SCRIPT = """
+import sys, torch
+torch.set_num_threads(1)
+sys.path.insert(0, {repo!r})
+from simulators import simulate_traversal
+from pyro_slam.slam import SLAM, SLAMConfig
+tr = simulate_traversal("moderate-medium", steps={steps}, seed=1)
+slam = SLAM(tr, SLAMConfig(seed=3, checkpoint_every=25, **{small!r}), checkpoint={ckpt!r})
+if {resume}:
+    slam.resume({ckpt!r})
+res = slam.run("online", progress=False)
+import numpy as np
+np.savez({out!r}, mean=res["mean"], map_loc=res["map_loc"], map_scale=res["map_scale"])
+"""
+
+
+def kill_resume(tmp: Path, steps: int, kill_after: float) -> dict:
+    def script(ckpt, out, resume):
+        return textwrap.dedent(
+            SCRIPT.format(repo=str(REPO), steps=steps, small=SMALL, ckpt=str(ckpt),
+                          out=str(out), resume=resume)
+        )  # fmt: skip
+
+    ref_out, res_out, ckpt = tmp / "ref.npz", tmp / "res.npz", tmp / "ckpt.pt"
+    subprocess.run([sys.executable, "-c", script(tmp / "ref.pt", ref_out, False)], check=True)
+    proc = subprocess.Popen([sys.executable, "-c", script(ckpt, res_out, False)])
+    time.sleep(kill_after)
+    while not ckpt.exists():  # make sure at least one checkpoint exists
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    t_ckpt = int(torch.load(ckpt, weights_only=False)["state"]["t"])
+    subprocess.run([sys.executable, "-c", script(ckpt, res_out, True)], check=True)
+    a, b = np.load(ref_out), np.load(res_out)
+    diff = max(float(np.abs(a[k] - b[k]).max()) for k in ("mean", "map_loc", "map_scale"))
+    return {"steps": steps, "killed_with": "SIGKILL", "killed_returncode": proc.returncode,
+            "resumed_from_step": t_ckpt, "max_abs_diff": diff}  # fmt: skip
+
+
+def memory(long_steps: int, particles: int) -> dict:
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from filter_speed import ours, setup
+
+    model, M, obs, ctl, init = setup(3000)
+    marks = (long_steps // 10, long_steps)
+    rate, rss = ours(model, M, obs, ctl, init, particles, long_steps, checkpoints=marks)
+    return {"steps": long_steps, "particles": particles, "steps_per_s": round(rate, 1),
+            **{f"peak_rss_mib_at_{k}": round(v, 1) for k, v in rss.items()}}  # fmt: skip
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--nan-seeds", type=int, default=10)
+    p.add_argument("--nan-steps", type=int, default=300)
+    p.add_argument("--kill-steps", type=int, default=300)
+    p.add_argument("--kill-after", type=float, default=8.0, help="seconds before SIGKILL")
+    p.add_argument("--long-steps", type=int, default=100_000)
+    p.add_argument("--particles", type=int, default=1000)
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        out = {"bad_input": bad_input_cases(tmp)}
+        out["nan_free"] = nan_free(args.nan_seeds, args.nan_steps)
+        out["kill_resume"] = kill_resume(tmp, args.kill_steps, args.kill_after)
+    out["memory"] = memory(args.long_steps, args.particles)
+    print(json.dumps(out, indent=2))
+    return out
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    main()

@@ -1,0 +1,132 @@
+"""SLAM accuracy (paper Section IV-A, Fig. 4): online / offline DVBF-LM vs path integration.
+
+6 test mazes (moderate-medium, maze seeds 1001-1006) x 4 traversals (driver seeds 1-4) of 3000
+steps. The emission network and the learned transition are the shipped ones
+(``pyro_slam/pretrained``, trained by ``pyro-slam pretrain`` on maze seed 100, never a test
+maze). Prints JSON with mean +- std over runs of the error at t = T and writes a Fig. 4-style
+plot (median, 50% and 80% bands) of error and error relative to distance travelled.
+
+    python benchmarks/slam_accuracy.py --out out/slam_accuracy            # full: 24 runs x modes
+    python benchmarks/slam_accuracy.py --mazes 2 --traversals 1 --steps 1000 --modes online
+
+Each run's result is written to ``OUT/runs/<mode>_m<maze>_t<traversal>.npz`` as it finishes, so
+an interrupted benchmark resumes where it stopped (finished runs are not recomputed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
+
+
+def _traversal(maze_seed: int, seed: int, steps: int):
+    from simulators import simulate_traversal
+    from simulators.maze import make_maze
+
+    return simulate_traversal(make_maze("moderate-medium", maze_seed), steps=steps, seed=seed)
+
+
+def run_one(job) -> dict:
+    """One SLAM run (in a worker process, 1 thread); returns errors over time."""
+    mode, maze_seed, seed, steps, over, transition_kind, path = job
+    import torch
+
+    torch.set_num_threads(1)
+    from pyro_slam import metrics
+    from pyro_slam.cli import PRETRAINED, TRANSITION_FILE, load_emission, load_transition
+    from pyro_slam.slam import SLAM, SLAMConfig, path_integration
+
+    tr = _traversal(maze_seed, seed, steps)
+    cfg = SLAMConfig(**{**BENCH_CONFIG, **over, "seed": seed})
+    em = load_emission(PRETRAINED / "emission_lidar20.pt", tr, cfg)
+    tran = None
+    if transition_kind == "learned":
+        tran = load_transition(PRETRAINED / TRANSITION_FILE)
+    t0 = time.perf_counter()
+    slam = SLAM(tr, cfg, transition=tran, emission=em)
+    res = slam.run(mode, progress=False)
+    wall = time.perf_counter() - t0
+    pi = path_integration(tr, slam.model.transition)
+    out = {
+        "slam": metrics.localisation_error(res["mean"], tr.poses),
+        "pi": metrics.localisation_error(pi, tr.poses),
+        "distance": metrics.distance_travelled(tr.poses),
+        "wall_s": wall,
+    }
+    np.savez(path, **out)
+    return {"mode": mode, "maze": maze_seed, "seed": seed, "final": float(out["slam"][-1]),
+            "pi": float(out["pi"][-1]), "wall_s": wall}  # fmt: skip
+
+
+# settings used for the figures in the issue notes (see docs/results/slam.md)
+BENCH_CONFIG = dict(learn_emission=False)  # frozen pretrained emission; SLAMConfig defaults
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--out", type=Path, default=Path("out/slam_accuracy"))
+    p.add_argument("--mazes", type=int, default=6)
+    p.add_argument("--traversals", type=int, default=4)
+    p.add_argument("--steps", type=int, default=3000)
+    p.add_argument("--modes", default="online,offline")
+    p.add_argument("--transition", choices=["learned", "kinematic"], default="learned")
+    p.add_argument("--config", default="{}", help="JSON SLAMConfig overrides")
+    p.add_argument("--workers", type=int, default=2)
+    args = p.parse_args(argv)
+    from tqdm import tqdm
+
+    from pyro_slam.plotting import plot_error_bands
+
+    runs = args.out / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    over = json.loads(args.config)
+    modes = args.modes.split(",")
+    jobs, files = [], {}
+    for mode in modes:
+        for m in MAZE_SEEDS[: args.mazes]:
+            for s in range(1, args.traversals + 1):
+                f = runs / f"{mode}_m{m}_t{s}_T{args.steps}.npz"
+                files.setdefault(mode, []).append(f)
+                if not f.is_file():
+                    jobs.append((mode, m, s, args.steps, over, args.transition, f))
+    with mp.get_context("spawn").Pool(args.workers) as pool:
+        for r in tqdm(pool.imap_unordered(run_one, jobs), total=len(jobs), desc="SLAM runs"):
+            tqdm.write(json.dumps(r))
+    summary = {"steps": args.steps, "runs_per_mode": args.mazes * args.traversals,
+               "transition": args.transition, "config": {**BENCH_CONFIG, **over}}  # fmt: skip
+    curves = {}
+    for mode in modes:
+        data = [np.load(f) for f in files[mode]]
+        e = np.stack([d["slam"] for d in data])  # [R, T]
+        curves[f"{mode} SLAM"] = e
+        pi, dist = np.stack([d["pi"] for d in data]), np.stack([d["distance"] for d in data])
+        summary[mode] = {
+            "final_mean": float(e[:, -1].mean()),
+            "final_std": float(e[:, -1].std()),
+            "relative_final_mean": float((e[:, -1] / dist[:, -1]).mean()),
+            "wall_s_mean": float(np.mean([d["wall_s"] for d in data])),
+        }
+    summary["path_integration"] = {
+        "final_mean": float(pi[:, -1].mean()),
+        "final_std": float(pi[:, -1].std()),
+        "relative_final_mean": float((pi[:, -1] / dist[:, -1]).mean()),
+    }
+    curves["path integration"] = pi
+    plot_error_bands(curves, args.out / "error_bands.png", distance=dist, title="DVBF-LM SLAM")
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,122 @@
+"""Plots of SLAM runs: trajectories, map belief, error vs time with percentile bands.
+
+All functions write a PNG (matplotlib, Agg backend) and return its path.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.collections import LineCollection  # noqa: E402
+
+from . import metrics  # noqa: E402
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _walls(ax, walls):
+    if len(walls):
+        ax.add_collection(LineCollection(np.asarray(walls).reshape(-1, 2, 2), colors="k", lw=1.2))
+
+
+def map_image(loc: np.ndarray) -> np.ndarray:
+    """Map mean ``[w, h, D]`` -> RGB ``[h, w, 3]`` in [0, 1] via its 3 principal components."""
+    w, h, d = loc.shape
+    flat = loc.reshape(-1, d) - loc.reshape(-1, d).mean(0)
+    _, _, vt = np.linalg.svd(flat, full_matrices=False)
+    pcs = flat @ vt[: min(3, d)].T
+    pcs = np.pad(pcs, ((0, 0), (0, 3 - pcs.shape[1])))
+    lo, hi = np.percentile(pcs, 2, axis=0), np.percentile(pcs, 98, axis=0)
+    rgb = np.clip((pcs - lo) / np.maximum(hi - lo, 1e-9), 0, 1)
+    return rgb.reshape(w, h, 3).transpose(1, 0, 2)
+
+
+def plot_slam(traversal, result: dict, grid, path_png, title: str = "") -> Path:
+    """Three panels: trajectories (true / SLAM / path integration) on the walls, the map belief's
+    mean (3 principal components as RGB) and its mean std, and the pose std along the path."""
+    est = result["mean"]  # [T, 3]
+    pi = result.get("path_integration")
+    fig, axes = plt.subplots(1, 3, figsize=(17, 5.5))
+    ax = axes[0]
+    _walls(ax, traversal.walls)
+    if traversal.poses is not None:
+        ax.plot(*traversal.poses[:, :2].T, color="k", lw=0.8, alpha=0.6, label="true")
+    if pi is not None:
+        ax.plot(*pi[:, :2].T, color="tab:red", lw=0.8, label="path integration")
+    ax.plot(*est[:, :2].T, color="tab:blue", lw=0.8, label=f"SLAM ({result.get('mode', '')})")
+    ax.set_aspect("equal")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(title or "trajectories")
+    ext = grid.extent()  # (x0, x1, y0, y1)
+    loc, scale = result["map_loc"], result["map_scale"]
+    axes[1].imshow(map_image(loc), origin="lower", extent=ext, interpolation="nearest")
+    _walls(axes[1], traversal.walls)
+    axes[1].set_title("map belief: mean (3 principal components)")
+    im = axes[2].imshow(scale.mean(-1).T, origin="lower", extent=ext, cmap="magma", vmin=0, vmax=1)
+    _walls(axes[2], traversal.walls)
+    fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.04)
+    axes[2].set_title("map belief: mean std (1 = prior)")
+    for a in axes[1:]:
+        a.set_aspect("equal")
+    return _save(fig, path_png)
+
+
+def plot_errors(traversal, result: dict, path_png) -> Path:
+    """Localisation error and error relative to distance travelled vs time, SLAM vs PI."""
+    true = traversal.poses
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    curves = {"SLAM": result["mean"]}
+    if result.get("path_integration") is not None:
+        curves["path integration"] = result["path_integration"]
+    for (name, est), c in zip(curves.items(), ["tab:blue", "tab:red"]):
+        axes[0].plot(metrics.localisation_error(est, true), color=c, label=name)
+        axes[1].plot(metrics.relative_error(est, true), color=c, label=name)
+    axes[0].set_ylabel("localisation error")
+    axes[1].set_ylabel("error / distance travelled")
+    axes[1].set_yscale("log")
+    for a in axes:
+        a.set_xlabel("time step")
+        a.legend()
+        a.grid(alpha=0.3)
+    return _save(fig, path_png)
+
+
+def plot_error_bands(curves: dict[str, np.ndarray], path_png, distance=None, title="") -> Path:
+    """Paper Fig. 4: median and 50% / 80% bands of ``[runs, T]`` error curves per method.
+
+    ``distance [runs, T]`` (optional) adds a second panel with errors relative to it.
+    """
+    colors = ["tab:blue", "tab:green", "tab:red", "tab:purple", "tab:orange"]
+    n = 1 if distance is None else 2
+    fig, axes = plt.subplots(1, n, figsize=(6.5 * n, 4), squeeze=False)
+    for (name, e), c in zip(curves.items(), colors):
+        panels = [e] if distance is None else [e, np.divide(e, np.maximum(distance, 1e-9))]
+        for ax, v in zip(axes[0], panels):
+            t = np.arange(v.shape[1])
+            ax.plot(t, np.median(v, 0), color=c, label=name)
+            for lo, hi, a in ((25, 75, 0.35), (10, 90, 0.15)):
+                ax.fill_between(
+                    t, np.percentile(v, lo, 0), np.percentile(v, hi, 0), color=c, alpha=a, lw=0
+                )
+    axes[0, 0].set_ylabel("localisation error")
+    if n == 2:
+        axes[0, 1].set_ylabel("error / distance travelled")
+        axes[0, 1].set_yscale("log")
+    for ax in axes[0]:
+        ax.set_xlabel("time step")
+        ax.grid(alpha=0.3)
+        ax.legend()
+    if title:
+        fig.suptitle(title + " (median, 50% and 80% bands)")
+    return _save(fig, path_png)

@@ -1,0 +1,76 @@
+"""The ``pyro-slam`` command line: simulate -> slam -> resume, and bad input."""
+
+import json
+
+import numpy as np
+import pytest
+
+from pyro_slam import cli
+
+TINY = json.dumps(
+    {"filter_particles": 16, "train_particles": 4, "chunks_per_batch": 2, "chunk_length": 4}
+)
+
+
+@pytest.fixture(scope="module")
+def traversal(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim") / "tr.npz"
+    rc = cli.main(
+        ["simulate", "--maze", "simple-small", "--steps", "30", "--seed", "3", "--out", str(out)]
+    )
+    assert rc == 0 and out.is_file() and out.with_suffix(".png").is_file()
+    return out
+
+
+def test_slam_writes_outputs_and_metrics(traversal, tmp_path, capsys):
+    out = tmp_path / "run"
+    rc = cli.main(["slam", str(traversal), "--out", str(out), "--config", TINY, "--seed", "1"])
+    assert rc == 0
+    for name in ("metrics.json", "slam.png", "error.png", "checkpoint.pt", "posterior.npz"):
+        assert (out / name).is_file(), name
+    report = json.loads((out / "metrics.json").read_text())
+    assert report["steps"] == 30 and report["mode"] == "online"
+    s, p = report["slam"], report["path_integration"]
+    # a 30-step run cannot drift far: both errors are small and finite
+    assert 0 <= s["final_error"] < 0.2 and 0 <= p["final_error"] < 0.2
+    assert np.isfinite(s["ate"]["rmse"])
+    post = np.load(out / "posterior.npz")
+    assert post["pose_mean"].shape == (30, 3) and np.isfinite(post["pose_mean"]).all()
+    tum = np.loadtxt(out / "trajectory_slam.tum")
+    assert tum.shape == (30, 8)
+    assert "final error SLAM" in capsys.readouterr().out
+
+
+def test_resume_of_finished_run_keeps_result(traversal, tmp_path):
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+    assert cli.main(args) == 0
+    first = np.load(out / "posterior.npz")["pose_mean"]
+    assert cli.main(args + ["--resume"]) == 0
+    np.testing.assert_array_equal(np.load(out / "posterior.npz")["pose_mean"], first)
+
+
+def test_bad_inputs_exit_2_with_message(traversal, tmp_path, capsys):
+    assert cli.main(["slam", str(tmp_path / "missing.npz"), "--out", str(tmp_path)]) == 2
+    assert "missing.npz" in capsys.readouterr().err
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip file")
+    assert cli.main(["slam", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "bad.npz" in capsys.readouterr().err
+    rc = cli.main(["slam", str(traversal), "--out", str(tmp_path), "--config", '{"nope": 1}'])
+    assert rc == 2 and "nope" in capsys.readouterr().err
+    rc = cli.main(["slam", str(traversal), "--out", str(tmp_path / "r"), "--resume"])
+    assert rc == 2 and "checkpoint" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_demo_end_to_end(tmp_path):
+    """`make demo` at reduced length: simulation, SLAM, plots and metrics (slow suite)."""
+    out = tmp_path / "out"
+    assert cli.main(["demo", "--out", str(out), "--steps", "400"]) == 0
+    report = json.loads((out / "metrics.json").read_text())
+    assert report["steps"] == 400
+    for name in ("traversal.npz", "traversal.png", "slam.png", "error.png"):
+        assert (out / name).is_file()
+    # SLAM stays within a corridor width of the truth over 400 steps
+    assert report["slam"]["final_error"] < 1 / 6

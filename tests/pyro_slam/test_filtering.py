@@ -1,0 +1,247 @@
+"""The particle filter of :mod:`pyro_slam.filtering` against an exact Kalman filter, its failure
+mode, resampling, weight normalisation and dtypes.
+
+The filter only needs five things of its ``model``: ``emission_mean(M, z)``,
+``emission_log_prob(x, mean, mask, sigma)``, ``transition.mean(z, u, scan)``,
+``transition.sigma`` and ``init_scale``. :class:`LinearGaussian` provides them for a 3-D random
+walk with drift observed through a linear map ``x = H z + noise`` (``H`` is passed where DVBF-LM
+passes the map ``M``), reusing DVBF-LM's own emission log-density and :class:`Transition` base.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from pyro_slam import resampling
+from pyro_slam.filtering import ParticleCache, ParticleFilter, Particles
+from pyro_slam.model import DVBFLM
+from pyro_slam.resampling import ParticleFilterFailed
+from pyro_slam.transitions import Transition
+
+Q = (0.2, 0.15, 0.1)  # transition std per pose dimension
+R = 0.5  # observation std
+S0 = (0.3, 0.3, 0.2)  # initial-pose std
+H = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.5, -0.5, 1.0], [0.0, 0.3, -0.6]]  # [B=4, 3]
+T = 12
+
+
+class RandomWalk(Transition):
+    """``z_{t+1} = z_t + u_t + N(0, diag(sigma^2))``."""
+
+    def mean(self, z, u, scan=None):
+        return z + u
+
+
+class LinearGaussian:
+    """Duck-typed stand-in for :class:`DVBFLM`: linear-Gaussian emission ``x ~ N(M z, R^2)``."""
+
+    emission_log_prob = DVBFLM.emission_log_prob  # the very function the filter uses on DVBF-LM
+
+    def __init__(self, dtype):
+        self.sigma_emission = R
+        self.transition = RandomWalk(torch.tensor(Q, dtype=dtype))
+        self.init_scale = torch.tensor(S0, dtype=dtype)
+
+    def emission_mean(self, M, z):
+        return z @ M.T
+
+
+def simulate(dtype, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    h = torch.tensor(H, dtype=torch.float64)
+    z = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
+    z0 = z.clone()
+    u = 0.1 * torch.randn(T - 1, 3, generator=g, dtype=torch.float64)
+    xs = []
+    for t in range(T):
+        if t:
+            z = z + u[t - 1] + torch.tensor(Q, dtype=torch.float64) * torch.randn(3, generator=g)
+        xs.append(h @ z + R * torch.randn(4, generator=g, dtype=torch.float64))
+    return h.to(dtype), torch.stack(xs).to(dtype), u.to(dtype), z0.to(dtype)
+
+
+def kalman(h, x, u, z0):
+    """Exact filtering means, stds ``[T, 3]`` and log-evidence ``log p(x_{0:T-1})`` (float64)."""
+    h, x, u, m = (a.to(torch.float64) for a in (h, x, u, z0))
+    P = torch.diag(torch.tensor(S0, dtype=torch.float64) ** 2)
+    Qm = torch.diag(torch.tensor(Q, dtype=torch.float64) ** 2)
+    Rm = R**2 * torch.eye(h.shape[0], dtype=torch.float64)
+    means, stds, logz = [], [], 0.0
+    for t in range(x.shape[0]):
+        if t:
+            m, P = m + u[t - 1], P + Qm
+        S = h @ P @ h.T + Rm
+        logz += torch.distributions.MultivariateNormal(h @ m, S).log_prob(x[t]).item()
+        K = P @ h.T @ torch.linalg.inv(S)
+        m = m + K @ (x[t] - h @ m)
+        P = (torch.eye(3, dtype=torch.float64) - K @ h) @ P
+        means.append(m)
+        stds.append(P.diagonal().sqrt())
+    return torch.stack(means), torch.stack(stds), logz
+
+
+def run_replicates(dtype, reps, K, seed=0, ess_threshold=0.5):
+    """``reps`` independent filters as one batch ``[reps, K, 3]``: log-evidence ``[reps]``,
+    weighted means ``[T, reps, 3]``; asserts normalised weights at every step."""
+    h, x, u, z0 = simulate(dtype)
+    model = LinearGaussian(dtype)
+    g = torch.Generator().manual_seed(seed)
+    pf = ParticleFilter(model, ess_threshold=ess_threshold, generator=g)
+    z = z0 + model.init_scale * torch.randn(reps, K, 3, generator=g, dtype=dtype)
+    p, ev = pf.init(z, h, x[0])
+    means = [p.mean()]
+    for t in range(1, T):
+        assert torch.allclose(torch.logsumexp(p.logw, -1), torch.zeros((), dtype=dtype), atol=1e-5)
+        p, inc = pf.step(p, h, x[t], u[t - 1], step=t)
+        ev = ev + inc
+        means.append(p.mean())
+    assert p.z.shape == (reps, K, 3) and p.logw.shape == (reps, K) and ev.shape == (reps,)
+    assert p.z.dtype == dtype and ev.dtype == dtype
+    return ev.double(), torch.stack(means).double(), (h, x, u, z0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_log_evidence_and_means_match_kalman(dtype):
+    reps, K = 64, 400
+    ev, means, (h, x, u, z0) = run_replicates(dtype, reps, K)
+    kf_mean, kf_std, kf_logz = kalman(h, x, u, z0)
+    assert torch.isfinite(ev).all()
+    # exp(log p^) is unbiased for p(x): the mean ratio is 1 up to its own Monte-Carlo error
+    ratio = torch.exp(ev - kf_logz)
+    se = ratio.std() / math.sqrt(reps)
+    assert abs(ratio.mean().item() - 1.0) < 4 * se.item() + 1e-3, (ratio.mean(), se)
+    assert 0 < ratio.std() < 0.5  # the estimator is informative (K = 400 on T = 12 steps)
+    # each replicate's log-evidence is close; their spread is the MC error
+    assert (ev - kf_logz).abs().max() < 1.5
+    # filtering means: the replicate average matches Kalman within its standard error
+    avg, spread = means.mean(1), means.std(1)  # [T, 3]
+    z = (avg - kf_mean).abs() / (spread / math.sqrt(reps) + 0.02 * kf_std)
+    assert z.max() < 4.5, z.max()
+    # and single replicates within a few posterior stds / sqrt(K)-ish MC error
+    assert ((means - kf_mean.unsqueeze(1)).abs() < 6 * spread.unsqueeze(1) + 1e-4).all()
+    assert (spread < 0.25 * kf_std).all()  # MC error << posterior spread
+
+
+def test_run_matches_kalman_and_reports_posterior_std():
+    h, x, u, z0 = simulate(torch.float64)
+    kf_mean, kf_std, kf_logz = kalman(h, x, u, z0)
+    pf = ParticleFilter(LinearGaussian(torch.float64), generator=torch.Generator().manual_seed(3))
+    out = pf.run(h, x, u, z0, num_particles=3000)
+    assert out["mean"].shape == (T, 3) and out["std"].shape == (T, 3)
+    assert abs(out["log_evidence"] - kf_logz) < 0.25
+    err = (out["mean"] - kf_mean).abs() / kf_std
+    assert err.max() < 0.25, err.max()  # MC error ~ 1/sqrt(ESS) posterior stds
+    torch.testing.assert_close(out["std"], kf_std, rtol=0.15, atol=0)
+    # the returned particles carry the last step's normalised weights
+    assert torch.logsumexp(out["particles"].logw, -1).abs() < 1e-9
+
+
+@pytest.mark.parametrize("bad, kind", [(float("nan"), "NaN"), (float("inf"), "-inf")])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_collapsed_weights_raise_with_step_index(bad, kind, dtype):
+    h, x, u, z0 = simulate(dtype)
+    x[5, 2] = bad
+    pf = ParticleFilter(LinearGaussian(dtype), generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ParticleFilterFailed) as info:
+        pf.run(h, x, u, z0, num_particles=50)
+    assert info.value.step == 5
+    assert str(info.value).startswith("step 5:") and kind in str(info.value)
+    x[5, 2] = 0.0
+    x[0] = bad  # at the very first step too
+    with pytest.raises(ParticleFilterFailed) as info:
+        pf.run(h, x, u, z0, num_particles=50)
+    assert info.value.step == 0
+
+
+def test_check_weights_flags_any_collapsed_row():
+    ok = torch.tensor([[0.0, -1.0], [-math.inf, -2.0]])
+    resampling.check_weights(ok, 3)  # one -inf particle is fine
+    with pytest.raises(ParticleFilterFailed, match="step 7: all particle weights are zero"):
+        resampling.check_weights(torch.tensor([[0.0, 0.0], [-math.inf, -math.inf]]), 7)
+    with pytest.raises(ParticleFilterFailed, match="NaN") as info:
+        resampling.check_weights(torch.tensor([[0.0, math.nan]]))
+    assert info.value.step is None and not str(info.value).startswith("step")
+
+
+@pytest.mark.parametrize("scheme", ["systematic", "multinomial"])
+def test_resampling_keeps_shapes_and_follows_weights(scheme):
+    g = torch.Generator().manual_seed(0)
+    K = 8
+    logw = torch.randn(2, 3, K, generator=g) * 2
+    z = torch.randn(2, 3, K, 3, generator=g)
+    p = Particles(z, resampling.normalize(logw), torch.randn(2, 3, K, 5, generator=g))
+    state = g.get_state()
+    idx = resampling.SCHEMES[scheme](logw, g)
+    assert idx.shape == (2, 3, K) and idx.dtype == torch.long
+    assert idx.min() >= 0 and idx.max() < K
+    g.set_state(state)  # the same draw again, inside Particles.resample
+    r = p.resample(g, scheme)
+    assert r.z.shape == z.shape and r.scan.shape == (2, 3, K, 5) and r.logw.shape == (2, 3, K)
+    torch.testing.assert_close(r.logw, torch.full_like(logw, -math.log(K)))
+    # every resampled particle is one of the old ones, with its scan
+    for i in range(2):
+        for j in range(3):
+            torch.testing.assert_close(r.z[i, j], z[i, j, idx[i, j]])
+            torch.testing.assert_close(r.scan[i, j], p.scan[i, j, idx[i, j]])
+
+
+def test_systematic_counts_are_within_one_of_expectation():
+    g = torch.Generator().manual_seed(1)
+    K = 50
+    logw = torch.randn(20, K, generator=g) * 1.5
+    idx = resampling.systematic(logw, g)
+    counts = torch.zeros(20, K).scatter_add_(1, idx, torch.ones(20, K))
+    expected = K * torch.softmax(logw, -1)
+    assert ((counts - expected).abs() < 1 + 1e-5).all()
+    # multinomial resampling is unbiased: average counts over many draws approach K w
+    many = torch.stack([resampling.multinomial(logw[:1], g) for _ in range(400)])
+    freq = torch.zeros(K).scatter_add_(0, many.flatten(), torch.ones(many.numel())) / 400
+    assert (freq - expected[0]).abs().max() < 0.5
+
+
+def test_ess_resampling_only_in_degenerate_rows():
+    """Rows with ESS < threshold are resampled, others keep their particles and weights."""
+    model = LinearGaussian(torch.float64)
+    model.transition = RandomWalk(torch.zeros(3, dtype=torch.float64))  # deterministic moves
+    pf = ParticleFilter(model, ess_threshold=0.5, generator=torch.Generator().manual_seed(0))
+    K = 6
+    z = torch.arange(2 * K * 3, dtype=torch.float64).reshape(2, K, 3) / 10
+    logw = torch.stack([torch.tensor([0.0] + [-50.0] * (K - 1)), torch.zeros(K)]).double()
+    p = Particles(z, resampling.normalize(logw), None)
+    assert resampling.ess(p.logw)[0] < 1.01 and resampling.ess(p.logw)[1] == pytest.approx(K)
+    u = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    h = torch.tensor(H, dtype=torch.float64)
+    x = torch.zeros(2, 4, dtype=torch.float64)
+    q, inc = pf.step(p, h, x, u, step=1)
+    # degenerate row: all particles descend from particle 0; healthy row: moved in place
+    torch.testing.assert_close(q.z[0], (z[0, 0] + u).expand(K, 3))
+    torch.testing.assert_close(q.z[1], z[1] + u)
+    lik = DVBFLM.emission_log_prob(model, x.unsqueeze(-2), q.z @ h.T)  # [2, K]
+    torch.testing.assert_close(q.logw[1], resampling.normalize(lik[1]))  # uniform prior weights
+    torch.testing.assert_close(q.logw[0], torch.full((K,), -math.log(K), dtype=torch.float64))
+    torch.testing.assert_close(inc, torch.logsumexp(lik - math.log(K), -1))
+
+
+def test_particle_cache_store_and_propose():
+    g = torch.Generator().manual_seed(0)
+    cache = ParticleCache(10, num_particles=400)
+    z = torch.tensor([1.0, 2.0, 0.5]) + torch.tensor([0.1, 0.2, 0.05]) * torch.randn(
+        2, 800, 3, generator=g
+    )
+    cache.store(torch.tensor([3, 4]), Particles(z, torch.full((2, 800), -math.log(800))), g)
+    assert cache.filled.tolist() == [False] * 3 + [True] * 2 + [False] * 5
+    loc, scale = cache.moments(torch.tensor([3, 4]))
+    torch.testing.assert_close(loc, torch.tensor([[1.0, 2.0, 0.5]] * 2), atol=0.03, rtol=0)
+    torch.testing.assert_close(scale, torch.tensor([[0.1, 0.2, 0.05]] * 2), rtol=0.15, atol=0)
+    for kind in ("gaussian", "categorical"):
+        prop = cache.propose(torch.tensor([3, 4, 3]), 7, kind, generator=g)
+        assert prop.shape == (3, 7, 3) and torch.isfinite(prop).all()
+    with pytest.raises(ValueError, match=r"no particles at steps \[5\]"):
+        cache.propose(torch.tensor([4, 5]), 7)
+    with pytest.raises(ValueError, match="unknown proposal"):
+        cache.propose(torch.tensor([4]), 7, "nope")
+    with pytest.raises(ValueError, match="unknown resampling scheme"):
+        ParticleFilter(LinearGaussian(torch.float32), scheme="stratified")

@@ -1,0 +1,107 @@
+"""Trajectory metrics on constructed trajectories with known answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pyro_slam.data import Traversal
+from pyro_slam.metrics import (
+    ate,
+    distance_travelled,
+    localisation_error,
+    odometry_poses,
+    relative_error,
+    summary,
+    write_trajectory_tum,
+)
+from simulators import integrate_controls, simulate_traversal
+
+# unit square walked counter-clockwise: 1 unit per step, headings along the path
+SQUARE = np.array([[0, 0, 0], [1, 0, math.pi / 2], [1, 1, math.pi], [0, 1, -math.pi / 2]], float)
+
+
+def test_localisation_error_is_euclidean_in_xy():
+    est = SQUARE + np.array([[0, 0, 1], [3, 4, 0], [-0.6, 0.8, 2], [0, -2, 0]])
+    np.testing.assert_allclose(localisation_error(est, SQUARE), [0, 5, 1, 2])
+    np.testing.assert_allclose(localisation_error(est[:, :2], SQUARE), [0, 5, 1, 2])  # [T, 2]
+    with pytest.raises(ValueError, match="lengths differ: 3 vs 4"):
+        localisation_error(est[:3], SQUARE)
+
+
+def test_distance_and_relative_error():
+    np.testing.assert_allclose(distance_travelled(SQUARE), [0, 1, 2, 3])
+    est = SQUARE + np.array([0.3, 0.4, 0.0])  # constant 0.5 offset
+    np.testing.assert_allclose(relative_error(est, SQUARE), [0, 0.5, 0.25, 0.5 / 3])
+    still = np.zeros((3, 3))  # no motion: relative error defined as 0, never NaN
+    np.testing.assert_array_equal(relative_error(still + 1, still), [0, 0, 0])
+
+
+def test_ate_constant_offset_and_alignment():
+    est = SQUARE + np.array([0.3, 0.4, 0.7])  # heading errors do not count
+    r = ate(est, SQUARE)
+    assert r["rmse"] == pytest.approx(0.5) and r["mean"] == pytest.approx(0.5)
+    assert r["max"] == pytest.approx(0.5) and r["std"] == pytest.approx(0, abs=1e-12)
+    # a rigid motion of the whole trajectory is removed by alignment (not by default)
+    c, s = math.cos(0.3), math.sin(0.3)
+    moved = SQUARE.copy()
+    moved[:, :2] = SQUARE[:, :2] @ np.array([[c, s], [-s, c]]) + [2.0, -1.0]
+    moved[:, 2] += 0.3
+    assert ate(moved, SQUARE)["rmse"] > 1
+    assert ate(moved, SQUARE, align=True)["rmse"] == pytest.approx(0, abs=1e-9)
+
+
+def test_ate_statistics_match_numpy():
+    rng = np.random.default_rng(0)
+    true = np.cumsum(rng.normal(size=(50, 3)), 0)
+    est = true + rng.normal(scale=0.2, size=(50, 3))
+    e = np.linalg.norm(est[:, :2] - true[:, :2], axis=1)
+    r = ate(est, true)
+    assert r["rmse"] == pytest.approx(np.sqrt(np.mean(e**2)))
+    assert r["mean"] == pytest.approx(e.mean()) and r["max"] == pytest.approx(e.max())
+    assert r["std"] == pytest.approx(e.std())
+    s = summary(est, true)
+    assert s["final_error"] == pytest.approx(e[-1]) and s["mean_error"] == pytest.approx(e.mean())
+    d = distance_travelled(true)[-1]
+    assert s["distance_travelled"] == pytest.approx(d)
+    assert s["final_relative_error"] == pytest.approx(e[-1] / d)
+    assert s["ate"] == pytest.approx(r)
+
+
+def test_odometry_poses_rotate_forward_matches_simulator():
+    tr = simulate_traversal("simple-small", steps=30, seed=2, noise=0)
+    odo = odometry_poses(tr)
+    np.testing.assert_allclose(odo, integrate_controls(tr.poses[0], tr.controls), atol=1e-12)
+    np.testing.assert_allclose(odo[:, :2], tr.poses[:, :2], atol=1e-9)  # noiseless driving
+
+
+def test_odometry_poses_odometry_delta():
+    # robot-frame steps: forward 1 then turn left 90 degrees, four times: back to the start
+    u = np.tile([1.0, 0.0, math.pi / 2], (4, 1))
+    tr = Traversal(
+        observations=np.ones((5, 2)),
+        controls=u,
+        walls=np.zeros((0, 4)),
+        beam_angles=np.array([0.0, math.pi]),
+        max_range=5.0,
+        poses=np.zeros((5, 3)),
+        metadata={"control_model": "odometry_delta"},
+    )
+    odo = odometry_poses(tr)
+    np.testing.assert_allclose(odo[:, :2], [[0, 0], [1, 0], [1, 1], [0, 1], [0, 0]], atol=1e-12)
+    np.testing.assert_allclose(np.cos(odo[:, 2]), [1, 0, -1, 0, 1], atol=1e-12)
+
+
+def test_tum_export_roundtrips_through_evo(tmp_path):
+    from evo.tools import file_interface
+
+    path = tmp_path / "traj.tum"
+    write_trajectory_tum(path, SQUARE, stamps=np.arange(4) * 0.5)
+    traj = file_interface.read_tum_trajectory_file(str(path))
+    np.testing.assert_allclose(traj.timestamps, [0, 0.5, 1, 1.5])
+    np.testing.assert_allclose(traj.positions_xyz[:, :2], SQUARE[:, :2], atol=1e-9)
+    q = traj.orientations_quat_wxyz  # yaw-only rotations
+    yaw = 2 * np.arctan2(q[:, 3], q[:, 0])
+    np.testing.assert_allclose(np.cos(yaw - SQUARE[:, 2]), 1, atol=1e-9)

@@ -1,0 +1,235 @@
+"""SLAM driver: a tiny online/offline run, determinism, resume-from-checkpoint, atomic saves."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import pyro_slam.data
+from pyro_slam.metrics import localisation_error
+from pyro_slam.slam import SLAM, SLAMConfig, path_integration
+from pyro_slam.transitions import KinematicTransition
+from simulators import simulate_traversal
+
+REPO = Path(__file__).resolve().parents[2]
+STEPS = 24
+CFG = dict(
+    map_resolution=0.25 / 6,
+    map_dim=4,
+    emission_hidden=16,
+    emission_layers=2,
+    filter_particles=32,
+    train_particles=8,
+    cache_particles=8,
+    chunk_length=4,
+    chunks_per_batch=4,
+    checkpoint_every=7,
+    offline_rounds=2,
+    offline_svi_steps=5,
+)
+
+
+@pytest.fixture(scope="module")
+def traversal():
+    return simulate_traversal("simple-small", steps=STEPS, seed=0)
+
+
+def config(**kw):
+    return SLAMConfig(**{**CFG, **kw})
+
+
+def emission_params(slam):
+    return {k: v.detach().clone() for k, v in slam.model.emission.state_dict().items()}
+
+
+def assert_same_run(a: SLAM, ra: dict, b: SLAM, rb: dict):
+    for key in ("mean", "std", "losses", "map_loc", "map_scale"):
+        np.testing.assert_array_equal(ra[key], rb[key], err_msg=key)
+    pa, pb = emission_params(a), emission_params(b)
+    for k in pa:
+        torch.testing.assert_close(pa[k], pb[k], rtol=0, atol=0, msg=k)
+    torch.testing.assert_close(a.particles.z, b.particles.z, rtol=0, atol=0)
+
+
+class Crash(Exception):
+    pass
+
+
+def crash_after_save(slam: SLAM, n: int):
+    """Make ``slam`` die right after its ``n``-th checkpoint (a kill between two steps)."""
+    save, count = slam.save, [0]
+
+    def hooked(path):
+        save(path)
+        count[0] += 1
+        if count[0] == n:
+            raise Crash
+
+    slam.save = hooked
+
+
+# ------------------------------------------------------------------------------ runs
+def test_online_run_is_finite_and_tracks_the_path(traversal):
+    tr = traversal
+    slam = SLAM(tr, config())
+    res = slam.run("online", progress=False)
+    T = tr.num_steps
+    assert res["mean"].shape == (T, 3) and res["std"].shape == (T, 3)
+    assert res["map_loc"].shape == res["map_scale"].shape == slam.model.grid.shape
+    # one SVI step per step from t = chunk_length - 1 on
+    assert len(res["losses"]) == T - CFG["chunk_length"] + 1
+    for key in ("mean", "std", "losses", "map_loc", "map_scale"):
+        assert np.isfinite(res[key]).all(), key
+    assert (res["std"] > 0).all() and (res["std"][:, :2] < 0.02).all()
+    # starts at the known pose and stays well inside the corridor (width 1/12)
+    err = localisation_error(res["mean"], tr.poses)
+    assert err[0] < 5e-3 and err.max() < 0.04
+    assert np.abs(np.angle(np.exp(1j * (res["mean"][:, 2] - tr.poses[:, 2])))).max() < 0.1
+    # q(M) moved where the agent has been (scale sharpened somewhere) and nowhere else:
+    # grid nodes more than 2 cells from every pose keep the prior exactly
+    grid = slam.model.grid
+    spacing = np.asarray(grid.size) / (np.asarray(grid.cells) - 1)
+    nodes = np.stack(np.meshgrid(*(np.arange(c) for c in grid.cells), indexing="ij"), -1)
+    pos = (tr.poses[:, :2] - np.asarray(grid.origin)) / spacing
+    far = np.abs(nodes[:, :, None] - pos).max(-1).min(-1) > 2
+    assert far.mean() > 0.5
+    assert (res["map_scale"][far] == 1).all() and (res["map_loc"][far] == 0).all()
+    assert res["map_scale"][~far].min() < 0.9 and np.abs(res["map_loc"][~far]).max() > 0.1
+
+
+def test_offline_run(traversal):
+    slam = SLAM(traversal, config())
+    res = slam.run("offline", progress=False)
+    T = traversal.num_steps
+    assert res["mean"].shape == (T, 3) and np.isfinite(res["mean"]).all()
+    # online sweep, then 2 rounds of 5 SVI steps
+    assert len(res["losses"]) == T - CFG["chunk_length"] + 1 + 2 * 5
+    assert np.isfinite(res["losses"]).all()
+    assert localisation_error(res["mean"], traversal.poses).max() < 0.03
+    assert slam.state.phase == "done" and slam.state.round == 2
+
+
+def test_same_seed_same_result_other_seed_differs(traversal):
+    # (runs share Pyro's global param store: a SLAM is built when the previous one is done)
+    a = SLAM(traversal, config())
+    ra = a.run("online", False)
+    b = SLAM(traversal, config())
+    assert_same_run(a, ra, b, b.run("online", False))
+    c = SLAM(traversal, config(seed=1)).run("online", False)
+    assert not np.array_equal(c["mean"], ra["mean"])
+
+
+def test_bad_mode(traversal):
+    with pytest.raises(ValueError, match="mode must be"):
+        SLAM(traversal, config()).run("sideways", progress=False)
+
+
+def test_path_integration_reproduces_noiseless_motion():
+    tr = simulate_traversal("simple-small", steps=40, seed=3, noise=0)
+    assert tr.metadata["collisions"] == 0
+    poses = path_integration(tr, KinematicTransition((1e-3, 1e-3, 1e-3)))
+    assert poses.shape == (40, 3) and poses.dtype == np.float64
+    np.testing.assert_allclose(poses[:, :2], tr.poses[:, :2], atol=1e-5)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (poses[:, 2] - tr.poses[:, 2]))), 0, atol=1e-5)
+    assert (poses[:, 2] >= -np.pi).all() and (poses[:, 2] < np.pi).all()
+
+
+# ---------------------------------------------------------------------------- resume
+@pytest.mark.parametrize(
+    "mode, crash_at",
+    [
+        ("online", 2),  # online, after step 14
+        ("offline", 2),  # inside the online sweep that starts offline SLAM
+        ("offline", 5),  # between the two offline rounds
+        ("offline", 7),  # after the final checkpoint: nothing is redone
+    ],
+)
+def test_resume_reproduces_uninterrupted_run(traversal, tmp_path, mode, crash_at):
+    ref = SLAM(traversal, config())
+    r_ref = ref.run(mode, progress=False)
+
+    ckpt = tmp_path / "ckpt.pt"
+    first = SLAM(traversal, config(), checkpoint=ckpt)
+    crash_after_save(first, crash_at)
+    with pytest.raises(Crash):
+        first.run(mode, progress=False)
+    del first
+
+    resumed = SLAM(traversal, config(), checkpoint=ckpt).resume(ckpt)
+    assert 0 < resumed.state.t or resumed.state.round > 0 or resumed.state.phase != "online"
+    r_res = resumed.run(mode, progress=False)
+    assert_same_run(ref, r_ref, resumed, r_res)
+
+
+def test_resume_after_sigkill(traversal, tmp_path):
+    """A process killed with SIGKILL right after a checkpoint resumes to the same result."""
+    ckpt = tmp_path / "ckpt.pt"
+    script = textwrap.dedent(
+        f"""
+        import os, signal, torch
+        torch.set_num_threads(1)
+        from simulators import simulate_traversal
+        from pyro_slam.slam import SLAM, SLAMConfig
+        tr = simulate_traversal("simple-small", steps={STEPS}, seed=0)
+        slam = SLAM(tr, SLAMConfig(**{CFG!r}), checkpoint={str(ckpt)!r})
+        save = slam.save
+        def hooked(path):
+            save(path)
+            if slam.state.t == 14:
+                os.kill(os.getpid(), signal.SIGKILL)
+        slam.save = hooked
+        slam.run("online", progress=False)
+        """
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, timeout=120)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
+    ref = SLAM(traversal, config())
+    r_ref = ref.run("online", False)
+    resumed = SLAM(traversal, config(), checkpoint=ckpt).resume(ckpt)
+    assert resumed.state.t == 14 and resumed.state.phase == "online"
+    assert_same_run(ref, r_ref, resumed, resumed.run("online", False))
+
+
+# ------------------------------------------------------------------------ atomic saves
+def test_checkpoint_writes_are_atomic(traversal, tmp_path, monkeypatch):
+    ckpt = tmp_path / "ckpt.pt"
+    slam = SLAM(traversal, config(checkpoint_every=100), checkpoint=ckpt)
+    slam.run("online", progress=False)
+    good = ckpt.read_bytes()
+    assert torch.load(ckpt, weights_only=False)["state"]["t"] == STEPS
+
+    def boom(*args, **kwargs):
+        raise OSError("disk full")
+
+    slam.state.t = 3  # something that would change the file
+    # 1) serialisation fails before anything is written
+    with monkeypatch.context() as m:
+        m.setattr(torch, "save", boom)
+        with pytest.raises(OSError, match="disk full"):
+            slam.save(ckpt)
+    # 2) the temporary file is half written when the disk fills up
+    with monkeypatch.context() as m:
+        m.setattr(pyro_slam.data.os, "fsync", boom)
+        with pytest.raises(OSError, match="disk full"):
+            slam.save(ckpt)
+    # 3) the rename fails
+    with monkeypatch.context() as m:
+        m.setattr(pyro_slam.data.os, "replace", boom)
+        with pytest.raises(OSError, match="disk full"):
+            slam.save(ckpt)
+    assert ckpt.read_bytes() == good
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt"]  # no temp files left
+    # the surviving checkpoint still resumes
+    again = SLAM(traversal, config(), checkpoint=ckpt).resume(ckpt)
+    assert again.state.t == STEPS and again.state.phase == "done"
+    slam.save(ckpt)  # and a working save replaces it
+    assert torch.load(ckpt, weights_only=False)["state"]["t"] == 3
