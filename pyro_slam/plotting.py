@@ -101,14 +101,19 @@ def plot_error_bands(curves: dict[str, np.ndarray], path_png, distance=None, tit
     n = 1 if distance is None else 2
     fig, axes = plt.subplots(1, n, figsize=(6.5 * n, 4), squeeze=False)
     for (name, e), c in zip(curves.items(), colors):
-        panels = [e] if distance is None else [e, np.divide(e, np.maximum(distance, 1e-9))]
+        if distance is None:
+            panels = [e]
+        else:  # relative error is undefined before the agent has moved (distance ~ 0)
+            rel = np.where(distance > 0.05, e / np.maximum(distance, 1e-9), np.nan)
+            panels = [e, rel]
         for ax, v in zip(axes[0], panels):
             t = np.arange(v.shape[1])
-            ax.plot(t, np.median(v, 0), color=c, label=name)
+            ok = ~np.isnan(v).all(0)
+            t, v = t[ok], v[:, ok]
+            ax.plot(t, np.nanmedian(v, 0), color=c, label=name)
             for lo, hi, a in ((25, 75, 0.35), (10, 90, 0.15)):
-                ax.fill_between(
-                    t, np.percentile(v, lo, 0), np.percentile(v, hi, 0), color=c, alpha=a, lw=0
-                )
+                p_lo, p_hi = np.nanpercentile(v, lo, 0), np.nanpercentile(v, hi, 0)
+                ax.fill_between(t, p_lo, p_hi, color=c, alpha=a, lw=0)
     axes[0, 0].set_ylabel("localisation error")
     if n == 2:
         axes[0, 1].set_ylabel("error / distance travelled")
