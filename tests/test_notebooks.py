@@ -4,21 +4,25 @@ A cell that raises fails the test. ``NOTEBOOKS`` is the explicit list CI runs; a
 is added to ``notebooks/`` without being listed here fails ``test_every_notebook_is_executed``,
 so no tutorial can silently go untested. Notebooks are committed without outputs.
 
-The kernel is ``python3`` from the interpreter running pytest (ipykernel in the same venv), and
-it inherits this process's environment (``SMOKE_TEST``, ``PYTHONPATH``).
+The kernel runs the interpreter that runs pytest (``sys.executable``, ipykernel from the same
+venv), via a kernel spec written for the test session -- the stock ``python3`` spec launches
+whatever ``python`` is first on ``PATH``, which need not be the venv's. The kernel inherits
+this process's environment (``SMOKE_TEST``, ``PYTHONPATH``). nbformat, nbclient and ipykernel
+come with the ``dev`` extra; without them this module fails to import rather than skipping, so
+a CI environment cannot silently leave the notebooks out.
 """
 
 from __future__ import annotations
 
+import json
 import os
+import sys
 import time
 from pathlib import Path
 
+import nbclient  # the "dev" extra; a missing package fails (no skip: CI must run notebooks)
+import nbformat
 import pytest
-
-nbformat = pytest.importorskip("nbformat")
-nbclient = pytest.importorskip("nbclient")
-pytest.importorskip("ipykernel")
 
 ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOK_DIR = ROOT / "notebooks"
@@ -48,8 +52,25 @@ def test_notebook_is_committed_without_outputs(name):
             assert not cell.outputs and cell.execution_count is None, f"{name}: cell {i} has output"
 
 
+KERNEL_NAME = "pyro-slam-test"
+
+
+@pytest.fixture(scope="session")
+def kernel_dir(tmp_path_factory):
+    """A JUPYTER_PATH entry holding a kernel spec for this very interpreter."""
+    root = tmp_path_factory.mktemp("jupyter")
+    spec = root / "kernels" / KERNEL_NAME
+    spec.mkdir(parents=True)
+    argv = [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"]
+    spec.joinpath("kernel.json").write_text(
+        json.dumps({"argv": argv, "display_name": KERNEL_NAME, "language": "python"})
+    )
+    return root
+
+
 @pytest.mark.parametrize("name", FOUND)
-def test_notebook_executes(name, monkeypatch):
+def test_notebook_executes(name, monkeypatch, kernel_dir):
+    monkeypatch.setenv("JUPYTER_PATH", str(kernel_dir))
     monkeypatch.setenv("SMOKE_TEST", "1")
     monkeypatch.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
     monkeypatch.setenv("TQDM_DISABLE", "1")
@@ -61,7 +82,7 @@ def test_notebook_executes(name, monkeypatch):
     client = nbclient.NotebookClient(
         nb,
         timeout=CELL_TIMEOUT_S,
-        kernel_name="python3",
+        kernel_name=KERNEL_NAME,
         resources={"metadata": {"path": str(NOTEBOOK_DIR)}},
     )
     start = time.perf_counter()
