@@ -169,7 +169,9 @@ class ParticleFilter:
         joint = logw + loglik
         resampling.check_weights(joint.detach(), step)
         inc = torch.logsumexp(joint, -1)  # [...]
-        return Particles(z, (joint - inc.unsqueeze(-1)).detach(), scan.detach()), inc
+        # normalised weights keep their graph: without resampling, the next step's evidence
+        # depends on the map through them too (resampling resets them to constants)
+        return Particles(z, joint - inc.unsqueeze(-1), scan.detach()), inc
 
     def init(self, z0, M, x, mask=None, step=0):
         """Weigh initial particles ``z0 [..., K, 3]`` by ``x [..., B]``.

@@ -255,10 +255,12 @@ def test_gradients_flow_into_map_and_emission(small_traversal):
     assert (loc.grad[far] == 0).all() and (loc.grad[~far] != 0).any()
 
 
-def test_particle_elbo_gradient_matches_finite_differences(small_traversal):
-    """With resampling at every step, the estimator is a smooth function of the map and
-    emission parameters for fixed random numbers: autograd equals central differences."""
-    model, guide, elbo, _ = elbo_setup(small_traversal, torch.float64, ess_threshold=2.0)
+@pytest.mark.parametrize("ess_threshold", [2.0, 0.0], ids=["resample-always", "never"])
+def test_particle_elbo_gradient_matches_finite_differences(small_traversal, ess_threshold):
+    """For fixed random numbers the estimator is a smooth function of the map and emission
+    parameters (resampling at every step, or never -- then the carried weights depend on the
+    map too): autograd equals central differences."""
+    model, guide, elbo, _ = elbo_setup(small_traversal, torch.float64, ess_threshold=ess_threshold)
     store = pyro.get_param_store()
     with torch.no_grad():  # float64 map parameters, away from the prior
         g = torch.Generator().manual_seed(5)
