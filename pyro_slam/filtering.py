@@ -94,6 +94,9 @@ class ParticleFilter:
         weighting: ``"marginal"`` (inflated sigma, above) or ``"tempered"`` (likelihood raised to
             ``trust^2`` without the normaliser, so unmapped charts are neutral).
         outlier_prob: per-beam outlier floor of the tempered weights.
+        prior_predictive_std: ``"predictive"`` weighting: per-beam std of scans under the map
+            prior (SLAM sets it to the std of the observed ranges); the predictive std is
+            ``sqrt(sigma^2 + (1 - trust) * prior_predictive_std^2)``.
         autocast_dtype: e.g. ``torch.bfloat16``: run the emission MLP in reduced precision when
             no gradient is needed (filtering); ~2-3x faster on CPU, range error ~1e-3.
     """
@@ -109,11 +112,15 @@ class ParticleFilter:
         weighting: str = "marginal",
         outlier_prob: float = 0.0,
         autocast_dtype: torch.dtype | None = None,
+        prior_predictive_std: float = 0.15,
     ):
+        self.prior_predictive_std = prior_predictive_std
         self.outlier_prob = outlier_prob
         self.autocast_dtype = autocast_dtype
-        if weighting not in ("marginal", "tempered"):
-            raise ValueError(f"weighting must be 'marginal' or 'tempered', got {weighting!r}")
+        if weighting not in ("marginal", "tempered", "predictive"):
+            raise ValueError(
+                f"weighting must be 'marginal', 'tempered' or 'predictive', got {weighting!r}"
+            )
         self.uncertainty_gain, self.weighting = uncertainty_gain, weighting
         if scheme not in resampling.SCHEMES:
             raise ValueError(f"unknown resampling scheme {scheme!r}")
@@ -140,7 +147,14 @@ class ParticleFilter:
             if M.usable is not None:
                 trust = trust * g.attend(M.usable.unsqueeze(-1), xy)  # [..., K, 1]
             M = M.loc
-            if self.weighting == "tempered":
+            if self.weighting == "predictive":
+                # linearised marginal of q(M): predictive variance s0^2 + v * s_p^2, where
+                # v = 1 - trust is the chart's remaining prior variance and s_p the spread of
+                # scans under the prior; an unmapped chart scores the prior predictive -- below
+                # a correct match of a mapped cell, above a wrong one
+                v = (1.0 - trust).clamp(0.0, 1.0)
+                sigma = (s0**2 + v * self.prior_predictive_std**2).sqrt()  # [..., K, 1]
+            elif self.weighting == "tempered":
                 # p(x | z, E[M])^beta with beta = trust^2: the same as inflating sigma_E by
                 # 1 / trust but without the normaliser, so charts of unmapped cells are neutral
                 # (beta -> 0) instead of being out-weighed by any mapped cell

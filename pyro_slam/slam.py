@@ -60,7 +60,7 @@ class SLAMConfig:
     filter_sigma: float | None = 0.05  # sigma_E used to weigh the filter's particles
     transition_sigma: tuple[float, float, float] = (5e-4, 5e-4, 8e-3)
     uncertainty_gain: float = 1.0
-    weighting: str = "marginal"  # filter weights under q(M): "marginal" | "tempered"
+    weighting: str = "marginal"  # filter weights under q(M): marginal | tempered | predictive
     outlier_prob: float = 0.0  # per-beam outlier floor of the tempered weights
     filter_particles: int = 128
     train_particles: int = 16
@@ -183,6 +183,7 @@ class SLAM:
             uncertainty_gain=self.cfg.uncertainty_gain,
             weighting=self.cfg.weighting,
             outlier_prob=self.cfg.outlier_prob,
+            prior_predictive_std=_scan_spread(traversal),
         )
         self.cache = ParticleCache(self.T, self.cfg.cache_particles)
         w, h, _ = self.model.grid.shape
@@ -395,6 +396,13 @@ class SLAM:
         self.first_seen.copy_(d["first_seen"])
         self.state = SLAMState(**d["state"])
         return self
+
+
+def _scan_spread(tr: Traversal) -> float:
+    """Std of the valid observed ranges: the scale of scan predictions under the map prior."""
+    obs = np.asarray(tr.observations, dtype=np.float64)
+    valid = obs if tr.obs_mask is None else obs[np.asarray(tr.obs_mask, dtype=bool)]
+    return float(np.std(valid)) if valid.size > 1 else 1.0
 
 
 def _batched(p: Particles) -> Particles:
