@@ -108,7 +108,9 @@ def run_mrpt(tr, work: Path):
     """icp-slam on ``tr`` (written as a CARMEN log): ``([T, 3] poses, wall seconds)``."""
     work.mkdir(parents=True, exist_ok=True)
     clf, rawlog = work / "log.clf", work / "log.rawlog"
-    write_carmen(tr, clf)
+    # FLASER pose fields = odometry too: carmen2rawlog turns them into odometry observations,
+    # and MRPT must not see the reference (Intel's GMapping) poses
+    write_carmen(replace(tr, poses=None), clf)
     subprocess.run(
         ["carmen2rawlog", "-q", "-w", "-i", str(clf), "-o", str(rawlog)],
         check=True, capture_output=True, cwd=work,

@@ -109,13 +109,15 @@ def write_trajectory_tum(path, poses: np.ndarray, stamps: np.ndarray | None = No
 def scan_points(traversal: Traversal, poses: np.ndarray, max_range: float | None = None):
     """Valid scan endpoints reprojected with ``poses [T, 3]``: ``([N, 2] xy, [N] step index)``.
 
-    Readings that are masked, at ``max_range`` or beyond ``max_range`` (default: the sensor's)
-    are left out.
+    Readings that are masked or at / beyond ``max_range`` are left out (default: the range clip
+    of a :func:`~pyro_slam.slam.prepare_traversal`-ed log, whose clipped readings are not
+    endpoints, else the sensor's max range).
     """
     p = np.asarray(poses, dtype=np.float64)
     obs = np.asarray(traversal.observations, dtype=np.float64)
-    r_max = traversal.max_range if max_range is None else min(max_range, traversal.max_range)
-    ok = obs < r_max
+    if max_range is None:
+        max_range = traversal.metadata.get("range_clip") or traversal.max_range
+    ok = obs < min(max_range, traversal.max_range)
     if traversal.obs_mask is not None:
         ok &= traversal.obs_mask
     ang = p[:, 2:3] + traversal.beam_angles[None, :]  # [T, B]

@@ -127,7 +127,7 @@ def plot_scan_map(traversal, poses, path_png, grid=None, map_loc=None, title="",
     trajectory (left), and the map belief's mean (3 principal components as RGB, right, when
     ``grid`` and ``map_loc`` are given). ``others``: ``{name: [T, 3] poses}`` drawn as extra
     trajectories (e.g. odometry)."""
-    xy, _ = metrics.scan_points(traversal, poses, traversal.metadata.get("range_clip"))
+    xy, _ = metrics.scan_points(traversal, poses)
     n = 1 if map_loc is None else 2
     fig, axes = plt.subplots(1, n, figsize=(7 * n, 6.5), squeeze=False)
     ax = axes[0, 0]

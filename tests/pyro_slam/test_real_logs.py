@@ -155,3 +155,11 @@ def test_cli_slam_on_carmen_log(tmp_path, capsys):
     np.testing.assert_allclose(report["config"]["transition_sigma"], sigma, rtol=1e-4)
     assert report["scan_consistency"]["slam"]["mean"] >= 0
     assert "scan consistency" in capsys.readouterr().out
+
+
+def test_scan_points_leave_out_clipped_readings():
+    tr, poses = room_log(T=6)
+    clipped = tr.clip_ranges(4.0)
+    xy, t = metrics.scan_points(clipped, poses)
+    n_short = int((tr.obs_mask & (tr.observations < 4.0)).sum())
+    assert len(xy) == n_short  # readings clipped to 4 m are not wall points
