@@ -1,6 +1,6 @@
 """DVBF-LM SLAM on real laser logs vs odometry alone vs MRPT's icp-slam (issue 7).
 
-    python benchmarks/real_data.py --out runs/real_data            # both logs, ~10 min on 1 core
+    python benchmarks/real_data.py --out out/real_data            # both logs, ~10 min on 1 core
     python benchmarks/real_data.py --steps 300 --out /tmp/rd        # quick look
 
 Logs (``../shared/data``, see its README):
@@ -227,7 +227,7 @@ def benchmark_log(name, tr, out: Path, img: Path, use_mrpt: bool, reference: boo
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--out", type=Path, default=Path("runs/real_data"))
+    p.add_argument("--out", type=Path, default=Path("out/real_data"))
     p.add_argument("--img", type=Path, default=REPO / "docs" / "img")
     p.add_argument("--steps", type=int, default=0, help="first N scans of each log only")
     p.add_argument("--data", type=Path, default=DATA)

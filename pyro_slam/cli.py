@@ -57,7 +57,7 @@ def _config(args, traversal: Traversal | None = None):
     over["seed"] = args.seed
     noise = getattr(args, "odometry_noise", None)
     if traversal is not None and _is_real_log(traversal):
-        return real_log_config(traversal, odometry_noise=noise or 0.1, **over)
+        return real_log_config(traversal, odometry_noise=0.1 if noise is None else noise, **over)
     if noise is not None and traversal is not None and "transition_sigma" not in over:
         from .slam import odometry_sigma
 
