@@ -30,8 +30,17 @@ TRANSITION_FILE = "transition_moderate_medium.pt"
 
 
 # ----------------------------------------------------------------------------------- helpers
-def _config(args):
-    from .slam import SLAMConfig
+def _is_real_log(traversal: Traversal) -> bool:
+    """A metric log from a reader (no walls, robot-frame odometry), not a simulated maze."""
+    return not traversal.walls.shape[0] and (
+        traversal.metadata.get("control_model") == "odometry_delta"
+    )
+
+
+def _config(args, traversal: Traversal | None = None):
+    """SLAMConfig from ``--config`` overrides; real logs start from :func:`real_log_config`
+    (beam stride, 0.5 m map, range clip, transition noise from ``--odometry-noise``)."""
+    from .slam import SLAMConfig, real_log_config
 
     over = {}
     if args.config:
@@ -46,6 +55,13 @@ def _config(args):
         if bad:
             raise DatasetError(f"--config: unknown SLAMConfig fields {bad}; known: {sorted(names)}")
     over["seed"] = args.seed
+    noise = getattr(args, "odometry_noise", None)
+    if traversal is not None and _is_real_log(traversal):
+        return real_log_config(traversal, odometry_noise=0.1 if noise is None else noise, **over)
+    if noise is not None and traversal is not None and "transition_sigma" not in over:
+        from .slam import odometry_sigma
+
+        over["transition_sigma"] = odometry_sigma(traversal.controls, noise, noise)
     return SLAMConfig(**over)
 
 
@@ -137,6 +153,15 @@ def run_slam(
         report["path_integration"] = metrics.summary(res["path_integration"], traversal.poses)
         plotting.plot_errors(traversal, res, out / "error.png")
     plotting.plot_slam(traversal, res, slam.model.grid, out / "slam.png")
+    if not traversal.walls.shape[0]:  # real log: map image from the reprojected scans
+        plotting.plot_scan_map(
+            slam.tr, res["mean"], out / "map.png", slam.model.grid, res["map_loc"],
+            others={"path integration": res["path_integration"]},
+        )  # fmt: skip
+        report["scan_consistency"] = {
+            "slam": metrics.scan_consistency(slam.tr, res["mean"]),
+            "path_integration": metrics.scan_consistency(slam.tr, res["path_integration"]),
+        }
     text = json.dumps(report, indent=2, default=float)
     atomic_write(out / "metrics.json", lambda f: f.write(text.encode()))
     return report
@@ -150,7 +175,13 @@ def _print_report(report: dict, out: Path) -> None:
             f" | final error SLAM {s['final_error']:.4f} vs path integration "
             f"{p['final_error']:.4f} | ATE rmse {s['ate']['rmse']:.4f} vs {p['ate']['rmse']:.4f}"
         )
-    print(line + f" -> {out}/ (metrics.json, slam.png, error.png, checkpoint.pt)")
+    if "scan_consistency" in report:
+        c = report["scan_consistency"]
+        line += (
+            f" | scan consistency SLAM {c['slam']['mean']:.3f} vs path integration "
+            f"{c['path_integration']['mean']:.3f}"
+        )
+    print(line + f" -> {out}/ (metrics.json, slam.png, map.png / error.png, checkpoint.pt)")
 
 
 # ----------------------------------------------------------------------------------- commands
@@ -161,7 +192,7 @@ def cmd_slam(args) -> int:
     tr = read_any(args.traversal)
     if args.steps:
         tr = tr.slice(0, min(args.steps, tr.num_steps))
-    config = _config(args)
+    config = _config(args, tr)
     em_path = args.emission if args.emission else _default_emission(tr)
     if args.emission == "none":
         em_path = None
@@ -237,6 +268,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--transition", help="pretrained LearnedTransition .pt (default: kinematic)")
     s.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    s.add_argument(
+        "--odometry-noise",
+        type=float,
+        help="transition std as this fraction of the RMS odometry step (relative-odometry "
+        "model; default 0.1 for real logs, the config's transition_sigma otherwise)",
+    )
     s.set_defaults(func=cmd_slam)
 
     t = sub.add_parser("pretrain", help="pretrain emission + transition on a held-out maze")

@@ -101,6 +101,40 @@ class Traversal:
             metadata={**self.metadata, "sliced_from": [start, stop]},
         )
 
+    def subsample_beams(self, k: int) -> Traversal:
+        """Every ``k``-th beam (observations, mask and beam angles; ``k = 1``: ``self``)."""
+        k = int(k)
+        if k < 1:
+            raise ValueError(f"beam stride must be >= 1, got {k}")
+        if k == 1:
+            return self
+        sensor = dict(self.metadata.get("sensor", {}))
+        sensor["beam_stride"] = sensor.get("beam_stride", 1) * k
+        sensor["num_beams"] = len(self.beam_angles[::k])
+        return replace(
+            self,
+            observations=self.observations[:, ::k],
+            obs_mask=None if self.obs_mask is None else self.obs_mask[:, ::k],
+            beam_angles=self.beam_angles[::k],
+            metadata={**self.metadata, "sensor": sensor},
+        )
+
+    def clip_ranges(self, r: float) -> Traversal:
+        """Valid readings beyond ``r`` clipped to ``r`` (they still say "at least r"); masked
+        readings stay masked. ``max_range`` is kept (the sensor's no-return value)."""
+        r = float(r)
+        if not r > 0:
+            raise ValueError(f"range clip must be positive, got {r}")
+        obs = np.minimum(self.observations, np.asarray(r, self.observations.dtype))
+        if self.obs_mask is not None:  # masked entries keep their placeholder value
+            obs = np.where(self.obs_mask, obs, self.observations)
+        return replace(self, observations=obs, metadata={**self.metadata, "range_clip": r})
+
+    def valid_ranges(self) -> np.ndarray:
+        """The unmasked readings below ``max_range``, flattened."""
+        obs = self.observations if self.obs_mask is None else self.observations[self.obs_mask]
+        return obs[obs < self.max_range]
+
     def save(self, path: str | os.PathLike) -> Path:
         """Write atomically to ``path`` (``.npz``)."""
         path = Path(path)

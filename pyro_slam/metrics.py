@@ -104,3 +104,62 @@ def write_trajectory_tum(path, poses: np.ndarray, stamps: np.ndarray | None = No
          np.sin(h), np.cos(h)]
     )  # fmt: skip
     np.savetxt(path, rows, fmt="%.9f")
+
+
+def scan_points(traversal: Traversal, poses: np.ndarray, max_range: float | None = None):
+    """Valid scan endpoints reprojected with ``poses [T, 3]``: ``([N, 2] xy, [N] step index)``.
+
+    Readings that are masked or at / beyond ``max_range`` are left out (default: the range clip
+    of a :func:`~pyro_slam.slam.prepare_traversal`-ed log, whose clipped readings are not
+    endpoints, else the sensor's max range).
+    """
+    p = np.asarray(poses, dtype=np.float64)
+    obs = np.asarray(traversal.observations, dtype=np.float64)
+    if max_range is None:
+        max_range = traversal.metadata.get("range_clip") or traversal.max_range
+    ok = obs < min(max_range, traversal.max_range)
+    if traversal.obs_mask is not None:
+        ok &= traversal.obs_mask
+    ang = p[:, 2:3] + traversal.beam_angles[None, :]  # [T, B]
+    x = p[:, 0:1] + obs * np.cos(ang)
+    y = p[:, 1:2] + obs * np.sin(ang)
+    t = np.broadcast_to(np.arange(len(p))[:, None], obs.shape)
+    return np.column_stack([x[ok], y[ok]]), t[ok]
+
+
+def scan_consistency(
+    traversal: Traversal,
+    poses: np.ndarray,
+    *,
+    exclude: int = 10,
+    cap: float = 1.0,
+    max_range: float | None = None,
+) -> dict:
+    """How well scans reprojected with ``poses`` agree with the map the other scans make.
+
+    Each scan's endpoints are matched to the nearest endpoint (``scipy.spatial.cKDTree``) of all
+    scans at least ``exclude`` steps away in time (so a scan is not matched against its own
+    neighbours, which agree under any smooth trajectory); distances are capped at ``cap`` (a
+    region seen only once has no partner). Lower is better. Returns mean / median distance,
+    the fraction of points within 0.1 and the number of points.
+    """
+    from scipy.spatial import cKDTree
+
+    xy, t = scan_points(traversal, poses, max_range)
+    blocks = t // exclude
+    dist = np.full(len(xy), cap)
+    for b in np.unique(blocks):
+        q = blocks == b
+        ref = np.abs(blocks - b) > 1  # at least `exclude` steps away
+        if not ref.any():
+            continue
+        d, _ = cKDTree(xy[ref]).query(xy[q], distance_upper_bound=cap)
+        dist[q] = np.minimum(d, cap)
+    return {
+        "mean": float(dist.mean()),
+        "median": float(np.median(dist)),
+        "frac_within_0.1": float((dist < 0.1).mean()),
+        "points": len(dist),
+        "exclude_steps": exclude,
+        "cap": cap,
+    }

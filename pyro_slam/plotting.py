@@ -125,3 +125,28 @@ def plot_error_bands(curves: dict[str, np.ndarray], path_png, distance=None, tit
     if title:
         fig.suptitle(title + " (median, 50% and 80% bands)")
     return _save(fig, path_png)
+
+
+def plot_scan_map(traversal, poses, path_png, grid=None, map_loc=None, title="", others=None):
+    """Map image of a real log: scan endpoints reprojected with the estimated ``poses`` and the
+    trajectory (left), and the map belief's mean (3 principal components as RGB, right, when
+    ``grid`` and ``map_loc`` are given). ``others``: ``{name: [T, 3] poses}`` drawn as extra
+    trajectories (e.g. odometry)."""
+    xy, _ = metrics.scan_points(traversal, poses)
+    n = 1 if map_loc is None else 2
+    fig, axes = plt.subplots(1, n, figsize=(7 * n, 6.5), squeeze=False)
+    ax = axes[0, 0]
+    ax.scatter(xy[:, 0], xy[:, 1], s=0.2, c="k", alpha=0.35, linewidths=0)
+    for (name, p), c in zip((others or {}).items(), ["tab:red", "tab:green", "tab:purple"]):
+        ax.plot(*np.asarray(p)[:, :2].T, color=c, lw=0.7, label=name)
+    ax.plot(*np.asarray(poses)[:, :2].T, color="tab:blue", lw=0.8, label="estimate")
+    ax.set_aspect("equal")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(title or "scans reprojected with the estimated poses")
+    if map_loc is not None:
+        ax = axes[0, 1]
+        ax.imshow(map_image(map_loc), origin="lower", extent=grid.extent(), interpolation="nearest")
+        ax.plot(*np.asarray(poses)[:, :2].T, color="w", lw=0.5)
+        ax.set_aspect("equal")
+        ax.set_title("map belief: mean (3 principal components)")
+    return _save(fig, path_png)

@@ -81,6 +81,8 @@ class SLAMConfig:
     revisit_gap: int = 0  # online: cells first mapped < gap steps ago do not weigh particles
     seed: int = 0
     checkpoint_every: int = 1000
+    beam_stride: int = 1  # SLAM uses every k-th beam (see prepare_traversal)
+    range_clip: float | None = None  # readings clipped here; emission scale + map margin
 
     def to_dict(self):
         return asdict(self)
@@ -94,9 +96,12 @@ def build_model(
 ):
     """A :class:`DVBFLM` and :class:`MapGuide` sized to the traversal's extent.
 
-    The grid covers the maze walls (or, for logs without walls, the odometry path plus sensor
-    range) with ``config.map_resolution`` spacing.
+    The grid covers the maze walls (or, for logs without walls, the odometry path plus the
+    sensor's practical range ``config.range_clip or max_range``) with ``config.map_resolution``
+    spacing; the emission's output scale is that range too. The traversal is used as given
+    (:class:`SLAM` applies :func:`prepare_traversal` first).
     """
+    reach = float(config.range_clip or traversal.max_range)
     if traversal.walls.shape[0]:
         lo = traversal.walls.reshape(-1, 2).min(0)
         hi = traversal.walls.reshape(-1, 2).max(0)
@@ -104,17 +109,13 @@ def build_model(
         from .metrics import odometry_poses
 
         path = odometry_poses(traversal)[:, :2]
-        lo = path.min(0) - traversal.max_range
-        hi = path.max(0) + traversal.max_range
+        lo = path.min(0) - reach
+        hi = path.max(0) + reach
     grid = MapGrid.covering(*lo, *hi, config.map_resolution, config.map_dim, config.map_margin)
     n_world = max(traversal.num_beams, 20)
     if emission is None:
         emission = EmissionMLP(
-            config.map_dim,
-            n_world,
-            config.emission_hidden,
-            config.emission_layers,
-            scale=traversal.max_range,
+            config.map_dim, n_world, config.emission_hidden, config.emission_layers, scale=reach
         )
     if transition is None:
         control_model = traversal.metadata.get("control_model", "rotate_forward")
@@ -123,6 +124,74 @@ def build_model(
     model.learn_emission = config.learn_emission
     guide = MapGuide(grid.shape)
     return model, guide
+
+
+def prepare_traversal(traversal: Traversal, config: SLAMConfig) -> Traversal:
+    """The traversal SLAM sees: every ``config.beam_stride``-th beam, readings clipped at
+    ``config.range_clip`` (both no-ops by default)."""
+    tr = traversal.subsample_beams(config.beam_stride)
+    if config.range_clip is not None:
+        tr = tr.clip_ranges(config.range_clip)
+    return tr
+
+
+def odometry_sigma(controls, trans_frac: float = 0.1, rot_frac: float = 0.1, floor=0.01):
+    """Transition std ``(x, y, heading)`` from a relative-odometry noise model.
+
+    Odometry errors grow with the motion (Thrun et al., Probabilistic Robotics, ch. 5.4): per
+    step, ``trans_frac`` of the RMS step length on x and y and ``rot_frac`` of the RMS heading
+    change plus ``rot_frac`` rad per metre of the RMS step on the heading, with a floor of
+    ``floor`` (units, rad) -- a fixed std, as :class:`KinematicTransition` takes.
+    """
+    u = np.asarray(controls, dtype=np.float64)
+    step = float(np.sqrt(np.mean(np.sum(u[:, :2] ** 2, axis=1)))) if len(u) else 0.0
+    turn = float(np.sqrt(np.mean(u[:, 2] ** 2))) if len(u) and u.shape[1] >= 3 else 0.0
+    s_xy = max(trans_frac * step, floor)
+    s_h = max(rot_frac * (turn + step), floor)
+    return (s_xy, s_xy, s_h)
+
+
+def real_log_config(
+    traversal: Traversal,
+    *,
+    target_beams: int = 46,
+    resolution: float = 0.5,
+    range_quantile: float = 99.0,
+    odometry_noise: float = 0.1,
+    **overrides,
+) -> SLAMConfig:
+    """A :class:`SLAMConfig` for a metric real log (metres, hundreds of beams).
+
+    * ``beam_stride`` so that at most ``target_beams`` beams remain (361 -> every 8th);
+    * ``map_resolution`` ``resolution`` (log units, 0.5 m);
+    * ``range_clip``: the ``range_quantile`` percentile of the valid readings, so that rare
+      long returns (and 81.9 m no-returns, which are masked anyway) do not set the emission's
+      scale;
+    * ``transition_sigma`` from :func:`odometry_sigma` with fraction ``odometry_noise``;
+    * emission stds in metres (``sigma_emission`` 0.5 m, filter 1 m, tempered weights);
+    * a lighter filter / SVI batch (128 particles, 8 chunks of 16) for thousands of scans on CPU.
+
+    ``overrides`` (any :class:`SLAMConfig` field) win over these.
+    """
+    stride = max(1, int(math.ceil(traversal.num_beams / target_beams)))
+    valid = traversal.valid_ranges()
+    clip = float(np.percentile(valid, range_quantile)) if valid.size else traversal.max_range
+    cfg = dict(
+        beam_stride=stride,
+        map_resolution=resolution,
+        map_margin=0.0,
+        range_clip=round(clip, 2),
+        transition_sigma=odometry_sigma(traversal.controls, odometry_noise, odometry_noise),
+        sigma_emission=0.5,
+        filter_sigma=1.0,
+        weighting="tempered",
+        outlier_prob=0.05,
+        filter_particles=128,
+        train_particles=16,
+        chunks_per_batch=8,
+    )
+    cfg.update(overrides)
+    return SLAMConfig(**cfg)
 
 
 def _tensors(tr: Traversal):
@@ -168,8 +237,8 @@ class SLAM:
         emission: EmissionMLP | None = None,
         checkpoint: str | Path | None = None,
     ):
-        self.tr = traversal
         self.cfg = config or SLAMConfig()
+        self.tr = traversal = prepare_traversal(traversal, self.cfg)
         self.obs, self.ctl, self.mask, self.init_pose = _tensors(traversal)
         self.T = self.obs.shape[0]
         pyro.clear_param_store()

@@ -1,0 +1,268 @@
+"""DVBF-LM SLAM on real laser logs vs odometry alone vs MRPT's icp-slam (issue 7).
+
+    python benchmarks/real_data.py --out out/real_data            # both logs, ~10 min on 1 core
+    python benchmarks/real_data.py --steps 300 --out /tmp/rd        # quick look
+
+Logs (``../shared/data``, see its README):
+
+* ``mit-csail.clf``: raw odometry from the FLASER odometry fields, 361 beams. No ground truth:
+  the metric is *scan consistency* (:func:`pyro_slam.metrics.scan_consistency`): every scan,
+  reprojected with a system's poses, is matched point-to-nearest-point (scipy cKDTree) against
+  the scans >= 10 steps away; mean distance (capped at 1 m), lower is better.
+* ``intel.gfs.log``: GMapping-corrected scans (180 beams). Its FLASER poses are the reference;
+  it has **no raw odometry**, so every system starts from odometry *made* from the GMapping
+  poses plus Gaussian noise (per step: translation std 5 % of the step + 1 cm, heading std
+  3 % of the turn + 0.01 rad, seed 0). Metrics: the Kümmerle et al. (2009) relation error
+  (all consecutive pairs + 1000 random pairs <= 50 scans apart, from the GMapping poses) and the
+  ATE after a rigid SE(2) alignment, plus scan consistency.
+
+Scan consistency alone rewards a trajectory that collapses (all scans piled in one place agree
+with each other), so each row also reports the path length, which odometry measures well.
+
+Systems: odometry (dead reckoning), DVBF-LM online SLAM (``pyro-slam slam`` defaults for real
+logs, :func:`pyro_slam.slam.real_log_config`), MRPT ``icp-slam`` (Debian ``mrpt-apps`` +
+``mrpt-common`` for the shipped ini): ``carmen2rawlog`` then ``icp-slam`` with
+``icp-slam_demo_classic.ini``, GUI / 3D-scene output off. MRPT 2.5.8's ``carmen2rawlog`` stamps
+every observation with one and the same time, so icp-slam cannot use the odometry (its pose
+extrapolator rejects zero time steps) and, with the ini's 0.2 m / 5 deg "localise only after
+this much odometric motion" gates, never runs ICP after the first scan; the script therefore
+sets ``localizationLinDistance = localizationAngDistance = 0`` (ICP against the map at every
+scan, i.e. pure scan matching without an odometry prior). Without MRPT installed the MRPT rows
+are skipped with a message.
+
+Wall time per scan: whole-run wall clock / scans, one CPU thread (torch) for DVBF-LM; icp-slam's
+process wall clock for MRPT.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from pyro_slam import metrics  # noqa: E402
+from pyro_slam.cli import run_slam  # noqa: E402
+from pyro_slam.io import (  # noqa: E402
+    odometry_poses,
+    read_any,
+    relation_error,
+    relations_from_reference,
+    write_carmen,
+)
+from pyro_slam.io.common import compose, relative  # noqa: E402
+from pyro_slam.slam import prepare_traversal, real_log_config  # noqa: E402
+
+DATA = REPO.parent / "shared" / "data"
+MRPT_INI = Path("/usr/share/mrpt/config_files/icp-slam/icp-slam_demo_classic.ini")
+
+
+# ----------------------------------------------------------------------------------- data
+def noisy_odometry(tr, seed=0, trans_frac=0.05, trans_floor=0.01, rot_frac=0.03, rot_floor=0.01):
+    """Odometry made from the reference poses plus noise (logs without raw odometry)."""
+    rng = np.random.default_rng(seed)
+    ref = np.asarray(tr.poses, dtype=np.float64)
+    u = relative(ref[:-1], ref[1:])  # [T-1, 3] exact increments
+    step = np.linalg.norm(u[:, :2], axis=1, keepdims=True)
+    u[:, :2] += rng.normal(size=(len(u), 2)) * (trans_frac * step + trans_floor)
+    u[:, 2] += rng.normal(size=len(u)) * (rot_frac * np.abs(u[:, 2]) + rot_floor)
+    meta = {**tr.metadata, "odometry_origin": [float(v) for v in ref[0]]}
+    meta["odometry_source"] = f"GMapping poses + noise (seed {seed})"
+    return replace(tr, controls=u, metadata=meta)
+
+
+def integrate_odometry(tr, origin):
+    poses = [np.asarray(origin, dtype=np.float64)]
+    for u in np.asarray(tr.controls, dtype=np.float64):
+        poses.append(compose(poses[-1], u))
+    return np.stack(poses)
+
+
+# ----------------------------------------------------------------------------------- systems
+def run_dvbf(tr, out: Path, seed: int = 0):
+    cfg = real_log_config(tr, seed=seed)
+    rep = run_slam(tr, out, "online", cfg, progress=False)
+    post = np.load(out / "posterior.npz")
+    return post["pose_mean"], rep["wall_time_s"], post
+
+
+def mrpt_available() -> str | None:
+    """None when carmen2rawlog, icp-slam and the shipped ini are there, else why not."""
+    missing = [b for b in ("carmen2rawlog", "icp-slam") if shutil.which(b) is None]
+    if missing:
+        return f"{', '.join(missing)} not found (apt-get install mrpt-apps)"
+    if not MRPT_INI.is_file():
+        return f"{MRPT_INI} not found (apt-get install mrpt-common)"
+    return None
+
+
+def run_mrpt(tr, work: Path):
+    """icp-slam on ``tr`` (written as a CARMEN log): ``([T, 3] poses, wall seconds)``."""
+    work.mkdir(parents=True, exist_ok=True)
+    clf, rawlog = work / "log.clf", work / "log.rawlog"
+    # FLASER pose fields = odometry too: carmen2rawlog turns them into odometry observations,
+    # and MRPT must not see the reference (Intel's GMapping) poses
+    write_carmen(replace(tr, poses=None), clf)
+    subprocess.run(
+        ["carmen2rawlog", "-q", "-w", "-i", str(clf), "-o", str(rawlog)],
+        check=True, capture_output=True, cwd=work,
+    )  # fmt: skip
+    ini = MRPT_INI.read_text()
+    subs = {
+        "SHOW_PROGRESS_3D_REAL_TIME": "0",
+        "SAVE_3D_SCENE": "0",
+        "logOutput_dir": "icp_out",
+        "LOG_FREQUENCY": "100000",
+        "localizationLinDistance": "0.0",
+        "localizationAngDistance": "0.0",
+    }
+    for key, value in subs.items():
+        ini = re.sub(rf"(?m)^{key}\s*=.*$", f"{key} = {value}", ini)
+    (work / "icp.ini").write_text(ini)
+    t0 = time.perf_counter()
+    res = subprocess.run(
+        ["icp-slam", "icp.ini", rawlog.name],
+        cwd=work, capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=1800,
+    )  # fmt: skip
+    wall = time.perf_counter() - t0
+    (work / "icp.log").write_text(res.stdout + res.stderr)
+    path = np.loadtxt(work / "icp_out" / "log_estimated_path.txt")  # [N_obs, 4]: i x y phi
+    listing = subprocess.run(
+        ["rawlog-edit", "--list-timestamps", "-i", rawlog.name, "--text-file-output", "ts.txt"],
+        cwd=work, capture_output=True, text=True,
+    )  # fmt: skip
+    labels = [ln.split()[1] for ln in (work / "ts.txt").read_text().splitlines() if ln.strip()]
+    if listing.returncode or len(labels) != len(path):
+        raise RuntimeError(f"icp-slam output: {len(path)} poses for {len(labels)} observations")
+    scans = np.array([lab == "FLASER" for lab in labels])
+    poses = path[scans][:, 1:4]
+    if len(poses) != tr.num_steps:
+        raise RuntimeError(f"icp-slam gave {len(poses)} scan poses for {tr.num_steps} scans")
+    return poses, wall
+
+
+# ----------------------------------------------------------------------------------- metrics
+def evaluate(tr_eval, poses, ref=None, relations=None):
+    # a trajectory that collapses onto itself scores well on scan consistency (its scans pile
+    # up on each other); the path length (odometry measures it well) exposes that
+    out = {
+        "scan_consistency": metrics.scan_consistency(tr_eval, poses),
+        "path_length_m": float(metrics.distance_travelled(poses)[-1]),
+    }
+    if ref is not None:
+        out["relation_error"] = relation_error(tr_eval.timestamps, poses, relations)
+        out["ate_aligned"] = metrics.ate(poses, ref, align=True)
+    return out
+
+
+def map_figure(tr_eval, systems: dict, path: Path, title: str):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(systems), figsize=(4.2 * len(systems), 4.2), squeeze=False)
+    for ax, (name, poses) in zip(axes[0], systems.items()):
+        xy, _ = metrics.scan_points(tr_eval, poses)
+        ax.scatter(xy[:, 0], xy[:, 1], s=0.15, c="k", alpha=0.3, linewidths=0)
+        ax.plot(poses[:, 0], poses[:, 1], color="tab:blue", lw=0.6)
+        ax.set_aspect("equal")
+        ax.set_title(name, fontsize=9)
+        ax.tick_params(labelsize=6)
+    fig.suptitle(title, fontsize=10)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=70, bbox_inches="tight")
+    plt.close(fig)
+
+
+def benchmark_log(name, tr, out: Path, img: Path, use_mrpt: bool, reference: bool):
+    print(f"== {name}: {tr.num_steps} scans, {tr.num_beams} beams", file=sys.stderr)
+    cfg = real_log_config(tr)
+    tr_eval = prepare_traversal(tr, replace(cfg, beam_stride=2))  # denser scans for the metric
+    ref = tr.poses if reference else None
+    rel = None
+    if reference:
+        rel = relations_from_reference(tr.timestamps, ref, n_random=1000, max_steps=50)
+    origin = ref[0] if reference else np.zeros(3)
+    rows, trajs = {}, {}
+
+    t0 = time.perf_counter()
+    odo = integrate_odometry(tr, origin)
+    odo_wall = time.perf_counter() - t0
+    trajs["odometry"] = odo
+    rows["odometry"] = evaluate(tr_eval, odo, ref, rel)
+    rows["odometry"]["seconds_per_scan"] = odo_wall / tr.num_steps
+
+    dv, wall, post = run_dvbf(tr, out / f"{name}_dvbf")
+    trajs["DVBF-LM"] = dv
+    rows["DVBF-LM"] = evaluate(tr_eval, dv, ref, rel)
+    rows["DVBF-LM"]["seconds_per_scan"] = wall / tr.num_steps
+
+    if use_mrpt:
+        try:
+            mp, wall = run_mrpt(tr, out / f"{name}_mrpt")
+            trajs["MRPT icp-slam"] = mp
+            rows["MRPT icp-slam"] = evaluate(tr_eval, mp, ref, rel)
+            rows["MRPT icp-slam"]["seconds_per_scan"] = wall / tr.num_steps
+        except (subprocess.SubprocessError, OSError, RuntimeError, ValueError) as e:
+            rows["MRPT icp-slam"] = {"skipped": f"icp-slam failed: {e}"}
+            print(f"MRPT on {name} failed: {e}", file=sys.stderr)
+    if reference:
+        trajs = {"GMapping (reference)": ref, **trajs}
+        rows["GMapping (reference)"] = evaluate(tr_eval, ref, ref, rel)
+    map_figure(tr_eval, trajs, img / f"real_{name}.png", f"{name}: scans reprojected")
+    return rows
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--out", type=Path, default=Path("out/real_data"))
+    p.add_argument("--img", type=Path, default=REPO / "docs" / "img")
+    p.add_argument("--steps", type=int, default=0, help="first N scans of each log only")
+    p.add_argument("--data", type=Path, default=DATA)
+    p.add_argument("--no-mrpt", action="store_true")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    why = "--no-mrpt" if args.no_mrpt else mrpt_available()
+    if why:
+        print(f"MRPT icp-slam skipped: {why}", file=sys.stderr)
+
+    def cut(tr):
+        return tr.slice(0, min(args.steps, tr.num_steps)) if args.steps else tr
+
+    csail = cut(read_any(args.data / "mit-csail.clf"))
+    intel = cut(noisy_odometry(read_any(args.data / "intel.gfs.log")))
+    result = {
+        "mit-csail": benchmark_log("mit-csail", csail, args.out, args.img, not why, False),
+        "intel": benchmark_log("intel", intel, args.out, args.img, not why, True),
+        "mrpt": why or "icp-slam (MRPT) with icp-slam_demo_classic.ini, localization gates 0",
+        "intel_odometry": "GMapping poses + Gaussian noise (no raw odometry in intel.gfs.log)",
+        "steps": args.steps or "all",
+    }
+    # the log's own ODOM stream, for reference (drifts far: not used as raw odometry)
+    raw = cut(read_any(args.data / "intel.gfs.log"))
+    result["intel_log_odom_relation_error"] = relation_error(
+        raw.timestamps,
+        odometry_poses(raw, raw.poses[0]),
+        relations_from_reference(raw.timestamps, raw.poses, n_random=1000, max_steps=50),
+    )
+    text = json.dumps(result, indent=2, default=float)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "real_data.json").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

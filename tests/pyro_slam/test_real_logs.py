@@ -1,0 +1,165 @@
+"""DVBF-LM on metric real-log traversals: beam subsampling, range clipping, odometry noise, the
+real-log config, scan consistency, and ``pyro-slam slam LOG.clf`` end to end (synthetic room)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pyro_slam import cli, metrics
+from pyro_slam.data import Traversal
+from pyro_slam.io import write_carmen
+from pyro_slam.io.common import relative
+from pyro_slam.slam import (
+    SLAM,
+    SLAMConfig,
+    build_model,
+    odometry_sigma,
+    prepare_traversal,
+    real_log_config,
+)
+
+ROOM = (0.0, 0.0, 10.0, 6.0)  # x0 y0 x1 y1, metres
+
+
+def box_ranges(pose, angles, room=ROOM):
+    """Ranges from ``pose`` to the walls of an axis-aligned room along ``heading + angles``."""
+    x0, y0, x1, y1 = room
+    a = pose[2] + angles
+    c, s = np.cos(a), np.sin(a)
+    with np.errstate(divide="ignore"):
+        tx = np.where(c > 0, (x1 - pose[0]) / c, np.where(c < 0, (x0 - pose[0]) / c, np.inf))
+        ty = np.where(s > 0, (y1 - pose[1]) / s, np.where(s < 0, (y0 - pose[1]) / s, np.inf))
+    return np.minimum(tx, ty)
+
+
+def room_log(T=16, B=361, no_return_every=17):
+    """A metric log in a 10 x 6 m room: 180 deg scanner, some no-return beams (81.91 m)."""
+    angles = np.linspace(-math.pi / 2, math.pi / 2, B)
+    t = np.arange(T)
+    poses = np.column_stack([2.0 + 5.0 * t / (T - 1), 3.0 + 0.05 * np.sin(t), 0.3 * t / T])
+    obs = np.stack([box_ranges(p, angles) for p in poses])
+    obs[:, ::no_return_every] = 81.91
+    mask = obs < 81.91
+    return Traversal(
+        observations=obs,
+        controls=relative(poses[:-1], poses[1:]),
+        walls=np.zeros((0, 4)),
+        beam_angles=angles,
+        max_range=81.91,
+        obs_mask=mask,
+        timestamps=0.2 * t,
+        metadata={"control_model": "odometry_delta", "odometry_origin": [0.0, 0.0, 0.0]},
+    ), poses
+
+
+def test_subsample_beams_keeps_mask_and_angles():
+    tr, _ = room_log(T=4)
+    sub = tr.subsample_beams(8)
+    assert sub.num_beams == 46
+    np.testing.assert_array_equal(sub.obs_mask, tr.obs_mask[:, ::8])
+    np.testing.assert_array_equal(sub.beam_angles, tr.beam_angles[::8])
+    assert sub.metadata["sensor"]["beam_stride"] == 8
+    assert tr.subsample_beams(1) is tr
+    with pytest.raises(ValueError):
+        tr.subsample_beams(0)
+
+
+def test_clip_ranges_clips_valid_readings_only():
+    tr, _ = room_log(T=4)
+    clipped = tr.clip_ranges(3.0)
+    valid = tr.obs_mask
+    assert clipped.observations[valid].max() <= 3.0
+    np.testing.assert_array_equal(clipped.observations[~valid], tr.observations[~valid])
+    near = valid & (tr.observations < 3.0)
+    np.testing.assert_array_equal(clipped.observations[near], tr.observations[near])
+    assert tr.valid_ranges().max() < 81.91
+
+
+def test_odometry_sigma_scales_with_motion():
+    u = np.tile([0.2, 0.0, 0.1], (50, 1))
+    sx, sy, sh = odometry_sigma(u, trans_frac=0.1, rot_frac=0.1, floor=1e-4)
+    assert sx == sy == pytest.approx(0.02)
+    assert sh == pytest.approx(0.1 * (0.1 + 0.2))
+    assert odometry_sigma(np.zeros((5, 3)), floor=0.01) == (0.01, 0.01, 0.01)
+
+
+def test_real_log_config_and_model_sizes():
+    tr, poses = room_log()
+    cfg = real_log_config(tr, seed=3)
+    assert cfg.beam_stride == 8 and cfg.map_resolution == 0.5 and cfg.seed == 3
+    assert cfg.range_clip == pytest.approx(np.percentile(tr.valid_ranges(), 99), abs=0.01)
+    assert real_log_config(tr, beam_stride=4).beam_stride == 4  # overrides win
+    prepared = prepare_traversal(tr, cfg)
+    assert prepared.num_beams == 46
+    model, _ = build_model(prepared, cfg)
+    assert model.emission.scale == pytest.approx(cfg.range_clip)
+    assert model.emission.n_world == 46 and model.beam_angles.shape == (46,)
+    x0, x1, y0, y1 = model.grid.extent()
+    path = metrics.odometry_poses(prepared)[:, :2]
+    assert x0 == pytest.approx(path[:, 0].min() - cfg.range_clip)
+    assert y1 == pytest.approx(path[:, 1].max() + cfg.range_clip)
+    assert (x1 - x0) / (model.grid.cells[0] - 1) == pytest.approx(0.5, rel=0.05)
+    # the simulator's defaults are unchanged
+    assert SLAMConfig().beam_stride == 1 and SLAMConfig().range_clip is None
+
+
+def test_slam_runs_on_subsampled_metric_log():
+    tr, _ = room_log(T=12)
+    cfg = real_log_config(
+        tr, map_dim=4, emission_hidden=16, emission_layers=2, filter_particles=16,
+        train_particles=4, cache_particles=4, chunk_length=4, chunks_per_batch=2,
+    )  # fmt: skip
+    slam = SLAM(tr, cfg)
+    assert slam.obs.shape == (12, 46) and slam.mask.shape == (12, 46)
+    res = slam.run("online", progress=False)
+    assert res["mean"].shape == (12, 3) and np.isfinite(res["mean"]).all()
+    # 12 short steps from a known start: SLAM stays near the odometry
+    odo = metrics.odometry_poses(tr)
+    assert np.abs(res["mean"][:, :2] - odo[:, :2]).max() < 1.0
+
+
+def test_scan_consistency_prefers_the_true_poses():
+    tr, poses = room_log(T=40)
+    tr.poses = poses
+    good = metrics.scan_consistency(tr, poses, exclude=5)
+    bent = poses.copy()
+    bent[20:, 2] += 0.1  # a heading error half way: later scans no longer line up
+    bad = metrics.scan_consistency(tr, bent, exclude=5)
+    assert good["mean"] < 0.05 < bad["mean"]
+    assert good["points"] == int(tr.obs_mask.sum())
+    xy, t = metrics.scan_points(tr, poses, max_range=4.0)
+    assert len(xy) == len(t) and np.all(np.linalg.norm(xy - poses[t, :2], axis=1) < 4.0)
+
+
+def test_cli_slam_on_carmen_log(tmp_path, capsys):
+    tr, poses = room_log(T=14)
+    log = write_carmen(tr, tmp_path / "room.clf")
+    tiny = json.dumps(
+        {"map_dim": 4, "emission_hidden": 16, "emission_layers": 2, "filter_particles": 16,
+         "train_particles": 4, "cache_particles": 4, "chunk_length": 4, "chunks_per_batch": 2}
+    )  # fmt: skip
+    out = tmp_path / "run"
+    rc = cli.main(
+        ["slam", str(log), "--out", str(out), "--config", tiny, "--odometry-noise", "0.2"]
+    )
+    assert rc == 0
+    for name in ("metrics.json", "map.png", "slam.png", "trajectory_slam.tum", "posterior.npz"):
+        assert (out / name).is_file(), name
+    report = json.loads((out / "metrics.json").read_text())
+    assert report["config"]["beam_stride"] == 8 and report["config"]["map_resolution"] == 0.5
+    sigma = odometry_sigma(tr.controls, 0.2, 0.2)
+    np.testing.assert_allclose(report["config"]["transition_sigma"], sigma, rtol=1e-4)
+    assert report["scan_consistency"]["slam"]["mean"] >= 0
+    assert "scan consistency" in capsys.readouterr().out
+
+
+def test_scan_points_leave_out_clipped_readings():
+    tr, poses = room_log(T=6)
+    clipped = tr.clip_ranges(4.0)
+    xy, t = metrics.scan_points(clipped, poses)
+    n_short = int((tr.obs_mask & (tr.observations < 4.0)).sum())
+    assert len(xy) == n_short  # readings clipped to 4 m are not wall points
