@@ -112,9 +112,11 @@ def kill_resume(tmp: Path, steps: int, kill_after: float) -> dict:
     ref_out, res_out, ckpt = tmp / "ref.npz", tmp / "res.npz", tmp / "ckpt.pt"
     subprocess.run([sys.executable, "-c", script(tmp / "ref.pt", ref_out, False)], check=True)
     proc = subprocess.Popen([sys.executable, "-c", script(ckpt, res_out, False)])
-    time.sleep(kill_after)
-    while not ckpt.exists():  # make sure at least one checkpoint exists
-        time.sleep(0.2)
+    while not ckpt.exists() and proc.poll() is None:  # wait for the first checkpoint
+        time.sleep(0.05)
+    time.sleep(kill_after)  # then kill mid-way between checkpoints
+    if proc.poll() is not None:
+        raise RuntimeError("the run finished before it could be killed: lower --kill-after")
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     t_ckpt = int(torch.load(ckpt, weights_only=False)["state"]["t"])
@@ -140,8 +142,10 @@ def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--nan-seeds", type=int, default=10)
     p.add_argument("--nan-steps", type=int, default=300)
-    p.add_argument("--kill-steps", type=int, default=300)
-    p.add_argument("--kill-after", type=float, default=8.0, help="seconds before SIGKILL")
+    p.add_argument("--kill-steps", type=int, default=400)
+    p.add_argument(
+        "--kill-after", type=float, default=1.5, help="seconds after the first checkpoint"
+    )
     p.add_argument("--long-steps", type=int, default=100_000)
     p.add_argument("--particles", type=int, default=1000)
     args = p.parse_args(argv)
