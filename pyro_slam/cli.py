@@ -293,6 +293,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--mode", choices=["online", "offline"], default="online")
     d.add_argument("--resume", action="store_true")
     d.set_defaults(func=cmd_demo)
+
+    from .planning import add_navigate_parser
+
+    add_navigate_parser(sub)
     return p
 
 

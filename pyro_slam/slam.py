@@ -558,3 +558,51 @@ def pretrain_emission(
         m, (obs, mask, poses, loc, _) = models[0], data[0]
         rmse = (m.emission_mean(loc, poses) - obs).pow(2).mean().sqrt().item()
     return emission, {"final_loss": float(loss), "rmse_first_traversal": rmse}
+
+
+def fit_map(
+    traversal: Traversal,
+    model: DVBFLM,
+    poses=None,
+    steps: int = 1000,
+    *,
+    batch_size: int = 256,
+    lr: float = 0.05,
+    seed: int = 0,
+    progress: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mapping with known poses: fit the mean-field ``q(M)`` with the emission frozen.
+
+    Maximises ``E_q(M)[log p(x_t | z_t, M)] - KL(q(M) || p(M)) / T`` (the loss of
+    :func:`pretrain_emission`) by Adam on minibatches of time steps, with the poses ``z_t``
+    given (default: the traversal's ground truth; pass e.g. a SLAM posterior mean instead).
+    Returns ``(loc, scale)`` of ``q(M)``, each ``[w, h, D_m]`` (detached).
+    """
+    if poses is None:
+        if traversal.poses is None:
+            raise ValueError("fit_map needs poses (the traversal has no ground truth)")
+        poses = traversal.poses
+    gen = torch.Generator().manual_seed(seed)
+    obs, _, mask, _ = _tensors(traversal)
+    z = torch.as_tensor(np.asarray(poses), dtype=obs.dtype)
+    loc = torch.zeros(model.grid.shape, requires_grad=True)
+    log_scale = torch.zeros(model.grid.shape, requires_grad=True)
+    opt = torch.optim.Adam([loc, log_scale], lr=lr)
+    prior = torch.distributions.Normal(0.0, 1.0)
+    for p in model.emission.parameters():
+        p.requires_grad_(False)
+    T = obs.shape[0]
+    try:
+        for _ in tqdm(range(steps), desc="fit map", disable=not progress):
+            idx = torch.randint(T, (min(batch_size, T),), generator=gen)
+            q = torch.distributions.Normal(loc, log_scale.exp())
+            mean = model.emission_mean(q.rsample(), z[idx])
+            ll = model.emission_log_prob(obs[idx], mean, None if mask is None else mask[idx])
+            loss = -ll.mean() + torch.distributions.kl_divergence(q, prior).sum() / T
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    finally:
+        for p in model.emission.parameters():
+            p.requires_grad_(True)
+    return loc.detach(), log_scale.detach().exp()

@@ -1,0 +1,65 @@
+"""Hybrid A* navigation (pyro_slam.planning): safety term, no paths through walls, planning in
+the learned model on a small maze."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pyro_slam.planning import (
+    GroundTruthEnv,
+    execute,
+    free_grid,
+    learned_env,
+    plan,
+    safety,
+    safety_cost,
+    segments_cross,
+)
+from simulators import make_maze
+
+
+def test_safety_monotone_decreasing():
+    x = torch.linspace(0.0, 0.6, 601, dtype=torch.float64)
+    s = safety(x)
+    assert torch.all(s[1:] < s[:-1])
+    assert s[0] > 0.9 * 1e4 and s[-1] < 1e-10
+    assert float(safety(torch.tensor(0.03))) == pytest.approx(5e3)
+    scans = torch.stack([torch.full((20,), 0.02), torch.full((20,), 0.2)])
+    c = safety_cost(scans)
+    assert c[0] > c[1] and c.shape == (2,)
+
+
+def test_segments_cross():
+    walls = np.array([[0.5, 0.0, 0.5, 1.0]])
+    assert segments_cross(np.array([[0.4, 0.5], [0.6, 0.5]]), walls)
+    assert not segments_cross(np.array([[0.1, 0.5], [0.4, 0.5]]), walls)
+
+
+def test_ground_truth_plan_never_crosses_walls():
+    maze = make_maze("simple-medium", 3)  # 3 x 3 cells, side 0.5
+    env = GroundTruthEnv(maze)
+    pts = free_grid(maze, 3)
+    for a, b in [(0, 8), (2, 6), (8, 1)]:
+        start = np.array([*pts[a], 0.0])
+        r = plan(env, start, pts[b], max_expansions=800)
+        assert r.success
+        assert not segments_cross(r.path[:, :2], maze.walls)
+        ex, coll = execute(maze, start, r.controls)
+        assert not segments_cross(ex[:, :2], maze.walls)
+        assert coll == 0
+        assert np.hypot(*(ex[-1, :2] - pts[b])) <= 0.05
+
+
+def test_learned_plan_on_simple_maze():
+    torch.manual_seed(0)
+    maze = make_maze("simple-medium", 3)
+    env, _, _ = learned_env(maze, steps=1200, fit_steps=400)
+    pts = free_grid(maze, 3)
+    start = np.array([*pts[0], 0.0])
+    r = plan(env, start, pts[2], max_expansions=800)
+    assert r.success
+    ex, _ = execute(maze, start, r.controls)
+    assert not segments_cross(ex[:, :2], maze.walls)
+    assert np.hypot(*(ex[-1, :2] - pts[2])) <= 0.05
