@@ -23,6 +23,7 @@ Finished runs are kept in ``OUT/runs`` and the pretrained emission in ``OUT/emis
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import sys
 import time
@@ -45,7 +46,7 @@ BENCH_CONFIG = dict(
     emission_layers=4,
     sigma_emission=0.1,
     filter_sigma=0.1,
-    learn_emission=False,
+    learn_emission=False,  # frozen pretrained emission (fine-tuning diverged at 5000 steps)
     offline_init="odometry",
     offline_rounds=2,
     offline_svi_steps=400,
@@ -93,6 +94,7 @@ def run_one(maze_seed, seed, steps, cfg, emission, path: Path, threads: int = 1)
     from pyro_slam.slam import SLAM, path_integration
 
     tr = _traversal(maze_seed, seed, steps)
+    emission = copy.deepcopy(emission)  # fine-tuning must not leak from one maze to the next
     t0 = time.perf_counter()
     slam = SLAM(tr, cfg, emission=emission)
     res = slam.run("offline", progress=False)
