@@ -3,13 +3,19 @@
     M        ~ N(0, 1)                                  map, [w, h, D_m]  (pyro.plate x 2)
     z_0      ~ N(z_init, sigma_0)                       initial pose, [3]
     m_t      = f_m(z_t, M)                              chart: bilinear attention (4 cells)
-    x_t      ~ N(rotate(mu_E(m_t), heading_t), sigma_E)  emission, [B]
+    x_t      ~ N(mu_E(m_t, z_t), sigma_E)               emission, [N] (flattened observation)
     z_{t+1}  ~ N(mu_T(z_t, u_t, mu_E(m_t)), sigma_T)     transition, [3]
 
 :class:`DVBFLM` holds the networks and exposes each factor as a plain function of tensors
 (:meth:`chart`, :meth:`emission_mean`, :meth:`emission_log_prob`, :meth:`transition_dist`) so that
 the Pyro model (:meth:`DVBFLM.model`), the SMCFilter model (:class:`FilterModel`) and the fast
 differentiable particle filter (:mod:`pyro_slam.filtering`) all evaluate the *same* factors.
+
+The sensor enters only through the :class:`~pyro_slam.networks.Emission` (``mu_E`` as a function
+of chart and pose, with the observation flattened to ``[..., N]``): a
+:class:`~pyro_slam.networks.LidarEmission` (range profile rotated to the beams) or an
+:class:`~pyro_slam.networks.ImageEmission` (chart rotated and cropped to the camera's view, then
+row-wise MLPs). Model, guide, filter and ELBO are the same for both.
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ import pyro.distributions as dist
 import torch
 from torch import nn
 
-from .networks import EmissionMLP, rotate_scan
+from .networks import Emission, EmissionMLP, LidarEmission
 from .transitions import Transition
 
 
@@ -103,13 +109,15 @@ class MapGrid:
 
 
 class DVBFLM(nn.Module):
-    """DVBF-LM with a LiDAR emission.
+    """DVBF-LM.
 
     Args:
-        grid: map geometry (:class:`MapGrid`).
-        emission: ``mu_E`` (:class:`~pyro_slam.networks.EmissionMLP`).
+        grid: map geometry (:class:`MapGrid`); ``grid.dim`` must be the emission's ``map_dim``.
+        emission: ``mu_E``, an :class:`~pyro_slam.networks.Emission`; a bare
+            :class:`~pyro_slam.networks.EmissionMLP` is wrapped as a LiDAR emission with
+            ``beam_angles``.
         transition: a :class:`~pyro_slam.transitions.Transition`.
-        beam_angles: ``[B]`` beam directions relative to the heading.
+        beam_angles: ``[B]`` beam directions relative to the heading (bare ``EmissionMLP`` only).
         sigma_emission: ``sigma_E`` (paper: 0.1 for training).
         init_scale: std of the initial-pose prior around the given start pose, ``[3]``.
     """
@@ -117,19 +125,22 @@ class DVBFLM(nn.Module):
     def __init__(
         self,
         grid: MapGrid,
-        emission: EmissionMLP,
+        emission: Emission | EmissionMLP,
         transition: Transition,
-        beam_angles,
+        beam_angles=None,
         sigma_emission: float = 0.1,
         init_scale=(1e-3, 1e-3, 1e-3),
     ):
         super().__init__()
+        if not isinstance(emission, Emission):
+            if beam_angles is None:
+                raise ValueError("a bare emission network needs beam_angles (LiDAR read-out)")
+            emission = LidarEmission(emission, beam_angles)
+        if emission.map_dim != grid.dim:
+            raise ValueError(f"emission expects D_m = {emission.map_dim}, map has {grid.dim}")
         self.grid = grid
         self.emission = emission
         self.transition = transition
-        self.register_buffer(
-            "beam_angles", torch.as_tensor(beam_angles, dtype=torch.get_default_dtype())
-        )
         self.sigma_emission = float(sigma_emission)
         self.register_buffer(
             "init_scale", torch.as_tensor(init_scale, dtype=torch.get_default_dtype())
@@ -140,15 +151,20 @@ class DVBFLM(nn.Module):
         """``m_t = f_m(z_t, M)``: ``[..., D_m]``."""
         return self.grid.attend(M, z[..., :2])
 
-    def emission_mean(self, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """Predicted body-frame scan ``rotate(mu_E(m_t), heading)``.
+    @property
+    def beam_angles(self):
+        """The LiDAR beam directions (None for other emissions)."""
+        return getattr(self.emission, "beam_angles", None)
 
-        ``z [..., 3]`` -> ``[..., B]``.
+    def emission_mean(self, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Predicted observation ``mu_E(f_m(z_t, M), z_t)`` (LiDAR: body-frame scan).
+
+        ``z [..., 3]`` -> ``[..., N]``.
         """
-        return rotate_scan(self.emission(self.chart(M, z)), z[..., 2], self.beam_angles)
+        return self.emission.mean(self.chart(M, z), z)
 
     def emission_dist(self, mean: torch.Tensor, mask: torch.Tensor | None = None, sigma=None):
-        """``p(x_t | m_t)`` as a Pyro distribution with event shape ``[B]``."""
+        """``p(x_t | m_t)`` as a Pyro distribution with event shape ``[N]``."""
         d = dist.Normal(mean, self.sigma_emission if sigma is None else sigma)
         if mask is not None:
             d = d.mask(mask)
@@ -173,7 +189,7 @@ class DVBFLM(nn.Module):
     def map_prior(self):
         """``p(M) = N(0, 1)`` per cell and feature (batch ``[w, h]``, event ``[D_m]``)."""
         w, h, D = self.grid.shape
-        loc = self.beam_angles.new_zeros(D)
+        loc = self.init_scale.new_zeros(D)
         return dist.Normal(loc, torch.ones_like(loc)).to_event(1)
 
     # ------------------------------------------------------------------------ Pyro model
@@ -200,7 +216,7 @@ class DVBFLM(nn.Module):
         """The full generative model of one traversal.
 
         Args:
-            observations: ``[T, B]`` scans (or None to sample them).
+            observations: ``[T, N]`` flattened observations (or None to sample them).
             controls: ``[T-1, D_u]``.
             init_pose: ``[3]`` start pose (the map frame is anchored at it).
             mask: optional ``[T, B]`` bool, False = missing reading.

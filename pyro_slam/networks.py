@@ -8,6 +8,13 @@
 * :class:`TransitionMLP` -- ``mu_T``: ``(cos h, sin h, u, mu_E(m_t))`` -> pose increment
   (6 x 256, ReLU).
 
+The sensor-specific part of the emission is an :class:`Emission`: chart ``m_t`` and pose ``z_t``
+-> predicted observation, flattened to ``[..., N]`` (``event_shape`` gives its structure):
+
+* :class:`LidarEmission` -- :class:`EmissionMLP`, then :func:`rotate_scan` to the beams;
+* :class:`ImageEmission` -- chart ``[k angular bins x l rows]`` rotated with the heading and
+  cropped to the camera's field of view, then row-wise MLPs (paper Appendix B-D, VizDoom).
+
 Networks know nothing of Pyro; the model (:mod:`pyro_slam.model`) wires them into distributions.
 """
 
@@ -85,6 +92,132 @@ def rotate_scan(
     i0 = i0.expand(*batch, i0.shape[-1])
     i1 = i1.expand(*batch, i1.shape[-1])
     return torch.lerp(ws.gather(-1, i0), ws.gather(-1, i1), a.expand_as(i0).to(ws.dtype))
+
+
+class Emission(nn.Module):
+    """The observation mean ``mu_E`` of DVBF-LM as a function of the chart and the pose.
+
+    Subclasses set ``map_dim`` (``D_m``, the features per map cell the chart carries) and
+    ``event_shape`` (the structure of one observation) and implement :meth:`mean`. Observations
+    are handled flattened, ``[..., N]`` with ``N = prod(event_shape)``, so that the model, the
+    particle filter and the ELBO treat every sensor alike (a diagonal Gaussian over ``N``).
+    """
+
+    map_dim: int
+    event_shape: tuple[int, ...]
+
+    @property
+    def event_size(self) -> int:
+        return math.prod(self.event_shape)
+
+    def mean(self, m: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Chart ``m [..., D_m]``, pose ``z [..., 3]`` -> predicted observation ``[..., N]``."""
+        raise NotImplementedError
+
+
+class LidarEmission(Emission):
+    """LiDAR read-out: world-frame range profile ``net(m)`` read at ``heading + beam_angles``.
+
+    ``forward(m)`` is the world-frame profile (``[..., n_world]``); :meth:`mean` the body-frame
+    scan ``[..., B]``.
+    """
+
+    def __init__(self, net: EmissionMLP, beam_angles):
+        super().__init__()
+        self.net = net
+        self.map_dim = net.map_dim
+        angles = torch.as_tensor(beam_angles, dtype=torch.get_default_dtype())
+        self.register_buffer("beam_angles", angles, persistent=False)
+        self.event_shape = (int(angles.shape[0]),)
+
+    @property
+    def n_world(self) -> int:
+        return self.net.n_world
+
+    @property
+    def scale(self) -> float:
+        return self.net.scale
+
+    def forward(self, m: torch.Tensor) -> torch.Tensor:
+        return self.net(m)
+
+    def mean(self, m, z):
+        return rotate_scan(self.net(m), z[..., 2], self.beam_angles)
+
+
+class ImageEmission(Emission):
+    """First-person image read-out (paper Appendix B-D..F, the VizDoom emission).
+
+    Each map cell holds ``bins x rows`` features (``M`` is ``w x h x k x l``, flattened to
+    ``D_m = k * l`` with the angular axis major): ``bins`` equally spaced world directions
+    (``2 pi j / bins``) times ``rows`` image rows. The chart is rotated with the agent's heading
+    and cropped to the camera's field of view by reading every row at the world angles
+    ``heading + column_angles`` (circular linear interpolation, :func:`rotate_scan`), giving a
+    ``rows x cols`` view; row ``r`` of the view is mapped to row ``r`` of the image by MLP
+    ``min(r, rows - 1 - r)``: the top half of the rows uses networks ``0 .. ceil(rows/2) - 1``,
+    the bottom half the same networks in reverse order (the image is symmetric about the
+    horizon up to texture). ``layers`` hidden layers of ``hidden`` ReLU units per network.
+
+    Args:
+        bins: ``k``, angular bins of the map (paper 32).
+        rows, cols: image size (paper / simulator 24 x 32).
+        fov: horizontal field of view, rad (90 deg); ignored if ``column_angles`` is given.
+        column_angles: ``[cols]`` ray angle of each image column relative to the heading, left
+            to right (default: the pinhole camera's evenly spread ``fov/2 - (j + 1/2) fov/cols``).
+    """
+
+    def __init__(
+        self,
+        bins: int = 32,
+        rows: int = 24,
+        cols: int = 32,
+        fov: float = math.pi / 2,
+        hidden: int = 256,
+        layers: int = 4,
+        column_angles=None,
+    ):
+        super().__init__()
+        self.bins, self.rows, self.cols = int(bins), int(rows), int(cols)
+        self.map_dim = self.bins * self.rows
+        self.event_shape = (self.rows, self.cols)
+        if column_angles is None:
+            column_angles = fov / 2 - (torch.arange(cols) + 0.5) * (fov / cols)
+        angles = torch.as_tensor(column_angles, dtype=torch.get_default_dtype())
+        self.register_buffer("column_angles", angles, persistent=False)
+        self.num_nets = (self.rows + 1) // 2
+        net_of_row = [min(r, self.rows - 1 - r) for r in range(self.rows)]
+        self.register_buffer("net_of_row", torch.tensor(net_of_row), persistent=False)
+        dims = [self.cols] + [hidden] * layers + [self.cols]
+        self.weights = nn.ParameterList()
+        self.biases = nn.ParameterList()
+        for d_in, d_out in zip(dims[:-1], dims[1:]):
+            bound = 1.0 / math.sqrt(d_in)  # nn.Linear's default initialisation
+            self.weights.append(nn.Parameter(torch.empty(self.num_nets, d_in, d_out)))
+            self.biases.append(nn.Parameter(torch.empty(self.num_nets, d_out)))
+            nn.init.uniform_(self.weights[-1], -bound, bound)
+            nn.init.uniform_(self.biases[-1], -bound, bound)
+
+    def view(self, m: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
+        """Rotated, cropped chart: ``m [..., k * l]``, ``heading [...]`` -> ``[..., l, cols]``."""
+        chart = m.unflatten(-1, (self.bins, self.rows)).transpose(-1, -2)  # [..., l, k]
+        return rotate_scan(chart, heading.unsqueeze(-1), self.column_angles)
+
+    def rows_mlp(self, v: torch.Tensor) -> torch.Tensor:
+        """Row-wise MLPs: ``[..., rows, cols]`` -> ``[..., rows, cols]``."""
+        idx = self.net_of_row
+        n = len(self.weights)
+        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+            v = torch.einsum("...ri,rio->...ro", v, w[idx]) + b[idx]
+            if i < n - 1:
+                v = torch.relu(v)
+        return v
+
+    def forward(self, m: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
+        """Predicted image ``[..., rows, cols]``."""
+        return self.rows_mlp(self.view(m, heading))
+
+    def mean(self, m, z):
+        return self(m, z[..., 2]).flatten(-2)
 
 
 class TransitionMLP(nn.Module):

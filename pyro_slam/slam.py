@@ -22,7 +22,7 @@ from __future__ import annotations
 import copy
 import io
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +43,7 @@ from .filtering import (
 )
 from .guide import MapGuide
 from .model import DVBFLM, MapGrid
-from .networks import EmissionMLP
+from .networks import Emission, EmissionMLP, ImageEmission, LidarEmission
 from .transitions import KinematicTransition, Transition
 
 
@@ -83,6 +83,8 @@ class SLAMConfig:
     checkpoint_every: int = 1000
     beam_stride: int = 1  # SLAM uses every k-th beam (see prepare_traversal)
     range_clip: float | None = None  # readings clipped here; emission scale + map margin
+    observation: str = "lidar"  # lidar | image (traversal.images, see prepare_traversal)
+    image_bins: int = 32  # image emission: angular bins k of the map (D_m = k * image rows)
 
     def to_dict(self):
         return asdict(self)
@@ -92,9 +94,13 @@ def build_model(
     traversal: Traversal,
     config: SLAMConfig,
     transition: Transition | None = None,
-    emission: EmissionMLP | None = None,
+    emission: Emission | EmissionMLP | None = None,
 ):
     """A :class:`DVBFLM` and :class:`MapGuide` sized to the traversal's extent.
+
+    ``config.observation == "image"``: an :class:`ImageEmission` (``config.image_bins`` x image
+    rows features per cell, ``emission_hidden`` x ``emission_layers`` ReLU row networks) for a
+    traversal prepared by :func:`prepare_traversal`; ``config.map_dim`` is then unused.
 
     The grid covers the maze walls (or, for logs without walls, the odometry path plus the
     sensor's practical range ``config.range_clip or max_range``) with ``config.map_resolution``
@@ -111,12 +117,24 @@ def build_model(
         path = odometry_poses(traversal)[:, :2]
         lo = path.min(0) - reach
         hi = path.max(0) + reach
-    grid = MapGrid.covering(*lo, *hi, config.map_resolution, config.map_dim, config.map_margin)
-    n_world = max(traversal.num_beams, 20)
-    if emission is None:
+    if config.observation == "image":
+        if emission is None:
+            rows, cols = traversal.metadata["image_shape"]
+            emission = ImageEmission(
+                config.image_bins, rows, cols, hidden=config.emission_hidden,
+                layers=config.emission_layers, column_angles=traversal.beam_angles[:cols],
+            )  # fmt: skip
+    elif config.observation != "lidar":
+        raise ValueError(f"observation must be 'lidar' or 'image', got {config.observation!r}")
+    elif emission is None:
+        n_world = max(traversal.num_beams, 20)
         emission = EmissionMLP(
             config.map_dim, n_world, config.emission_hidden, config.emission_layers, scale=reach
         )
+    elif isinstance(emission, LidarEmission):  # re-read at this traversal's beams
+        emission = emission.net
+    map_dim = emission.map_dim
+    grid = MapGrid.covering(*lo, *hi, config.map_resolution, map_dim, config.map_margin)
     if transition is None:
         control_model = traversal.metadata.get("control_model", "rotate_forward")
         transition = KinematicTransition(config.transition_sigma, control_model)
@@ -128,11 +146,38 @@ def build_model(
 
 def prepare_traversal(traversal: Traversal, config: SLAMConfig) -> Traversal:
     """The traversal SLAM sees: every ``config.beam_stride``-th beam, readings clipped at
-    ``config.range_clip`` (both no-ops by default)."""
+    ``config.range_clip`` (both no-ops by default).
+
+    ``config.observation == "image"``: the observations become the flattened camera frames
+    ``traversal.images [T, H, W] -> [T, H * W]`` (row-major), ``beam_angles`` the bearing of each
+    pixel's column (``metadata["camera"]["fov"]``, default 90 deg), ``max_range`` 1 and
+    ``metadata["image_shape"] = [H, W]``; already prepared traversals are returned as they are.
+    """
+    if config.observation == "image":
+        return image_traversal(traversal)
     tr = traversal.subsample_beams(config.beam_stride)
     if config.range_clip is not None:
         tr = tr.clip_ranges(config.range_clip)
     return tr
+
+
+def image_traversal(traversal: Traversal) -> Traversal:
+    """The traversal with its camera frames as (flattened) observations, see prepare_traversal."""
+    if "image_shape" in traversal.metadata:
+        return traversal
+    if traversal.images is None:
+        raise ValueError("observation='image' needs a traversal with images")
+    T, H, W = traversal.images.shape
+    fov = float((traversal.metadata.get("camera") or {}).get("fov", math.pi / 2))
+    cols = fov / 2 - (np.arange(W) + 0.5) * (fov / W)
+    return replace(
+        traversal,
+        observations=traversal.images.reshape(T, H * W),
+        beam_angles=np.tile(cols, H),
+        max_range=1.0,
+        obs_mask=None,
+        metadata={**traversal.metadata, "image_shape": [H, W]},
+    )
 
 
 def odometry_sigma(controls, trans_frac: float = 0.1, rot_frac: float = 0.1, floor=0.01):
@@ -234,7 +279,7 @@ class SLAM:
         traversal: Traversal,
         config: SLAMConfig | None = None,
         transition: Transition | None = None,
-        emission: EmissionMLP | None = None,
+        emission: Emission | EmissionMLP | None = None,
         checkpoint: str | Path | None = None,
     ):
         self.cfg = config or SLAMConfig()
@@ -514,7 +559,7 @@ def pretrain_emission(
     lr_emission: float = 1e-3,
     seed: int = 0,
     progress: bool = True,
-) -> tuple[EmissionMLP, dict]:
+) -> tuple[Emission | EmissionMLP, dict]:
     """Fit ``mu_E`` on traversals with ground-truth poses (one map belief per traversal).
 
     Maximises ``E_q(M)[log p(x_t | z_t, M)] - KL(q(M) || p(M)) / T`` with the true poses
@@ -557,6 +602,8 @@ def pretrain_emission(
     with torch.no_grad():
         m, (obs, mask, poses, loc, _) = models[0], data[0]
         rmse = (m.emission_mean(loc, poses) - obs).pow(2).mean().sqrt().item()
+    if isinstance(emission, LidarEmission):  # the network (what the LiDAR checkpoints hold)
+        emission = emission.net
     return emission, {"final_loss": float(loss), "rmse_first_traversal": rmse}
 
 

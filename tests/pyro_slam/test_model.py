@@ -277,7 +277,7 @@ def test_particle_elbo_gradient_matches_finite_differences(small_traversal, ess_
 
     loc = store["map_loc"]
     scale = store.get_param("map_scale").unconstrained()
-    w = model.emission.net[0].weight
+    w = model.emission.net.net[0].weight
     value = loss()
     # the value: -(T / (C L)) sum log p^ + KL, per time step, with the analytic Normal KL
     T, C, L = 16, 2, 4
