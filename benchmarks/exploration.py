@@ -88,14 +88,16 @@ def main(argv=None) -> int:
                     "ratio_std": float(np.std([c["ratio"][-1] for c in r[a]])),
                     "infogain_mean": float(np.mean([c["infogain"][-1] for c in r[a]])),
                     "infogain_std": float(np.std([c["infogain"][-1] for c in r[a]])),
+                    "collisions_mean": float(np.mean([c["collisions"] for c in r[a]])),
                 }
                 for a in AGENTS
             }
             for n, r in results.items()
         },
     }
-    curves = {n: {a: [{k: c[k] for k in ("steps", "ratio", "infogain", "mi")} for c in r[a]]
-                  for a in AGENTS} for n, r in results.items()}  # fmt: skip
+    keys = ("steps", "ratio", "infogain", "mi", "collisions")
+    curves = {n: {a: [{k: c[k] for k in keys} for c in r[a]] for a in AGENTS}
+              for n, r in results.items()}  # fmt: skip
     (out / "exploration.json").write_text(json.dumps({**summary, "curves": curves}, indent=1))
     plot(results, out / "exploration_curves.png")
     plot_paths(results, out / "exploration_paths.png")
@@ -118,7 +120,7 @@ def plot(results, path):
             for agent in AGENTS:
                 runs = results[name][agent]
                 x = np.asarray(runs[0]["steps"])
-                y = np.asarray([r[key] for r in runs])
+                y = np.asarray([np.interp(x, r["steps"], r[key]) for r in runs])
                 m, s = y.mean(0), y.std(0)
                 ax.plot(x, m, color=COLOURS[agent], label=agent)
                 ax.fill_between(x, m - s, m + s, color=COLOURS[agent], alpha=0.2)

@@ -33,6 +33,7 @@ import torch
 from pyro import poutine
 from pyro.infer import SVI, TraceMeanField_ELBO
 from pyro.optim import Adam
+from scipy.ndimage import gaussian_filter
 from scipy.spatial import cKDTree
 from scipy.special import digamma, gammaln
 
@@ -75,6 +76,7 @@ class ExploreConfig:
     cand_lr: float = 1e-3
     turn_reg: float = 2.0  # L2 regulariser on the per-step heading changes
     cand_pose_samples: int = 2  # pose rollouts per candidate in the obstacle expectation
+    cand_init_std: float = 0.3  # std of the random initial (pre-tanh) turn parameters
     mi_L: int = 30  # samples of the marginal entropy term
     mi_M: int = 40  # maps of the conditional entropy term
     mi_K: int = 100  # samples per conditional entropy
@@ -92,11 +94,18 @@ class ExploreConfig:
     map_dim: int = 10  # D_m (10 = the shipped pretrained emission; paper: 20)
     pretrained_emission: bool = True
     endpoint_poses: int = 2000  # at most this many past poses feed the obstacle histogram
+    hist_factor: int = 4  # obstacle histogram bins per side = hist_factor * map cells per side
+    endpoints: str = "predicted"  # obstacle histogram from "predicted" (paper) or "observed" scans
+    hist_blur: float = 1.0  # Gaussian blur of the histogram counts (bins; 0 = none)
+    max_replans: int = 0  # MI agent: replans after a blocked move within one T-step block
     seed: int = 0
 
     @classmethod
     def smoke(cls, **over) -> ExploreConfig:
         base = cls(
+            horizon=25,
+            cand_init_std=0.05,
+            max_replans=4,
             candidates=8,
             cand_steps=60,
             cand_lr=2e-2,
@@ -146,6 +155,7 @@ class Mapper:
     def __init__(self, grid: MapGrid, beam_angles, max_range: float, cfg: ExploreConfig):
         self.cfg = cfg
         pyro.clear_param_store()
+        pyro.set_rng_seed(cfg.seed)  # SVI and rollout sampling use the global RNGs
         self.gen = torch.Generator().manual_seed(cfg.seed)
         em = _emission(cfg, max(len(beam_angles), 20), max_range)
         trans = KinematicTransition(cfg.sigma_T)
@@ -244,21 +254,29 @@ def mutual_information(mapper: Mapper, controls, init_pose, cfg: ExploreConfig) 
 
 
 def obstacle_log_density(mapper: Mapper):
-    """Histogram of predicted laser end points (mean map, at past poses) on the map grid cells,
-    as a log density ``[w, h, 1]`` and the :class:`MapGrid` that interpolates it bilinearly."""
+    """Histogram of predicted laser end points (mean map, at past poses) on a grid of
+    ``hist_factor`` x the map cells, as a log density ``[W, H, 1]`` and the :class:`MapGrid`
+    that interpolates it bilinearly."""
     g = mapper.model.grid
     w, h, _ = g.shape
-    z, _ = mapper.tensors()
+    w, h = w * mapper.cfg.hist_factor, h * mapper.cfg.hist_factor
+    z, x = mapper.tensors()
     if len(z) > mapper.cfg.endpoint_poses:
-        z = z[torch.linspace(0, len(z) - 1, mapper.cfg.endpoint_poses).long()]
-    with torch.no_grad():
-        scan = mapper.model.emission_mean(mapper.guide.mean(), z)  # [N, B]
+        keep = torch.linspace(0, len(z) - 1, mapper.cfg.endpoint_poses).long()
+        z, x = z[keep], x[keep]
+    if mapper.cfg.endpoints == "observed":
+        scan = x
+    else:
+        with torch.no_grad():
+            scan = mapper.model.emission_mean(mapper.guide.mean(), z)  # [N, B]
     ang = z[:, 2:3] + mapper.model.beam_angles
     hit = scan < 0.95 * mapper.max_range  # beams that see something
     ex = (z[:, 0:1] + scan * torch.cos(ang))[hit].numpy()
     ey = (z[:, 1:2] + scan * torch.sin(ang))[hit].numpy()
     (x0, y0), (sx, sy) = g.origin, g.size
     counts, _, _ = np.histogram2d(ex, ey, bins=(w, h), range=((x0, x0 + sx), (y0, y0 + sy)))
+    if mapper.cfg.hist_blur > 0:
+        counts = gaussian_filter(counts, mapper.cfg.hist_blur, mode="constant")
     area = (sx / w) * (sy / h)
     dens = (counts + 0.1) / (counts.sum() + 0.1 * w * h) / area
     logd = torch.as_tensor(np.log(dens), dtype=torch.get_default_dtype())[..., None]
@@ -294,7 +312,7 @@ def generate_candidates(mapper: Mapper, pose, cfg: ExploreConfig, generator=None
     F, T = cfg.candidates, cfg.horizon
     logd, centres = obstacle_log_density(mapper)
     z0 = torch.as_tensor(pose, dtype=torch.get_default_dtype())
-    p = 0.3 * torch.randn(F, T - 1, generator=generator)
+    p = cfg.cand_init_std * torch.randn(F, T - 1, generator=generator)
     p[:, 0] = 3.0 * torch.rand(F, generator=generator) - 1.5  # spread the initial turn
     p.requires_grad_(True)
     opt = torch.optim.Adam([p], lr=cfg.cand_lr)
@@ -358,18 +376,23 @@ def run_agent(
     if policy == "pema":
         state = pema_policy.initial_state()
     done = 0
+
+    def plan():
+        cands = generate_candidates(mapper, world.pose, cfg, gen)
+        vals = [mutual_information(mapper, c, world.pose, cfg) for c in cands]
+        best = int(np.argmax(vals))
+        mis.append(float(vals[best]))
+        return cands[best].numpy()
+
     while done < steps:
         n = min(cfg.horizon, steps - done)
         if policy == "mi":
-            cands = generate_candidates(mapper, world.pose, cfg, gen)
-            vals = [mutual_information(mapper, c, world.pose, cfg) for c in cands]
-            best = int(np.argmax(vals))
-            mis.append(float(vals[best]))
-            ctl = cands[best].numpy()
-        poses, scans = [], []
-        for t in range(n):
+            ctl, k, replans = plan(), 0, 0
+        poses, scans, flushed = [], [], 0
+        for _ in range(n):
             if policy == "mi":
-                u = ctl[t] if t < len(ctl) else np.array([0.0, cfg.step_length])
+                u = ctl[k] if k < len(ctl) else np.array([0.0, cfg.step_length])
+                k += 1
             elif policy == "random":
                 u = np.array([rng.uniform(-cfg.max_turn, cfg.max_turn), cfg.step_length])
             elif policy == "pema":
@@ -377,12 +400,20 @@ def run_agent(
                 u, state = pema_policy.act(scan_now, state)
             else:
                 raise ValueError(f"unknown policy {policy!r}")
+            hits = world.collisions
             world.step(u)
             poses.append(world.pose)
             scans.append(world.lidar())
+            if policy == "mi" and world.collisions > hits and replans < cfg.max_replans:
+                # blocked: the rest of this open-loop plan is void; replan from here with the
+                # data so far (no SVI until the block ends)
+                mapper.add(np.array(poses[flushed:]), np.array(scans[flushed:]))
+                flushed = len(poses)
+                ctl, k, replans = plan(), 0, replans + 1
         done += n
         path += poses
-        mapper.add(np.array(poses), np.array(scans))
+        if len(poses) > flushed:
+            mapper.add(np.array(poses[flushed:]), np.array(scans[flushed:]))
         mapper.train(cfg.train_steps)
         curve["steps"].append(done)
         curve["infogain"].append(mapper.infogain())
@@ -390,5 +421,6 @@ def run_agent(
         if progress:
             print(f"{policy} {scale_name} step {done}: {curve['ratio'][-1]:.3f}", flush=True)
     curve["mi"] = mis
+    curve["collisions"] = int(world.collisions)
     curve["path"] = np.array(path).tolist()
     return curve

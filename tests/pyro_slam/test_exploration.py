@@ -93,5 +93,5 @@ def test_run_agent_smoke():
     cfg = ExploreConfig.smoke(candidates=2, cand_steps=3, mi_L=5, mi_M=2, mi_K=5, train_steps=3,
                               horizon=10)  # fmt: skip
     c = run_agent("simple-small", "mi", 20, cfg)
-    assert c["steps"] == [0, 10, 20] and len(c["mi"]) == 2
+    assert c["steps"] == [0, 10, 20] and len(c["mi"]) >= 2
     assert c["infogain"][-1] > 0 and 0 < c["ratio"][-1] <= 1
