@@ -1,0 +1,164 @@
+"""Exploration benchmark (paper Fig. 9): MI active SLAM vs PEMA vs a random walker.
+
+For each Table II scale and seed, each agent runs ``steps`` steps (``--step-fraction`` of the
+Table II budget); every ``horizon`` steps the mapper trains and infogain KL(q(M) || p(M)) and the
+exploration ratio (visited tiles / Table II tiles) are recorded. PEMA is trained once with ARS on
+moderate-medium training mazes (seeds 1000+, disjoint from the evaluation mazes 0, 1, ...).
+
+Full run (paper budget, days of CPU)::
+
+    python benchmarks/exploration.py --paper --scales all --seeds 2
+
+Reduced run used in docs/exploration.md::
+
+    python benchmarks/exploration.py --scales simple-small simple-medium moderate-small \
+        --seeds 2 --step-fraction 0.2 --ars-iterations 25 --out docs
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pyro_slam.exploration import ExploreConfig, run_agent
+from pyro_slam.pema import ARSConfig, PEMAPolicy, train_pema
+from simulators import SCALES
+
+AGENTS = ("mi", "pema", "random")
+COLOURS = {"mi": "tab:blue", "pema": "tab:purple", "random": "tab:gray"}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scales", nargs="+", default=["simple-small", "simple-medium"])
+    ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--step-fraction", type=float, default=0.2)
+    ap.add_argument("--paper", action="store_true", help="paper budgets (Appendix D/E/F)")
+    ap.add_argument("--ars-iterations", type=int, default=25)
+    ap.add_argument("--ars-directions", type=int, default=8)
+    ap.add_argument("--ars-mazes", type=int, default=3)
+    ap.add_argument("--ars-steps", type=int, default=300)
+    ap.add_argument("--out", default="out/exploration")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    scales = list(SCALES) if args.scales == ["all"] else args.scales
+    cfg = ExploreConfig() if args.paper else ExploreConfig.smoke()
+    if args.paper:
+        ars_cfg, n_mazes, ars_steps = ARSConfig(), 10, 1000
+    else:
+        ars_cfg = ARSConfig(args.ars_iterations, args.ars_directions, args.ars_directions // 2)
+        n_mazes, ars_steps = args.ars_mazes, args.ars_steps
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    policy = PEMAPolicy(step_length=cfg.step_length, max_turn=cfg.max_turn)
+    ars_hist = train_pema(policy, ars_cfg, n_mazes=n_mazes, steps=ars_steps, progress=True)
+    t_ars = time.time() - t0
+    results = {}
+    for name in scales:
+        steps = SCALES[name].steps if args.paper else int(SCALES[name].steps * args.step_fraction)
+        for agent in AGENTS:
+            for seed in range(args.seeds):
+                t = time.time()
+                c = run_agent(name, agent, steps, cfg, maze_seed=seed, pema_policy=policy)
+                c["seconds"] = time.time() - t
+                results.setdefault(name, {}).setdefault(agent, []).append(c)
+                msg = f"ratio {c['ratio'][-1]:.3f} infogain {c['infogain'][-1]:.1f}"
+                print(f"{name} {agent} seed {seed}: {msg} ({c['seconds']:.0f} s)", flush=True)
+    summary = {
+        "config": cfg.to_dict(),
+        "ars": {
+            **ars_cfg.to_dict(),
+            "mazes": n_mazes,
+            "steps": ars_steps,
+            "history": ars_hist,
+            "seconds": t_ars,
+        },  # fmt: skip
+        "step_fraction": 1.0 if args.paper else args.step_fraction,
+        "seconds": time.time() - t0,
+        "final": {
+            n: {
+                a: {
+                    "ratio_mean": float(np.mean([c["ratio"][-1] for c in r[a]])),
+                    "ratio_std": float(np.std([c["ratio"][-1] for c in r[a]])),
+                    "infogain_mean": float(np.mean([c["infogain"][-1] for c in r[a]])),
+                    "infogain_std": float(np.std([c["infogain"][-1] for c in r[a]])),
+                    "collisions_mean": float(np.mean([c["collisions"] for c in r[a]])),
+                }
+                for a in AGENTS
+            }
+            for n, r in results.items()
+        },
+    }
+    keys = ("steps", "ratio", "infogain", "mi", "collisions")
+    curves = {n: {a: [{k: c[k] for k in keys} for c in r[a]] for a in AGENTS}
+              for n, r in results.items()}  # fmt: skip
+    (out / "exploration.json").write_text(json.dumps({**summary, "curves": curves}, indent=1))
+    plot(results, out / "exploration_curves.png")
+    plot_paths(results, out / "exploration_paths.png")
+    print(json.dumps(summary["final"], indent=1))
+    print(f"total {summary['seconds']:.0f} s (ARS {t_ars:.0f} s)")
+    return 0
+
+
+def plot(results, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(results)
+    fig, axes = plt.subplots(2, len(names), figsize=(4 * len(names), 6.5), squeeze=False)
+    for j, name in enumerate(names):
+        for i, key in enumerate(("infogain", "ratio")):
+            ax = axes[i, j]
+            for agent in AGENTS:
+                runs = results[name][agent]
+                x = np.asarray(runs[0]["steps"])
+                y = np.asarray([np.interp(x, r["steps"], r[key]) for r in runs])
+                m, s = y.mean(0), y.std(0)
+                ax.plot(x, m, color=COLOURS[agent], label=agent)
+                ax.fill_between(x, m - s, m + s, color=COLOURS[agent], alpha=0.2)
+            ax.set_title(f"{name}: {'infogain (nats)' if key == 'infogain' else 'exploration'}")
+            ax.set_xlabel("steps")
+            if i == 0 and j == 0:
+                ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def plot_paths(results, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from simulators import make_maze
+
+    names = list(results)
+    fig, axes = plt.subplots(len(names), 3, figsize=(9, 3 * len(names)), squeeze=False)
+    for i, name in enumerate(names):
+        maze = make_maze(name, 0)
+        for j, agent in enumerate(AGENTS):
+            ax = axes[i, j]
+            for x0, y0, x1, y1 in maze.walls:
+                ax.plot([x0, x1], [y0, y1], "k-", lw=1)
+            p = np.asarray(results[name][agent][0]["path"])
+            ax.plot(p[:, 0], p[:, 1], color=COLOURS[agent], lw=0.8)
+            ax.set_title(f"{name} {agent} (seed 0)")
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,426 @@
+"""Active SLAM by mutual information (Mirchev et al. 2019, section VI, Appendices D and E).
+
+* :func:`knn_entropy` -- Kozachenko--Leonenko k-NN differential entropy estimator (scipy
+  ``cKDTree`` neighbour search).
+* :class:`Mapper` -- DVBF-LM map learning from collected data: SVI on ``q(M)`` (and optionally
+  the emission network) with :class:`~pyro.infer.TraceMeanField_ELBO`; infogain
+  ``KL(q(M) || p(M))``.
+* :func:`mutual_information` -- ``I(x_{1:T}; M | u) ~= H(X) - 1/M sum_m H(X^(m))`` with samples
+  from ancestral sampling of a Pyro rollout model (maps drawn from ``q(M)`` and substituted with
+  ``poutine.condition``, poses from the known transition, scans from the emission).
+* :func:`generate_candidates` -- ``F`` control sequences optimised in parallel with Adam on the
+  obstacle penalty (histogram of predicted laser end points, bilinear log density) plus an L2
+  turn regulariser (Appendix E).
+* :func:`run_agent` -- Algorithm 1 (``policy="mi"``) and the same loop for the baselines
+  (``"random"``, ``"pema"``): execute ``T`` steps, append data, train SVI, log metrics.
+
+Pose inference: the exploration experiments of the paper assume a *known* transition with
+``sigma_T = 4e-4``; here the mapper is given the simulator's true poses plus ``N(0, sigma_T)``
+noise (the pose posterior of a 20-particle filter under such a transition is essentially that
+delta), so map learning is SVI on ``q(M)`` given poses. Rollouts for planning use the kinematic
+transition with the same ``sigma_T``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+import pyro
+import pyro.distributions as dist
+import torch
+from pyro import poutine
+from pyro.infer import SVI, TraceMeanField_ELBO
+from pyro.optim import Adam
+from scipy.ndimage import gaussian_filter
+from scipy.spatial import cKDTree
+from scipy.special import digamma, gammaln
+
+from .guide import MapGuide
+from .model import DVBFLM, MapGrid
+from .networks import EmissionMLP
+from .transitions import KinematicTransition
+
+# ----------------------------------------------------------------------------- entropy
+
+
+def knn_entropy(x, k: int = 1) -> float:
+    """Kozachenko--Leonenko estimate of the differential entropy (nats) of samples ``x [N, d]``.
+
+    ``H = psi(N) - psi(k) + log V_d + d / N sum_i log r_i`` with ``r_i`` the distance of sample
+    ``i`` to its ``k``-th nearest neighbour and ``V_d`` the volume of the unit ``d``-ball.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim == 1:
+        x = x[:, None]
+    n, d = x.shape
+    if n <= k:
+        raise ValueError(f"need more than k={k} samples, got {n}")
+    r, _ = cKDTree(x).query(x, k=k + 1)
+    r = np.maximum(r[:, -1], 1e-300)
+    log_vd = 0.5 * d * math.log(math.pi) - gammaln(0.5 * d + 1)
+    return float(digamma(n) - digamma(k) + log_vd + d * np.mean(np.log(r)))
+
+
+# ----------------------------------------------------------------------------- config
+
+
+@dataclass
+class ExploreConfig:
+    """Paper values (Appendix D/E) by default; :meth:`smoke` gives a CPU-sized budget."""
+
+    horizon: int = 50  # T: steps executed per plan
+    candidates: int = 40  # F
+    cand_steps: int = 500  # Adam steps of candidate optimisation
+    cand_lr: float = 1e-3
+    turn_reg: float = 2.0  # L2 regulariser on the per-step heading changes
+    cand_pose_samples: int = 2  # pose rollouts per candidate in the obstacle expectation
+    cand_init_std: float = 0.3  # std of the random initial (pre-tanh) turn parameters
+    mi_L: int = 30  # samples of the marginal entropy term
+    mi_M: int = 40  # maps of the conditional entropy term
+    mi_K: int = 100  # samples per conditional entropy
+    knn_k: int = 1
+    obs_stride: int = 1  # use every obs_stride-th future scan in the MI sample vectors
+    sigma_T: float = 4e-4
+    sigma_E: float = 0.1
+    step_length: float = 0.01  # forward offset per step (all agents)
+    max_turn: float = math.pi / 4  # |rotation| per step (all agents)
+    train_steps: int = 500  # SVI steps after each executed plan
+    batch: int = 128
+    lr_map: float = 1e-3
+    lr_emission: float = 1e-3
+    learn_emission: bool = True
+    map_dim: int = 10  # D_m (10 = the shipped pretrained emission; paper: 20)
+    pretrained_emission: bool = True
+    endpoint_poses: int = 2000  # at most this many past poses feed the obstacle histogram
+    hist_factor: int = 4  # obstacle histogram bins per side = hist_factor * map cells per side
+    endpoints: str = "predicted"  # obstacle histogram from "predicted" (paper) or "observed" scans
+    hist_blur: float = 1.0  # Gaussian blur of the histogram counts (bins; 0 = none)
+    max_replans: int = 0  # MI agent: replans after a blocked move within one T-step block
+    seed: int = 0
+
+    @classmethod
+    def smoke(cls, **over) -> ExploreConfig:
+        base = cls(
+            horizon=25,
+            cand_init_std=0.05,
+            max_replans=4,
+            candidates=8,
+            cand_steps=60,
+            cand_lr=2e-2,
+            mi_L=20,
+            mi_M=8,
+            mi_K=20,
+            obs_stride=5,
+            train_steps=60,
+            lr_map=2e-2,
+        )
+        return replace(base, **over)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+# ----------------------------------------------------------------------------- mapper
+
+
+def scale_grid(scale, dim: int) -> MapGrid:
+    """The Table II map grid ``w x h`` spanning the maze ``[0, side]^2``."""
+    w, h, _ = scale.map_dims
+    return MapGrid((w, h), dim, (0.0, 0.0), (scale.side, scale.side))
+
+
+def _emission(cfg: ExploreConfig, n_world: int, max_range: float) -> EmissionMLP:
+    em = EmissionMLP(cfg.map_dim, n_world, 256, 4, scale=max_range)
+    if cfg.pretrained_emission:
+        from .cli import EMISSION_FILE, PRETRAINED
+
+        blob = torch.load(PRETRAINED / EMISSION_FILE, weights_only=True)
+        if blob["meta"].get("map_dim") == cfg.map_dim and blob["meta"]["n_world"] == n_world:
+            em.load_state_dict(blob["state_dict"])
+    return em
+
+
+class Mapper:
+    """DVBF-LM (known transition) plus ``q(M)``, trained by SVI on the data collected so far.
+
+    Args:
+        grid: map geometry.
+        beam_angles: ``[B]`` beam directions (body frame).
+        max_range: sensor range (emission output scale).
+        cfg: :class:`ExploreConfig`.
+    """
+
+    def __init__(self, grid: MapGrid, beam_angles, max_range: float, cfg: ExploreConfig):
+        self.cfg = cfg
+        pyro.clear_param_store()
+        pyro.set_rng_seed(cfg.seed)  # SVI and rollout sampling use the global RNGs
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        em = _emission(cfg, max(len(beam_angles), 20), max_range)
+        trans = KinematicTransition(cfg.sigma_T)
+        self.model = DVBFLM(grid, em, trans, beam_angles, cfg.sigma_E)
+        self.model.learn_emission = cfg.learn_emission
+        self.guide = MapGuide(grid.shape)
+        self.guide.params()
+        self.max_range = float(max_range)
+        lr = cfg
+
+        def per_param(name, _p):
+            return {"lr": lr.lr_map if name.startswith("map") else lr.lr_emission}
+
+        self.svi = SVI(self.map_model, self.guide, Adam(per_param), TraceMeanField_ELBO())
+        self.poses: list[np.ndarray] = []
+        self.obs: list[np.ndarray] = []
+
+    # -- data
+    def add(self, poses, scans) -> None:
+        """Append true poses ``[n, 3]`` (noised by ``sigma_T``) and scans ``[n, B]``."""
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        noise = np.random.default_rng(len(self.poses) + self.cfg.seed).normal(size=poses.shape)
+        self.poses.append(poses + self.cfg.sigma_T * noise)
+        self.obs.append(np.asarray(scans, dtype=np.float64).reshape(poses.shape[0], -1))
+
+    def tensors(self):
+        z = torch.as_tensor(np.concatenate(self.poses), dtype=torch.get_default_dtype())
+        x = torch.as_tensor(np.concatenate(self.obs), dtype=torch.get_default_dtype())
+        return z, x
+
+    # -- Pyro model of the collected data (poses given)
+    def map_model(self, poses, obs, batch):
+        if self.model.learn_emission:
+            pyro.module("emission", self.model.emission)
+        M = self.model.sample_map()
+        with pyro.plate("data", poses.shape[0], subsample_size=min(batch, poses.shape[0])) as i:
+            mean = self.model.emission_mean(M, poses[i])
+            pyro.sample("x", self.model.emission_dist(mean), obs=obs[i])
+
+    def train(self, steps: int) -> list[float]:
+        if not self.poses:
+            return []
+        z, x = self.tensors()
+        return [self.svi.step(z, x, self.cfg.batch) / len(z) for _ in range(steps)]
+
+    def infogain(self) -> float:
+        """``KL(q(M) || p(M))`` (nats, summed over cells and features)."""
+        loc, scale = (p.detach() for p in self.guide.params())
+        return float((0.5 * (scale**2 + loc**2 - 1) - torch.log(scale)).sum())
+
+    # -- ancestral sampling for MI
+    def rollout_model(self, controls, init_pose, n_maps: int, n_paths: int, stride: int = 1):
+        """Pyro model: ``n_maps`` maps (site ``"map"``, ``[n_maps, w, h, D]``), ``n_paths``
+        pose/scan rollouts under each for ``controls [T-1, 2]`` from ``init_pose``; scans
+        ``x_t`` (``[n_maps, n_paths, B]``) every ``stride`` steps (the last step always)."""
+        m = self.model
+        w, h, _ = m.grid.shape
+        with pyro.plate("maps", n_maps, dim=-3):
+            with pyro.plate("map_x", w, dim=-2), pyro.plate("map_y", h, dim=-1):
+                M = pyro.sample("map", m.map_prior())
+        T = controls.shape[0] + 1
+        with pyro.plate("maps_r", n_maps, dim=-2), pyro.plate("paths", n_paths, dim=-1):
+            z = pyro.sample("z_0", dist.Normal(init_pose, m.init_scale).to_event(1))
+            for t in range(T):
+                if t > 0:
+                    z = pyro.sample(f"z_{t}", m.transition_dist(z, controls[t - 1]))
+                if (T - 1 - t) % stride == 0:
+                    pyro.sample(f"x_{t}", m.emission_dist(m.emission_mean(M, z)))
+
+    def sample_observations(self, controls, init_pose, n_maps, n_paths, stride=1):
+        """``[n_maps, n_paths, T' * B]`` scans from the rollout model with maps from ``q(M)``."""
+        with torch.no_grad():
+            maps = self.guide.distribution().sample((n_maps,))  # [n_maps, w, h, D]
+            model = poutine.condition(self.rollout_model, data={"map": maps})
+            tr = poutine.trace(model).get_trace(controls, init_pose, n_maps, n_paths, stride)
+        xs = [s["value"] for name, s in tr.nodes.items() if name.startswith("x_")]
+        return torch.cat(xs, -1)
+
+
+def mutual_information(mapper: Mapper, controls, init_pose, cfg: ExploreConfig) -> float:
+    """``I(x_{1:T}; M | u) ~= H(X) - 1/M sum_m H(X^(m))`` (nats).
+
+    ``X``: ``L`` samples of the marginal (one rollout under each of ``L`` maps from ``q(M)``);
+    ``X^(m)``: ``K`` rollouts under map ``m``, ``m = 1..M``.
+    """
+    init_pose = torch.as_tensor(init_pose, dtype=torch.get_default_dtype())
+    s = cfg.obs_stride
+    marg = mapper.sample_observations(controls, init_pose, cfg.mi_L, 1, s)[:, 0]
+    cond = mapper.sample_observations(controls, init_pose, cfg.mi_M, cfg.mi_K, s)
+    h_marg = knn_entropy(marg.numpy(), cfg.knn_k)
+    h_cond = np.mean([knn_entropy(c.numpy(), cfg.knn_k) for c in cond])
+    return float(h_marg - h_cond)
+
+
+# ----------------------------------------------------------------------------- candidates
+
+
+def obstacle_log_density(mapper: Mapper):
+    """Histogram of predicted laser end points (mean map, at past poses) on a grid of
+    ``hist_factor`` x the map cells, as a log density ``[W, H, 1]`` and the :class:`MapGrid`
+    that interpolates it bilinearly."""
+    g = mapper.model.grid
+    w, h, _ = g.shape
+    w, h = w * mapper.cfg.hist_factor, h * mapper.cfg.hist_factor
+    z, x = mapper.tensors()
+    if len(z) > mapper.cfg.endpoint_poses:
+        keep = torch.linspace(0, len(z) - 1, mapper.cfg.endpoint_poses).long()
+        z, x = z[keep], x[keep]
+    if mapper.cfg.endpoints == "observed":
+        scan = x
+    else:
+        with torch.no_grad():
+            scan = mapper.model.emission_mean(mapper.guide.mean(), z)  # [N, B]
+    ang = z[:, 2:3] + mapper.model.beam_angles
+    hit = scan < 0.95 * mapper.max_range  # beams that see something
+    ex = (z[:, 0:1] + scan * torch.cos(ang))[hit].numpy()
+    ey = (z[:, 1:2] + scan * torch.sin(ang))[hit].numpy()
+    (x0, y0), (sx, sy) = g.origin, g.size
+    counts, _, _ = np.histogram2d(ex, ey, bins=(w, h), range=((x0, x0 + sx), (y0, y0 + sy)))
+    if mapper.cfg.hist_blur > 0:
+        counts = gaussian_filter(counts, mapper.cfg.hist_blur, mode="constant")
+    area = (sx / w) * (sy / h)
+    dens = (counts + 0.1) / (counts.sum() + 0.1 * w * h) / area
+    logd = torch.as_tensor(np.log(dens), dtype=torch.get_default_dtype())[..., None]
+    centres = MapGrid((w, h), 1, (x0 + 0.5 * sx / w, y0 + 0.5 * sy / h), (sx - sx / w, sy - sy / h))
+    return logd, centres
+
+
+def controls_from_params(p: torch.Tensor, cfg: ExploreConfig) -> torch.Tensor:
+    """Unconstrained ``[..., T-1]`` -> controls ``[..., T-1, 2]`` (first turn up to pi)."""
+    lim = torch.full(p.shape[-1:], cfg.max_turn, dtype=p.dtype)
+    lim[0] = math.pi
+    rot = lim * torch.tanh(p)
+    return torch.stack([rot, torch.full_like(rot, cfg.step_length)], -1)
+
+
+def kinematic_rollout(z0: torch.Tensor, controls: torch.Tensor, sigma=0.0, generator=None):
+    """Poses ``[..., T, 3]`` from ``z0 [3]`` under ``controls [..., T-1, 2]`` (rotate, move)."""
+    z = z0.expand(*controls.shape[:-2], 3)
+    out = [z]
+    for t in range(controls.shape[-2]):
+        h = z[..., 2] + controls[..., t, 0]
+        d = controls[..., t, 1]
+        z = torch.stack([z[..., 0] + d * torch.cos(h), z[..., 1] + d * torch.sin(h), h], -1)
+        if sigma:
+            z = z + sigma * torch.randn(z.shape, generator=generator, dtype=z.dtype)
+        out.append(z)
+    return torch.stack(out, -2)
+
+
+def generate_candidates(mapper: Mapper, pose, cfg: ExploreConfig, generator=None):
+    """Algorithm 2: ``F`` control sequences ``[F, T-1, 2]`` minimising the expected obstacle
+    penalty along their predicted poses (+ turn regulariser, + leaving the map extent)."""
+    F, T = cfg.candidates, cfg.horizon
+    logd, centres = obstacle_log_density(mapper)
+    z0 = torch.as_tensor(pose, dtype=torch.get_default_dtype())
+    p = cfg.cand_init_std * torch.randn(F, T - 1, generator=generator)
+    p[:, 0] = 3.0 * torch.rand(F, generator=generator) - 1.5  # spread the initial turn
+    p.requires_grad_(True)
+    opt = torch.optim.Adam([p], lr=cfg.cand_lr)
+    g = mapper.model.grid
+    lo = torch.tensor(g.origin) + 0.01
+    hi = lo + torch.tensor(g.size) - 0.02
+    for _ in range(cfg.cand_steps):
+        u = controls_from_params(p, cfg)
+        uu = u.unsqueeze(0).expand(cfg.cand_pose_samples, -1, -1, -1)
+        z = kinematic_rollout(z0, uu, cfg.sigma_T, generator)  # [S, F, T, 3]
+        xy = z[..., :2]
+        pen = centres.attend(logd, xy.reshape(-1, 2)).reshape(xy.shape[:-1])  # [S, F, T]
+        out = (torch.relu(lo - xy) + torch.relu(xy - hi)).pow(2).sum(-1) * 1e4
+        loss_f = (pen + out).mean(0).sum(-1) + cfg.turn_reg * u[..., 1:, 0].pow(2).sum(-1)
+        opt.zero_grad()
+        loss_f.sum().backward()
+        opt.step()
+    return controls_from_params(p.detach(), cfg)
+
+
+# ----------------------------------------------------------------------------- agents
+
+
+def exploration_ratio(positions, side: float, tiles: int) -> float:
+    """Fraction of the ``tiles x tiles`` evaluation tiles containing a visited position."""
+    ij = np.clip(np.floor(np.asarray(positions)[:, :2] / side * tiles).astype(int), 0, tiles - 1)
+    return len({(int(a), int(b)) for a, b in ij}) / tiles**2
+
+
+def run_agent(
+    scale_name: str,
+    policy: str,
+    steps: int,
+    cfg: ExploreConfig,
+    maze_seed: int = 0,
+    pema_policy=None,
+    progress: bool = False,
+) -> dict:
+    """Run one agent for ``steps`` steps in the maze ``make_maze(scale_name, maze_seed)``.
+
+    ``policy``: ``"mi"`` (Algorithm 1), ``"random"`` (rotation ~ U(-max_turn, max_turn)) or
+    ``"pema"`` (``pema_policy``, a :class:`~pyro_slam.pema.PEMAPolicy` with its weights).
+    Every ``cfg.horizon`` steps: append the executed data, ``cfg.train_steps`` SVI steps,
+    record infogain and exploration ratio. Returns curves and the true path.
+    """
+    from simulators import SCALES, World, make_maze
+
+    scale = SCALES[scale_name]
+    maze = make_maze(scale_name, maze_seed)
+    world = World(maze, seed=maze_seed + 1000 * cfg.seed)
+    grid = scale_grid(scale, cfg.map_dim)
+    lid = world.lidar_config
+    mapper = Mapper(grid, lid.beam_angles, lid.max_range, replace(cfg, seed=cfg.seed + maze_seed))
+    gen = torch.Generator().manual_seed(cfg.seed * 7919 + maze_seed)
+    rng = np.random.default_rng(cfg.seed * 7919 + maze_seed)
+    path = [world.pose]
+    mapper.add(world.pose[None], world.lidar()[None])
+    ratio0 = exploration_ratio(np.array(path), scale.side, scale.tiles)
+    curve = {"steps": [0], "infogain": [0.0], "ratio": [ratio0]}
+    mis, state = [], None
+    if policy == "pema":
+        state = pema_policy.initial_state()
+    done = 0
+
+    def plan():
+        cands = generate_candidates(mapper, world.pose, cfg, gen)
+        vals = [mutual_information(mapper, c, world.pose, cfg) for c in cands]
+        best = int(np.argmax(vals))
+        mis.append(float(vals[best]))
+        return cands[best].numpy()
+
+    while done < steps:
+        n = min(cfg.horizon, steps - done)
+        if policy == "mi":
+            ctl, k, replans = plan(), 0, 0
+        poses, scans, flushed = [], [], 0
+        for _ in range(n):
+            if policy == "mi":
+                u = ctl[k] if k < len(ctl) else np.array([0.0, cfg.step_length])
+                k += 1
+            elif policy == "random":
+                u = np.array([rng.uniform(-cfg.max_turn, cfg.max_turn), cfg.step_length])
+            elif policy == "pema":
+                scan_now = scans[-1] if scans else world.lidar()
+                u, state = pema_policy.act(scan_now, state)
+            else:
+                raise ValueError(f"unknown policy {policy!r}")
+            hits = world.collisions
+            world.step(u)
+            poses.append(world.pose)
+            scans.append(world.lidar())
+            if policy == "mi" and world.collisions > hits and replans < cfg.max_replans:
+                # blocked: the rest of this open-loop plan is void; replan from here with the
+                # data so far (no SVI until the block ends)
+                mapper.add(np.array(poses[flushed:]), np.array(scans[flushed:]))
+                flushed = len(poses)
+                ctl, k, replans = plan(), 0, replans + 1
+        done += n
+        path += poses
+        if len(poses) > flushed:
+            mapper.add(np.array(poses[flushed:]), np.array(scans[flushed:]))
+        mapper.train(cfg.train_steps)
+        curve["steps"].append(done)
+        curve["infogain"].append(mapper.infogain())
+        curve["ratio"].append(exploration_ratio(np.array(path), scale.side, scale.tiles))
+        if progress:
+            print(f"{policy} {scale_name} step {done}: {curve['ratio'][-1]:.3f}", flush=True)
+    curve["mi"] = mis
+    curve["collisions"] = int(world.collisions)
+    curve["path"] = np.array(path).tolist()
+    return curve
