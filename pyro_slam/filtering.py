@@ -145,7 +145,8 @@ class ParticleFilter:
             # prior variance is 1: charts of unmapped cells (var -> 1) give flat weights
             trust = (1.0 - self.uncertainty_gain * var).clamp_min(1e-2)  # [..., K, 1]
             if M.usable is not None:
-                trust = trust * g.attend(M.usable.unsqueeze(-1), xy)  # [..., K, 1]
+                usable = g.attend(M.usable.unsqueeze(-1), xy)  # [..., K, 1]
+                trust = (trust * usable).clamp_min(1e-2)
             M = M.loc
             if self.weighting == "predictive":
                 # linearised marginal of q(M): predictive variance s0^2 + v * s_p^2, where

@@ -14,6 +14,7 @@ import pytest
 import torch
 
 import pyro_slam.data
+from pyro_slam import resampling
 from pyro_slam.metrics import localisation_error
 from pyro_slam.slam import SLAM, SLAMConfig, path_integration
 from pyro_slam.transitions import KinematicTransition
@@ -125,6 +126,18 @@ def test_same_seed_same_result_other_seed_differs(traversal):
     assert_same_run(a, ra, b, b.run("online", False))
     c = SLAM(traversal, config(seed=1)).run("online", False)
     assert not np.array_equal(c["mean"], ra["mean"])
+
+
+@pytest.mark.parametrize("weighting", ["marginal", "tempered", "predictive"])
+def test_revisit_gating_before_any_revisit_is_path_integration(traversal, weighting):
+    # every cell is younger than the gap: the map may not weigh particles, so the filter is a
+    # transition-driven cloud (finite, near-flat weights -- no -inf from a zero trust)
+    slam = SLAM(traversal, config(revisit_gap=10_000, weighting=weighting))
+    res = slam.run("online", progress=False)
+    assert np.isfinite(res["mean"]).all() and np.isfinite(res["losses"]).all()
+    K = slam.particles.num_particles
+    if weighting != "predictive":  # "predictive" scores unusable charts by the prior predictive
+        assert resampling.ess(slam.particles.logw) > 0.9 * K
 
 
 def test_bad_mode(traversal):
