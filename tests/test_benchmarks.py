@@ -1,0 +1,67 @@
+"""The benchmark scripts run end to end at toy sizes and print / write what their docs promise."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run(script: str, *args: str) -> str:
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / script), *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc.stdout
+
+
+def test_simulator_benchmark_reports_lidar_steps_per_second():
+    out = json.loads(run("simulator.py", "--steps", "200"))
+    assert out["steps"] == 200 and out["maze"] == "moderate-medium"
+    assert out["steps_per_s"] > 100 and out["camera_frames_per_s_batched"] > 0
+
+
+def test_filter_speed_benchmark_compares_with_smcfilter_and_reports_flat_memory():
+    out = json.loads(run("filter_speed.py", "--particles", "50", "--steps", "20",
+                         "--long-steps", "100"))  # fmt: skip
+    assert out["particles"] == 50 and out["long_run_steps"] == 100
+    for key in ("ours_steps_per_s", "smcfilter_steps_per_s", "ours_bf16_emission_steps_per_s"):
+        assert out[key] > 0, key
+    assert math.isclose(out["speedup"], out["ours_steps_per_s"] / out["smcfilter_steps_per_s"],
+                        rel_tol=0.02)  # fmt: skip
+    assert out["peak_rss_mib_at_100"] <= 1.1 * out["peak_rss_mib_at_10"]
+
+
+def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path):
+    args = ("--mazes", "1", "--traversals", "1", "--steps", "40", "--modes", "online",
+            "--workers", "1", "--out", str(tmp_path))  # fmt: skip
+    run("slam_accuracy.py", *args)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["steps"] == 40 and summary["runs_per_mode"] == 1
+    assert 0 <= summary["online"]["final_mean"] < 0.05
+    assert 0 <= summary["path_integration"]["final_mean"] < 0.05
+    assert (tmp_path / "error_bands.png").stat().st_size > 10_000
+    runs = sorted((tmp_path / "runs").glob("*.npz"))
+    assert len(runs) == 1
+    stamp = runs[0].stat().st_mtime_ns
+    run("slam_accuracy.py", *args)  # finished runs are reused, not recomputed
+    assert runs[0].stat().st_mtime_ns == stamp
+    assert json.loads((tmp_path / "summary.json").read_text()) == summary
+
+
+def test_slam_trace_prints_rows_and_summary():
+    lines = run("slam_trace.py", "--steps", "40", "--every", "20").strip().splitlines()
+    rows = [json.loads(line) for line in lines if line.startswith("{")]
+    assert [r["t"] for r in rows[:-1]] == [0, 20, 39]
+    assert rows[0]["err"] < 1e-2 and len(rows[0]["std"]) == 3
+    final = rows[-1]
+    assert final["seed"] == 11 and 0 <= final["final_err"] < 0.05
+    assert final["max_heading_err"] >= 0 and final["median_heading_std"] > 0
