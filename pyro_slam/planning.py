@@ -412,6 +412,16 @@ def add_navigate_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--maze-seed", type=int, default=1001)
     p.add_argument("--start", type=float, nargs=3, default=None, help="x y heading")
     p.add_argument("--goal", type=float, nargs=2, default=None, help="x y")
+    p.add_argument(
+        "--target-scan-from-pose",
+        type=float,
+        nargs=3,
+        default=None,
+        metavar=("X", "Y", "H"),
+        help="observation target: render the simulator's scan at this pose, infer the goal "
+        "with the inverse model q(z|x) (pyro_slam.inverse); overrides --goal",
+    )
+    p.add_argument("--inverse-steps", type=int, default=2000, help="ELBO steps of q(z|x)")
     p.add_argument("--planner", choices=["learned", "ground_truth"], default="learned")
     p.add_argument(
         "--map",
@@ -451,15 +461,24 @@ def run_navigate(args) -> int:
         poses = np.asarray(res["mean"])
     lenv, _, _ = learned_env(maze, tr, fit_steps=args.fit_steps, poses=poses, progress=True)
     env = lenv if args.planner == "learned" else GroundTruthEnv(maze)
+    inferred = None
+    if args.target_scan_from_pose is not None:
+        from .inverse import fit_inverse
+
+        target = np.array(args.target_scan_from_pose)
+        inv = fit_inverse(lenv, tr, steps=args.inverse_steps, progress=True)
+        inferred = inv.infer(GroundTruthEnv(maze).scan(target)[0])[0].numpy()
+        goal = inferred[:2]
     res = plan(env, start, goal, max_expansions=args.max_expansions)
     executed, coll = execute(maze, start, res.controls, noise=None if args.noise else 0)
-    err = float(np.hypot(*(executed[-1, :2] - goal)))
+    true_goal = goal if inferred is None else target[:2]
+    err = float(np.hypot(*(executed[-1, :2] - true_goal)))
     plot_navigation(
         maze,
         lenv if args.planner == "learned" else env,
         res,
         executed,
-        goal,
+        true_goal,
         args.out,
         f"maze {args.maze_seed}, {args.planner} planner",
     )
@@ -472,5 +491,8 @@ def run_navigate(args) -> int:
         "collisions": int(coll),
         "plot": str(args.out),
     }
+    if inferred is not None:
+        report["inferred_goal"] = inferred.tolist()
+        report["inference_error"] = float(np.hypot(*(inferred[:2] - target[:2])))
     print(json.dumps(report))
     return 0
