@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from pyro_slam.inverse import InversePose, PoseEncoder, fit_inverse, heading_error
-from pyro_slam.planning import GroundTruthEnv, learned_env
+from pyro_slam.planning import GroundTruthEnv, free_grid, learned_env
 from simulators import make_maze
 from simulators.world import point_segment_distance
 
@@ -79,3 +79,21 @@ def test_fit_inverse_from_env_runs():
     env, _, tr = learned_env(maze, steps=200, fit_steps=50)
     inv = fit_inverse(env, tr, steps=5, sleep_steps=5)
     assert inv.infer(tr.observations[:2], n_restarts=1, refine_steps=2)[0].shape == (2, 3)
+
+
+def test_navigate_cli_with_observation_target(tmp_path, capsys):
+    import json
+
+    from pyro_slam import cli
+
+    maze = make_maze("simple-small", 2)
+    tx, ty = map(float, free_grid(maze)[-1])
+    out = tmp_path / "nav.png"
+    args = ["navigate", "--maze", "simple-small", "--maze-seed", "2", "--out", str(out)]
+    args += ["--traversal-steps", "200", "--fit-steps", "50", "--max-expansions", "50"]
+    args += ["--inverse-steps", "5", "--inverse-sleep-steps", "5"]
+    args += ["--target-scan-from-pose", str(tx), str(ty), "0.5"]
+    assert cli.main(args) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert len(report["inferred_goal"]) == 3 and report["inference_error"] >= 0
+    assert out.is_file()
