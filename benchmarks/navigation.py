@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     import torch
 
     torch.set_num_threads(1)
-    from pyro_slam.inverse import fit_inverse
+    from pyro_slam.inverse import fit_inverse, heading_error
     from pyro_slam.planning import GroundTruthEnv, execute, free_grid, learned_env, plan
     from simulators import make_maze
 
@@ -84,8 +84,11 @@ def main(argv=None) -> int:
         )
         tscans = envs["ground_truth"].scan(tposes)  # [2 * 25, B]
         t = time.perf_counter()
-        mode = inv.infer(tscans)[0].numpy()
+        mode, ll_mode = (v.numpy() for v in inv.infer(tscans))
         infer_s = (time.perf_counter() - t) / len(tposes)
+        # is the model's likelihood higher near the truth than at the mode? (search failure)
+        zt = inv.refine(tscans, torch.as_tensor(tposes, dtype=tscans.dtype))
+        ll_true = inv.log_likelihood(tscans, zt).detach().numpy()
         enc = inv.infer(tscans, n_samples=0, n_restarts=0, refine_steps=0)[0].numpy()
         aliased = _aliased(envs["ground_truth"], maze, tposes, tscans.numpy(), args.alias_tol)
         for i, tp in enumerate(tposes):
@@ -97,7 +100,10 @@ def main(argv=None) -> int:
                     "mode": mode[i].tolist(),
                     "error_mode": float(np.hypot(*(mode[i, :2] - tp[:2]))),
                     "error_encoder": float(np.hypot(*(enc[i, :2] - tp[:2]))),
+                    "heading_error_mode": float(heading_error(mode[i, 2], tp[2])),
                     "aliased": bool(aliased[i]),
+                    "ll_mode": float(ll_mode[i]),
+                    "ll_true_refined": float(ll_true[i]),
                     "fit_s": inv_fit_s,
                     "infer_s": infer_s,
                 }
@@ -176,9 +182,15 @@ def main(argv=None) -> int:
         "mode_error_median": float(np.median(em)),
         "mode_error_p90": float(np.quantile(em, 0.9)),
         "encoder_error_median": float(np.median(ee)),
+        "mode_heading_error_median": float(np.median([t["heading_error_mode"] for t in targets])),
         "mode_within_0.025": float(np.mean(em <= 0.025)),
         "mode_within_0.05": float(np.mean(em <= 0.05)),
         "aliased": float(np.mean(al)),
+        "mode_far_and_model_prefers_it": float(
+            np.mean(
+                [t["error_mode"] > 0.05 and t["ll_mode"] >= t["ll_true_refined"] for t in targets]
+            )
+        ),
         "mode_within_0.05_not_aliased": float(np.mean(em[~al] <= 0.05)) if (~al).any() else None,
         "fit_s_per_maze": float(np.mean([t["fit_s"] for t in targets])),
         "infer_s_per_scan": float(np.mean([t["infer_s"] for t in targets])),

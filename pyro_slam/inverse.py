@@ -293,6 +293,27 @@ class InversePose:
         h = 2 * math.pi * torch.arange(headings) / headings - math.pi
         return torch.cat([xy.repeat_interleave(headings, 0), h.repeat(len(xy)).unsqueeze(-1)], -1)
 
+    def refine(self, x: torch.Tensor, z: torch.Tensor, steps: int = 50, lr: float = 3e-3):
+        """Local ascent of ``log p(x | z, M) + log p(z)``: ``steps`` Adam steps from poses
+        ``z [..., 3]`` for scans ``x [..., B]``; returns the refined poses ``[..., 3]``."""
+        if not steps:
+            return z
+        frozen = [p.requires_grad for p in self.dvbflm.emission.parameters()]
+        for p in self.dvbflm.emission.parameters():
+            p.requires_grad_(False)
+        z = z.detach().clone().requires_grad_(True)
+        opt = torch.optim.Adam([z], lr=lr)
+        try:
+            for _ in range(steps):
+                loss = -(self.log_likelihood(x, z) + self.log_prior(z)).sum()
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+        finally:
+            for p, r in zip(self.dvbflm.emission.parameters(), frozen, strict=True):
+                p.requires_grad_(r)
+        return z.detach()
+
     def infer(
         self,
         scans,
@@ -335,22 +356,7 @@ class InversePose:
                 cands.append(self._grid[top])
             z = torch.cat(cands, 1)  # [N, K, 3]
         xk = x.unsqueeze(1).expand(-1, z.shape[1], -1)  # [N, K, B]
-        if refine_steps:
-            frozen = [p.requires_grad for p in self.dvbflm.emission.parameters()]
-            for p in self.dvbflm.emission.parameters():
-                p.requires_grad_(False)
-            z = z.clone().requires_grad_(True)
-            opt = torch.optim.Adam([z], lr=lr)
-            try:
-                for _ in range(refine_steps):
-                    loss = -(self.log_likelihood(xk, z) + self.log_prior(z)).sum()
-                    opt.zero_grad()
-                    loss.backward()
-                    opt.step()
-            finally:
-                for p, r in zip(self.dvbflm.emission.parameters(), frozen, strict=True):
-                    p.requires_grad_(r)
-            z = z.detach()
+        z = self.refine(xk, z, refine_steps, lr)
         with torch.no_grad():
             ll = self.log_likelihood(xk, z)  # [N, K]
             score = ll
