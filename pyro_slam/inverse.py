@@ -26,7 +26,10 @@ s_h^2))`` -- negligible for the small ``s_h`` the encoder learns. The ELBO ``E_q
 M)] - KL(q(z | x) || p(z))`` is therefore exact up to the constant ``-log 2 pi`` of the flat
 heading prior and that wrap-around term. It is maximised by :class:`pyro.infer.SVI` with
 ``Trace_ELBO`` (reparameterised samples) on minibatches of scans (a subsampled
-``pyro.plate``); map and emission are constants of the model, hence frozen.
+``pyro.plate``); map and emission are constants of the model, hence frozen. The encoder is
+initialised by a wake-sleep *sleep phase* on scans dreamed by the decoder at prior poses
+(:meth:`InversePose.fit`): from a random encoder the ELBO alone got stuck in a collapsed local
+optimum.
 
 **Target pose = mode.** A single Gaussian cannot represent perceptual aliasing (several poses
 explaining one scan), and on the 1 x 1 test mazes the encoder alone is far from accurate (see
