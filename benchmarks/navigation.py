@@ -13,6 +13,14 @@ A* is deterministic, so one search with the largest budget gives the whole curve
 succeeds at budget B iff the search found the goal within B expansions and the execution ended
 within 0.05 of the target.
 
+Pose-to-observation (planner ``learned_obs``): per maze the inverse model ``q(z | x)``
+(:mod:`pyro_slam.inverse`) is trained once on the mapping traversal's scans; the target is the
+simulator's scan at the target position with a random heading, the goal its inferred pose (the
+mode), and success is measured against the *true* target position. The inverse model is also
+evaluated alone on every grid point with two random headings (encoder mean and mode errors),
+next to a check of how ambiguous each target scan is under the *true* geometry (a pose more
+than 0.05 away whose true scan differs by less than ``--alias-tol`` mean absolute range).
+
     python benchmarks/navigation.py --out out/navigation --pairs-limit 4
 """
 
@@ -39,17 +47,21 @@ def main(argv=None) -> int:
     p.add_argument("--max-expansions", type=int, default=1500)
     p.add_argument("--fit-steps", type=int, default=1500)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sleep-steps", type=int, default=3000, help="q(z|x) sleep-phase steps")
+    p.add_argument("--inverse-steps", type=int, default=1000, help="q(z|x) ELBO steps")
+    p.add_argument("--alias-tol", type=float, default=0.01)
     args = p.parse_args(argv)
 
     import torch
 
     torch.set_num_threads(1)
+    from pyro_slam.inverse import fit_inverse, heading_error
     from pyro_slam.planning import GroundTruthEnv, execute, free_grid, learned_env, plan
     from simulators import make_maze
 
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
-    runs = []
+    runs, targets = [], []
     t0 = time.perf_counter()
     for ms in MAZE_SEEDS[: args.mazes]:
         maze = make_maze("moderate-medium", ms)
@@ -57,13 +69,50 @@ def main(argv=None) -> int:
         pairs = [(a, b) for a in range(len(pts)) for b in range(len(pts)) if a != b]
         if args.pairs_limit:
             pairs = [pairs[i] for i in rng.choice(len(pairs), args.pairs_limit, replace=False)]
-        envs = {
-            "learned": learned_env(maze, fit_steps=args.fit_steps)[0],
-            "ground_truth": GroundTruthEnv(maze),
-        }
+        lenv, _, traversal = learned_env(maze, fit_steps=args.fit_steps)
+        envs = {"learned": lenv, "ground_truth": GroundTruthEnv(maze)}
+        t = time.perf_counter()
+        inv = fit_inverse(
+            lenv, traversal, steps=args.inverse_steps, sleep_steps=args.sleep_steps, seed=ms
+        )
+        inv_fit_s = time.perf_counter() - t
+        # observation targets: every grid point, two random headings each (own rng: the pairs
+        # drawn above stay those of the pose-to-pose runs)
+        trng = np.random.default_rng([args.seed, ms])
+        tposes = np.concatenate(
+            [np.repeat(pts, 2, 0), trng.uniform(-np.pi, np.pi, (2 * len(pts), 1))], 1
+        )
+        tscans = envs["ground_truth"].scan(tposes)  # [2 * 25, B]
+        t = time.perf_counter()
+        mode, ll_mode = (v.numpy() for v in inv.infer(tscans))
+        infer_s = (time.perf_counter() - t) / len(tposes)
+        # is the model's likelihood higher near the truth than at the mode? (search failure)
+        zt = inv.refine(tscans, torch.as_tensor(tposes, dtype=tscans.dtype))
+        ll_true = inv.log_likelihood(tscans, zt).detach().numpy()
+        enc = inv.infer(tscans, n_samples=0, n_restarts=0, refine_steps=0)[0].numpy()
+        aliased = _aliased(envs["ground_truth"], maze, tposes, tscans.numpy(), args.alias_tol)
+        for i, tp in enumerate(tposes):
+            targets.append(
+                {
+                    "maze": ms,
+                    "point": i // 2,
+                    "pose": tp.tolist(),
+                    "mode": mode[i].tolist(),
+                    "error_mode": float(np.hypot(*(mode[i, :2] - tp[:2]))),
+                    "error_encoder": float(np.hypot(*(enc[i, :2] - tp[:2]))),
+                    "heading_error_mode": float(heading_error(mode[i, 2], tp[2])),
+                    "aliased": bool(aliased[i]),
+                    "ll_mode": float(ll_mode[i]),
+                    "ll_true_refined": float(ll_true[i]),
+                    "fit_s": inv_fit_s,
+                    "infer_s": infer_s,
+                }
+            )
         for a, b in pairs:
-            start, goal = np.array([*pts[a], 0.0]), pts[b]
-            for name, env in envs.items():
+            start = np.array([*pts[a], 0.0])
+            goals = {"learned": pts[b], "ground_truth": pts[b], "learned_obs": mode[2 * b, :2]}
+            for name in ("learned", "ground_truth", "learned_obs"):
+                env, goal = envs[name.removesuffix("_obs")], goals[name]
                 t = time.perf_counter()
                 r = plan(env, start, goal, max_expansions=args.max_expansions)
                 wall = time.perf_counter() - t
@@ -77,9 +126,12 @@ def main(argv=None) -> int:
                     "steps": len(r.controls),
                     "plan_s": wall,
                 }
+                if name == "learned_obs":
+                    row["target_heading"] = float(tposes[2 * b, 2])
+                    row["inference_error"] = float(np.hypot(*(goal - pts[b])))
                 for noise_name, noise in (("noiseless", 0), ("noisy", None)):
                     ex, coll = execute(maze, start, r.controls, noise=noise, seed=a * 100 + b)
-                    err = float(np.hypot(*(ex[-1, :2] - goal)))
+                    err = float(np.hypot(*(ex[-1, :2] - pts[b])))  # to the TRUE target
                     row[f"error_{noise_name}"] = err
                     row[f"success_{noise_name}"] = bool(r.success and err <= 0.05)
                     row[f"collisions_{noise_name}"] = int(coll)
@@ -88,11 +140,11 @@ def main(argv=None) -> int:
     budgets = sorted({int(b) for b in np.linspace(100, args.max_expansions, 15)})
     summary = {
         "budgets": budgets,
-        "pairs": len(runs) // 2,
+        "pairs": len(runs) // 3,
         "wall_s": time.perf_counter() - t0,
         "args": {k: str(v) for k, v in vars(args).items()},
     }
-    for name in ("learned", "ground_truth"):
+    for name in ("learned", "ground_truth", "learned_obs"):
         rs = [r for r in runs if r["planner"] == name]
         for nz in ("noiseless", "noisy"):
             summary[f"{name}_{nz}"] = [
@@ -111,11 +163,63 @@ def main(argv=None) -> int:
         if r["planner"] == "learned" and (r["maze"], r["start"], r["goal"]) in gt
     ]
     summary["learned_success_on_gt_solved"] = float(np.mean(ok)) if ok else float("nan")
+    obs = [r for r in runs if r["planner"] == "learned_obs"]
+    summary["obs_failure_ratio"] = float(np.mean([not r["success_noiseless"] for r in obs]))
+    pose_ok = {
+        (r["maze"], r["start"], r["goal"])
+        for r in runs
+        if r["planner"] == "learned" and r["success_noiseless"]
+    }
+    extra = [
+        not r["success_noiseless"] for r in obs if (r["maze"], r["start"], r["goal"]) in pose_ok
+    ]
+    summary["obs_failure_ratio_on_pose_solved"] = float(np.mean(extra)) if extra else float("nan")
+    em = np.array([t["error_mode"] for t in targets])
+    ee = np.array([t["error_encoder"] for t in targets])
+    al = np.array([t["aliased"] for t in targets])
+    summary["inverse"] = {
+        "targets": len(targets),
+        "mode_error_median": float(np.median(em)),
+        "mode_error_p90": float(np.quantile(em, 0.9)),
+        "encoder_error_median": float(np.median(ee)),
+        "mode_heading_error_median": float(np.median([t["heading_error_mode"] for t in targets])),
+        "mode_within_0.025": float(np.mean(em <= 0.025)),
+        "mode_within_0.05": float(np.mean(em <= 0.05)),
+        "aliased": float(np.mean(al)),
+        "mode_far_and_model_prefers_it": float(
+            np.mean(
+                [t["error_mode"] > 0.05 and t["ll_mode"] >= t["ll_true_refined"] for t in targets]
+            )
+        ),
+        "mode_within_0.05_not_aliased": float(np.mean(em[~al] <= 0.05)) if (~al).any() else None,
+        "fit_s_per_maze": float(np.mean([t["fit_s"] for t in targets])),
+        "infer_s_per_scan": float(np.mean([t["infer_s"] for t in targets])),
+    }
+    (args.out / "targets.json").write_text(json.dumps(targets, indent=1))
     (args.out / "runs.json").write_text(json.dumps(runs, indent=1))
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     _plot(summary, args.out / "navigation.png")
     print(json.dumps({k: v for k, v in summary.items() if k != "args"}))
     return 0
+
+
+def _aliased(gt_env, maze, poses, scans, tol, spacing=0.02, headings=24) -> np.ndarray:
+    """Per target pose ``[n, 3]`` with true scan ``[n, B]``: is there a free pose (grid of
+    ``spacing`` x ``headings``) more than 0.05 away whose *true* scan differs by less than
+    ``tol`` mean absolute range? Then one scan cannot tell the two apart."""
+    from simulators.world import point_segment_distance
+
+    xs = np.arange(spacing / 2, maze.side, spacing)
+    xy = np.array([(x, y) for x in xs for y in xs])
+    xy = xy[[point_segment_distance(p, maze.walls).min() > 0.02 for p in xy]]
+    hs = 2 * np.pi * np.arange(headings) / headings - np.pi
+    grid = np.concatenate([np.repeat(xy, headings, 0), np.tile(hs, len(xy))[:, None]], 1)
+    gscans = gt_env.scan(grid).numpy()  # [G, B]
+    out = np.zeros(len(poses), dtype=bool)
+    for i in range(len(poses)):
+        far = np.hypot(*(grid[:, :2] - poses[i, :2]).T) > 0.05
+        out[i] = bool((np.abs(gscans[far] - scans[i]).mean(1) < tol).any())
+    return out
 
 
 def _plot(s, path):
@@ -125,13 +229,17 @@ def _plot(s, path):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4))
-    for name, c in (("learned", "tab:blue"), ("ground_truth", "tab:green")):
+    for name, c in (
+        ("learned", "tab:blue"),
+        ("ground_truth", "tab:green"),
+        ("learned_obs", "tab:orange"),
+    ):
         ax.plot(s["budgets"], s[f"{name}_noiseless"], "-", color=c, label=f"{name}, noise-free")
         ax.plot(s["budgets"], s[f"{name}_noisy"], "--", color=c, label=f"{name}, actuation noise")
     ax.set_xlabel("A* expansion budget")
     ax.set_ylabel("success ratio")
     ax.set_ylim(-0.02, 1.02)
-    ax.set_title(f"pose-to-pose navigation, {s['pairs']} pairs")
+    ax.set_title(f"navigation, {s['pairs']} pairs (learned_obs: observation targets)")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

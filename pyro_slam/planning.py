@@ -359,10 +359,18 @@ def free_grid(maze, n: int = 5, clearance: float = 0.04) -> np.ndarray:
 
 # --------------------------------------------------------------------------- plot + CLI
 def plot_navigation(
-    maze, env, result: PlanResult, executed: np.ndarray, goal, path_png, title: str = ""
+    maze,
+    env,
+    result: PlanResult,
+    executed: np.ndarray,
+    goal,
+    path_png,
+    title: str = "",
+    inferred=None,
 ) -> Path:
     """Left: the plan over the map belief (predicted nearest range per position); right: the
-    executed trajectory in the simulator with the true walls."""
+    executed trajectory in the simulator with the true walls. ``inferred``: the goal inferred
+    from an observation target (drawn as a cross; ``goal`` is then the true target)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -395,6 +403,8 @@ def plot_navigation(
         ax.plot(*result.path[0, :2], "o", color="k")
         ax.plot(*np.asarray(goal)[:2], "*", color="tab:red", ms=14)
         ax.add_patch(plt.Circle(np.asarray(goal)[:2], 0.05, fill=False, color="tab:red"))
+        if inferred is not None:
+            ax.plot(*np.asarray(inferred)[:2], "x", color="tab:purple", ms=12, mew=3)
         ax.set_xlim(0, maze.side)
         ax.set_ylim(0, maze.side)
         ax.set_aspect("equal")
@@ -412,6 +422,17 @@ def add_navigate_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--maze-seed", type=int, default=1001)
     p.add_argument("--start", type=float, nargs=3, default=None, help="x y heading")
     p.add_argument("--goal", type=float, nargs=2, default=None, help="x y")
+    p.add_argument(
+        "--target-scan-from-pose",
+        type=float,
+        nargs=3,
+        default=None,
+        metavar=("X", "Y", "H"),
+        help="observation target: render the simulator's scan at this pose, infer the goal "
+        "with the inverse model q(z|x) (pyro_slam.inverse); overrides --goal",
+    )
+    p.add_argument("--inverse-steps", type=int, default=1000, help="ELBO steps of q(z|x)")
+    p.add_argument("--inverse-sleep-steps", type=int, default=3000, help="sleep steps of q(z|x)")
     p.add_argument("--planner", choices=["learned", "ground_truth"], default="learned")
     p.add_argument(
         "--map",
@@ -451,17 +472,30 @@ def run_navigate(args) -> int:
         poses = np.asarray(res["mean"])
     lenv, _, _ = learned_env(maze, tr, fit_steps=args.fit_steps, poses=poses, progress=True)
     env = lenv if args.planner == "learned" else GroundTruthEnv(maze)
+    inferred = None
+    if args.target_scan_from_pose is not None:
+        from .inverse import fit_inverse
+
+        target = np.array(args.target_scan_from_pose)
+        inv = fit_inverse(
+            lenv, tr, steps=args.inverse_steps, sleep_steps=args.inverse_sleep_steps, progress=True
+        )
+        inferred = inv.infer(GroundTruthEnv(maze).scan(target)[0])[0].numpy()
+        goal = inferred[:2]
     res = plan(env, start, goal, max_expansions=args.max_expansions)
     executed, coll = execute(maze, start, res.controls, noise=None if args.noise else 0)
-    err = float(np.hypot(*(executed[-1, :2] - goal)))
+    true_goal = goal if inferred is None else target[:2]
+    err = float(np.hypot(*(executed[-1, :2] - true_goal)))
     plot_navigation(
         maze,
         lenv if args.planner == "learned" else env,
         res,
         executed,
-        goal,
+        true_goal,
         args.out,
-        f"maze {args.maze_seed}, {args.planner} planner",
+        f"maze {args.maze_seed}, {args.planner} planner"
+        + ("" if inferred is None else " (x: goal inferred from the target scan)"),
+        inferred=inferred,
     )
     report = {
         "found": res.success,
@@ -472,5 +506,8 @@ def run_navigate(args) -> int:
         "collisions": int(coll),
         "plot": str(args.out),
     }
+    if inferred is not None:
+        report["inferred_goal"] = inferred.tolist()
+        report["inference_error"] = float(np.hypot(*(inferred[:2] - target[:2])))
     print(json.dumps(report))
     return 0
