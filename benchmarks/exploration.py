@@ -11,8 +11,9 @@ Full run (paper budget, days of CPU)::
 
 Reduced run used in docs/exploration.md::
 
-    python benchmarks/exploration.py --scales simple-small simple-medium moderate-small \
-        --seeds 2 --step-fraction 0.2 --ars-iterations 25 --out docs
+    python benchmarks/exploration.py --scales all --seeds 2 --step-fraction 0.2 \
+        --max-steps 1800 --ars-iterations 20 --ars-directions 8 --ars-mazes 3 \
+        --ars-steps 200 --out out/exploration
 """
 
 from __future__ import annotations

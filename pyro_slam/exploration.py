@@ -11,6 +11,9 @@
 * :func:`generate_candidates` -- ``F`` control sequences optimised in parallel with Adam on the
   obstacle penalty (histogram of predicted laser end points, bilinear log density) plus an L2
   turn regulariser (Appendix E).
+* :class:`KnownObstacles` -- observed laser end points as point obstacles: planner rollouts
+  (MI, execution) stop moves into them, as the simulator stops moves into walls (not in the
+  paper; ``block_radius = 0`` turns it off).
 * :func:`run_agent` -- Algorithm 1 (``policy="mi"``) and the same loop for the baselines
   (``"random"``, ``"pema"``): execute ``T`` steps, append data, train SVI, log metrics.
 
