@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
@@ -124,6 +125,11 @@ def save(results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, 
     return summary
 
 
+def replot(json_path, png_path) -> None:
+    """Redraw the curves figure from a saved ``exploration.json``."""
+    plot(json.loads(Path(json_path).read_text())["curves"], png_path)
+
+
 def plot(results, path):
     import matplotlib
 
@@ -131,10 +137,15 @@ def plot(results, path):
     import matplotlib.pyplot as plt
 
     names = list(results)
-    fig, axes = plt.subplots(2, len(names), figsize=(4 * len(names), 6.5), squeeze=False)
+    ncol = min(3, len(names))
+    nrow = 2 * math.ceil(len(names) / ncol)  # per scale: infogain above exploration ratio
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 2.9 * nrow), squeeze=False)
+    for ax in axes[:, :].flat:
+        ax.set_visible(False)
     for j, name in enumerate(names):
         for i, key in enumerate(("infogain", "ratio")):
-            ax = axes[i, j]
+            ax = axes[2 * (j // ncol) + i, j % ncol]
+            ax.set_visible(True)
             for agent in AGENTS:
                 runs = results[name][agent]
                 x = np.asarray(runs[0]["steps"])
