@@ -11,19 +11,22 @@ Full run (paper budget, days of CPU)::
 
 Reduced run used in docs/exploration.md::
 
-    python benchmarks/exploration.py --scales simple-small simple-medium moderate-small \
-        --seeds 2 --step-fraction 0.2 --ars-iterations 25 --out docs
+    python benchmarks/exploration.py --scales all --seeds 2 --step-fraction 0.2 \
+        --max-steps 1800 --ars-iterations 20 --ars-directions 8 --ars-mazes 3 \
+        --ars-steps 200 --out out/exploration
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from pyro_slam.exploration import ExploreConfig, run_agent
 from pyro_slam.pema import ARSConfig, PEMAPolicy, train_pema
@@ -38,6 +41,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scales", nargs="+", default=["simple-small", "simple-medium"])
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--step-fraction", type=float, default=0.2)
+    ap.add_argument("--max-steps", type=int, default=None, help="cap on steps per run")
     ap.add_argument("--paper", action="store_true", help="paper budgets (Appendix D/E/F)")
     ap.add_argument("--ars-iterations", type=int, default=25)
     ap.add_argument("--ars-directions", type=int, default=8)
@@ -60,16 +64,29 @@ def main(argv=None) -> int:
     ars_hist = train_pema(policy, ars_cfg, n_mazes=n_mazes, steps=ars_steps, progress=True)
     t_ars = time.time() - t0
     results = {}
+    steps_of = {}
     for name in scales:
         steps = SCALES[name].steps if args.paper else int(SCALES[name].steps * args.step_fraction)
+        steps_of[name] = min(steps, args.max_steps or steps)
+    bar = tqdm(total=sum(steps_of.values()) * len(AGENTS) * args.seeds, desc="agent steps")
+    for name in scales:
         for agent in AGENTS:
             for seed in range(args.seeds):
                 t = time.time()
-                c = run_agent(name, agent, steps, cfg, maze_seed=seed, pema_policy=policy)
+                c = run_agent(name, agent, steps_of[name], cfg, seed, policy, progress=bar)
                 c["seconds"] = time.time() - t
                 results.setdefault(name, {}).setdefault(agent, []).append(c)
                 msg = f"ratio {c['ratio'][-1]:.3f} infogain {c['infogain'][-1]:.1f}"
-                print(f"{name} {agent} seed {seed}: {msg} ({c['seconds']:.0f} s)", flush=True)
+                bar.write(f"{name} {agent} seed {seed}: {msg} ({c['seconds']:.0f} s)")
+        summary = save(results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, t0)
+    bar.close()
+    print(json.dumps(summary["final"], indent=1))
+    print(f"total {summary['seconds']:.0f} s (ARS {t_ars:.0f} s)")
+    return 0
+
+
+def save(results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, t0) -> dict:
+    """Write exploration.json and the figures for the scales finished so far."""
     summary = {
         "config": cfg.to_dict(),
         "ars": {
@@ -80,6 +97,9 @@ def main(argv=None) -> int:
             "seconds": t_ars,
         },  # fmt: skip
         "step_fraction": 1.0 if args.paper else args.step_fraction,
+        "max_steps": args.max_steps,
+        "seeds": args.seeds,
+        "steps": {n: len(r["mi"][0]["path"]) - 1 for n, r in results.items()},
         "seconds": time.time() - t0,
         "final": {
             n: {
@@ -89,6 +109,7 @@ def main(argv=None) -> int:
                     "infogain_mean": float(np.mean([c["infogain"][-1] for c in r[a]])),
                     "infogain_std": float(np.std([c["infogain"][-1] for c in r[a]])),
                     "collisions_mean": float(np.mean([c["collisions"] for c in r[a]])),
+                    "seconds_mean": float(np.mean([c["seconds"] for c in r[a]])),
                 }
                 for a in AGENTS
             }
@@ -101,9 +122,12 @@ def main(argv=None) -> int:
     (out / "exploration.json").write_text(json.dumps({**summary, "curves": curves}, indent=1))
     plot(results, out / "exploration_curves.png")
     plot_paths(results, out / "exploration_paths.png")
-    print(json.dumps(summary["final"], indent=1))
-    print(f"total {summary['seconds']:.0f} s (ARS {t_ars:.0f} s)")
-    return 0
+    return summary
+
+
+def replot(json_path, png_path) -> None:
+    """Redraw the curves figure from a saved ``exploration.json``."""
+    plot(json.loads(Path(json_path).read_text())["curves"], png_path)
 
 
 def plot(results, path):
@@ -113,10 +137,15 @@ def plot(results, path):
     import matplotlib.pyplot as plt
 
     names = list(results)
-    fig, axes = plt.subplots(2, len(names), figsize=(4 * len(names), 6.5), squeeze=False)
+    ncol = min(3, len(names))
+    nrow = 2 * math.ceil(len(names) / ncol)  # per scale: infogain above exploration ratio
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 2.9 * nrow), squeeze=False)
+    for ax in axes[:, :].flat:
+        ax.set_visible(False)
     for j, name in enumerate(names):
         for i, key in enumerate(("infogain", "ratio")):
-            ax = axes[i, j]
+            ax = axes[2 * (j // ncol) + i, j % ncol]
+            ax.set_visible(True)
             for agent in AGENTS:
                 runs = results[name][agent]
                 x = np.asarray(runs[0]["steps"])

@@ -11,6 +11,9 @@
 * :func:`generate_candidates` -- ``F`` control sequences optimised in parallel with Adam on the
   obstacle penalty (histogram of predicted laser end points, bilinear log density) plus an L2
   turn regulariser (Appendix E).
+* :class:`KnownObstacles` -- observed laser end points as point obstacles: planner rollouts
+  (MI, execution) stop moves into them, as the simulator stops moves into walls (not in the
+  paper; ``block_radius = 0`` turns it off).
 * :func:`run_agent` -- Algorithm 1 (``policy="mi"``) and the same loop for the baselines
   (``"random"``, ``"pema"``): execute ``T`` steps, append data, train SVI, log metrics.
 
@@ -97,7 +100,9 @@ class ExploreConfig:
     hist_factor: int = 4  # obstacle histogram bins per side = hist_factor * map cells per side
     endpoints: str = "predicted"  # obstacle histogram from "predicted" (paper) or "observed" scans
     hist_blur: float = 1.0  # Gaussian blur of the histogram counts (bins; 0 = none)
-    max_replans: int = 0  # MI agent: replans after a blocked move within one T-step block
+    max_replans: int = 0  # MI agent: replans within one T-step block (blocked move ahead)
+    block_radius: float = 0.0  # >0: moves towards an observed laser end point closer than
+    # this are blocked in the planner's rollouts (MI, execution); 0 = paper (no blocking)
     seed: int = 0
 
     @classmethod
@@ -105,7 +110,8 @@ class ExploreConfig:
         base = cls(
             horizon=25,
             cand_init_std=0.05,
-            max_replans=4,
+            max_replans=8,
+            block_radius=0.02,
             candidates=8,
             cand_steps=60,
             cand_lr=2e-2,
@@ -164,6 +170,7 @@ class Mapper:
         self.guide = MapGuide(grid.shape)
         self.guide.params()
         self.max_range = float(max_range)
+        self.beam_angles = np.asarray(beam_angles, dtype=np.float64)
         lr = cfg
 
         def per_param(name, _p):
@@ -284,6 +291,70 @@ def obstacle_log_density(mapper: Mapper):
     return logd, centres
 
 
+def observed_endpoints(poses, scans, beam_angles, max_range: float) -> np.ndarray:
+    """World coordinates ``[N, 2]`` of the laser end points that hit something (range below
+    ``0.95 max_range``) for poses ``[n, 3]`` and scans ``[n, B]``."""
+    poses, scans = np.asarray(poses).reshape(-1, 3), np.asarray(scans).reshape(len(poses), -1)
+    ang = poses[:, 2:3] + np.asarray(beam_angles)
+    hit = scans < 0.95 * max_range
+    ex = poses[:, 0:1] + scans * np.cos(ang)
+    ey = poses[:, 1:2] + scans * np.sin(ang)
+    return np.stack([ex[hit], ey[hit]], -1)
+
+
+class KnownObstacles:
+    """Observed laser end points as point obstacles, for belief-consistent rollouts.
+
+    A move ``p -> q`` is *blocked* when ``q`` lies within ``radius`` of an end point ``e`` and
+    moves towards it (``(q - p) . (e - p) > 0``). The simulator stops a move at a wall; a
+    rollout that ignored known walls would let the planner value the unexplored space behind
+    a wall it cannot reach (and the MI criterion then prefers exactly those candidates).
+    """
+
+    def __init__(self, points, radius: float):
+        self.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        self.radius = float(radius)
+        self.tree = cKDTree(self.points) if len(self.points) else None
+
+    def blocked(self, p, q) -> np.ndarray:
+        """``p, q [..., 2]`` -> ``[...]`` bool."""
+        p, q = np.asarray(p, dtype=np.float64), np.asarray(q, dtype=np.float64)
+        if self.tree is None or self.radius <= 0:
+            return np.zeros(p.shape[:-1], dtype=bool)
+        d, i = self.tree.query(q.reshape(-1, 2))
+        e = self.points[np.minimum(i, len(self.points) - 1)].reshape(q.shape)
+        towards = np.sum((q - p) * (e - p), -1) > 0
+        return (d.reshape(q.shape[:-1]) < self.radius) & towards
+
+    def effective_controls(self, pose, controls):
+        """Deterministic rollout of ``controls [..., T-1, 2]`` from ``pose [3]`` in which
+        blocked moves keep their rotation but do not move (as in the simulator). Returns the
+        controls with blocked forward offsets set to 0, and the ``[..., T-1]`` blocked mask."""
+        u = np.array(controls, dtype=np.float64)
+        z = np.broadcast_to(np.asarray(pose, dtype=np.float64), (*u.shape[:-2], 3)).copy()
+        mask = np.zeros(u.shape[:-1], dtype=bool)
+        for t in range(u.shape[-2]):
+            h = z[..., 2] + u[..., t, 0]
+            q = z[..., :2] + u[..., t, 1:2] * np.stack([np.cos(h), np.sin(h)], -1)
+            b = self.blocked(z[..., :2], q)
+            mask[..., t] = b
+            u[..., t, 1] = np.where(b, 0.0, u[..., t, 1])
+            z[..., :2] = np.where(b[..., None], z[..., :2], q)
+            z[..., 2] = h
+        return u, mask
+
+
+def known_obstacles(mapper: Mapper, extra=None) -> KnownObstacles:
+    """:class:`KnownObstacles` from all scans given to ``mapper`` (plus ``extra = (poses,
+    scans)`` not yet added)."""
+    z, x = (np.concatenate(a) for a in (mapper.poses, mapper.obs))
+    pts = observed_endpoints(z, x, mapper.beam_angles, mapper.max_range)
+    if extra is not None and len(extra[0]):
+        more = observed_endpoints(*extra, mapper.beam_angles, mapper.max_range)
+        pts = np.concatenate([pts, more])
+    return KnownObstacles(pts, mapper.cfg.block_radius)
+
+
 def controls_from_params(p: torch.Tensor, cfg: ExploreConfig) -> torch.Tensor:
     """Unconstrained ``[..., T-1]`` -> controls ``[..., T-1, 2]`` (first turn up to pi)."""
     lim = torch.full(p.shape[-1:], cfg.max_turn, dtype=p.dtype)
@@ -349,14 +420,15 @@ def run_agent(
     cfg: ExploreConfig,
     maze_seed: int = 0,
     pema_policy=None,
-    progress: bool = False,
+    progress=False,
 ) -> dict:
     """Run one agent for ``steps`` steps in the maze ``make_maze(scale_name, maze_seed)``.
 
     ``policy``: ``"mi"`` (Algorithm 1), ``"random"`` (rotation ~ U(-max_turn, max_turn)) or
     ``"pema"`` (``pema_policy``, a :class:`~pyro_slam.pema.PEMAPolicy` with its weights).
     Every ``cfg.horizon`` steps: append the executed data, ``cfg.train_steps`` SVI steps,
-    record infogain and exploration ratio. Returns curves and the true path.
+    record infogain and exploration ratio. Returns curves and the true path. ``progress``:
+    ``True`` prints each block, a tqdm bar is advanced by the executed steps.
     """
     from simulators import SCALES, World, make_maze
 
@@ -379,7 +451,10 @@ def run_agent(
 
     def plan():
         cands = generate_candidates(mapper, world.pose, cfg, gen)
-        vals = [mutual_information(mapper, c, world.pose, cfg) for c in cands]
+        # MI of the belief-consistent rollout: moves into known obstacles do not move
+        eff, _ = known_obstacles(mapper).effective_controls(world.pose, cands.numpy())
+        eff = torch.as_tensor(eff, dtype=cands.dtype)
+        vals = [mutual_information(mapper, c, world.pose, cfg) for c in eff]
         best = int(np.argmax(vals))
         mis.append(float(vals[best]))
         return cands[best].numpy()
@@ -393,6 +468,23 @@ def run_agent(
             if policy == "mi":
                 u = ctl[k] if k < len(ctl) else np.array([0.0, cfg.step_length])
                 k += 1
+                if cfg.block_radius > 0 and replans < cfg.max_replans:
+                    # the next planned move runs into an observed obstacle (the current scan
+                    # included): the rest of this open-loop plan is void, replan from here
+                    here = (
+                        np.array([world.pose]),
+                        np.array([scans[-1] if scans else world.lidar()]),
+                    )
+                    pts = observed_endpoints(*here, mapper.beam_angles, mapper.max_range)
+                    eff, b = KnownObstacles(pts, cfg.block_radius).effective_controls(
+                        world.pose, u[None]
+                    )
+                    if b[0]:
+                        if len(poses) > flushed:
+                            mapper.add(np.array(poses[flushed:]), np.array(scans[flushed:]))
+                            flushed = len(poses)
+                        ctl, k, replans = plan(), 1, replans + 1
+                        u = ctl[0]
             elif policy == "random":
                 u = np.array([rng.uniform(-cfg.max_turn, cfg.max_turn), cfg.step_length])
             elif policy == "pema":
@@ -418,7 +510,9 @@ def run_agent(
         curve["steps"].append(done)
         curve["infogain"].append(mapper.infogain())
         curve["ratio"].append(exploration_ratio(np.array(path), scale.side, scale.tiles))
-        if progress:
+        if hasattr(progress, "update"):  # a tqdm bar
+            progress.update(n)
+        elif progress:
             print(f"{policy} {scale_name} step {done}: {curve['ratio'][-1]:.3f}", flush=True)
     curve["mi"] = mis
     curve["collisions"] = int(world.collisions)

@@ -11,11 +11,13 @@ from scipy.stats import ortho_group
 
 from pyro_slam.exploration import (
     ExploreConfig,
+    KnownObstacles,
     Mapper,
     exploration_ratio,
     generate_candidates,
     knn_entropy,
     mutual_information,
+    observed_endpoints,
     run_agent,
 )
 from pyro_slam.model import MapGrid
@@ -61,6 +63,43 @@ def test_mi_unexplored_exceeds_explored():
     # the estimator has a positive offset (psi(L) - psi(K) and the small-sample k-NN bias)
     # that both sequences share; only the difference is informative
     assert mi_east > mi_stay + 2.0, (mi_east, mi_stay)
+
+
+def test_known_wall_blocks_rollout_and_lowers_mi():
+    """Same half-explored map, plus a known wall (observed end points) at x = 0.355 between
+    y = 0.3 and 0.62. Driving straight east runs into it; the naive kinematic rollout passes
+    through and its MI (the unexplored half behind the wall) beats a detour around the wall.
+    With belief-consistent blocking the straight candidate stops at the wall and scores below
+    the detour."""
+    cfg = ExploreConfig.smoke(mi_L=20, mi_M=6, mi_K=20, obs_stride=5, horizon=30)
+    mapper = _half_explored_mapper(cfg)
+    start = np.array([0.25, 0.5, 0.0])
+    wall = np.stack([np.full(33, 0.355), np.linspace(0.3, 0.62, 33)], -1)
+    obst = KnownObstacles(wall, cfg.block_radius)
+    straight = np.array([[0.0, 0.02]] * 29)
+    detour = np.array([[np.pi / 2, 0.02]] + [[0.0, 0.02]] * 7 + [[-np.pi / 2, 0.02]]
+                      + [[0.0, 0.02]] * 20)  # fmt: skip
+    eff, blocked = obst.effective_controls(start, np.stack([straight, detour]))
+    assert blocked[0].any() and not blocked[1].any()
+    first = int(np.argmax(blocked[0]))
+    assert first == 4 and blocked[0, first:].all()  # x = 0.33 is reached; then it stays
+    assert np.allclose(eff[1], detour)
+    mi = {k: mutual_information(mapper, torch.as_tensor(u, dtype=torch.float32), start, cfg)
+          for k, u in (("naive", straight), ("straight", eff[0]), ("detour", eff[1]))}  # fmt: skip
+    assert mi["naive"] > mi["straight"] + 2.0, mi
+    assert mi["detour"] > mi["straight"] + 2.0, mi
+
+
+def test_known_obstacles_from_scans():
+    """End points of beams that hit; moving away from a wall one is touching is free."""
+    pose = np.array([[0.5, 0.5, 0.0]])
+    beams = 2 * np.pi * np.arange(4) / 4  # east, north, west, south
+    pts = observed_endpoints(pose, np.array([[0.001, 0.53, 0.53, 0.53]]), beams, 0.53)
+    assert np.allclose(pts, [[0.501, 0.5]])
+    obst = KnownObstacles(pts, 0.02)
+    assert obst.blocked(pose[0, :2], [0.51, 0.5])  # into the wall
+    assert not obst.blocked(pose[0, :2], [0.49, 0.5])  # away from it
+    assert not KnownObstacles(np.zeros((0, 2)), 0.02).blocked([0, 0], [1, 1])
 
 
 def test_candidates_shape_and_bounds():
