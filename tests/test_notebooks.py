@@ -31,6 +31,7 @@ NOTEBOOKS = [
     "02_guides_and_priors.ipynb",
     "03_predictive_rollouts.ipynb",
     "04_pfnet.ipynb",
+    "05_navigation_exploration.ipynb",
 ]
 FOUND = sorted(p.name for p in NOTEBOOK_DIR.glob("*.ipynb"))
 CELL_TIMEOUT_S = 300  # per cell; a smoke run of a whole notebook takes < 60 s on one core
