@@ -270,9 +270,11 @@ def load(path: str | os.PathLike) -> Traversal:
     src = str(path)
     if not path.exists():
         raise FileNotFoundError(f"{src}: no such dataset file")
-    # corrupt members surface as zlib.error (bad deflate stream) or NotImplementedError (bit
-    # flips in a zip header's compression method / flags), not only as BadZipFile
-    unreadable = (zipfile.BadZipFile, zlib.error, NotImplementedError, OSError, EOFError)
+    # corrupt members surface as zlib.error (bad deflate stream), NotImplementedError (bit
+    # flips in a zip header's compression method / flags) or RuntimeError (a flipped
+    # "encrypted" flag: zipfile asks for a password), not only as BadZipFile
+    unreadable = (zipfile.BadZipFile, zlib.error, NotImplementedError, OSError, EOFError,
+                  RuntimeError)  # fmt: skip
     data = None
     try:
         f = np.load(path, allow_pickle=False)

@@ -280,6 +280,19 @@ def test_corrupted_files_fail_cleanly_or_load_unchanged(good_file, data):
     assert isinstance(out, str) or same(out, tr)
 
 
+def test_every_encrypted_flag_bit_fails_cleanly(good_file):
+    """Each zip member flagged "encrypted" (bit 0 of the central directory's flags, the case
+    hypothesis found: zipfile raises RuntimeError asking for a password) -> DatasetError."""
+    _, raw = good_file
+    offsets = [i for i in range(len(raw) - 4) if raw[i : i + 4] == b"PK\x01\x02"]
+    assert offsets
+    for off in offsets:
+        b = bytearray(raw)
+        b[off + 8] |= 1  # general purpose bit flag, bit 0: encrypted
+        out = load_bytes(bytes(b))
+        assert isinstance(out, str) and "RuntimeError" in out, out
+
+
 @SETTINGS
 @given(st.binary(max_size=300))
 def test_garbage_files(raw):
