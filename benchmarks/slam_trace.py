@@ -3,16 +3,26 @@ particle cloud's std, every ``--every`` steps (the diagnosis in docs/benchmarks.
 
     python benchmarks/slam_trace.py --seed 11 --steps 1300
     python benchmarks/slam_trace.py --seed 11 --steps 1300 --set revisit_gap=200 weighting=tempered
-    python benchmarks/slam_trace.py --oracle-map --set svi_steps=4   # map trained at true poses
+    python benchmarks/slam_trace.py --map-poses true --set svi_steps=4   # map trained at true poses
+    python benchmarks/slam_trace.py --seed 12 --steps 220 --map-poses pi --frontier
 
-``--oracle-map`` is a diagnostic: the particle cache the map is trained from holds the true
-poses (+ 1e-3 noise) instead of the filter's particles, so the map is learned online at the
-right places while the filter still localises against it -- it separates "the filter cannot
-use a partially learned map" from "pose errors feed back into the map".
+Diagnostics (they change what the map is trained from, never the filter):
 
-Uses the shipped pretrained emission (frozen) and the engineered kinematic transition on a
-``moderate-medium`` traversal ``simulate_traversal(..., seed=SEED)``. Prints one JSON line per
-row and a final JSON summary.
+- ``--map-poses true`` (alias ``--oracle-map``): the particle cache the map is trained from holds
+  the true poses (+ 1e-3 noise) instead of the filter's particles, so the map is learned online
+  at the right places while the filter still localises against it -- it separates "the filter
+  cannot use a partially learned map" from "pose errors feed back into the map".
+- ``--map-poses pi``: the same with the path-integration poses; the filter should then follow
+  path integration (``dev_pi`` columns), and how far it strays is its bias at the map frontier.
+- ``--frozen-cache``: the ELBO's chunk filter does not overwrite the cache (the map is trained
+  at the online filter's particles only).
+- ``--frontier``: after each filter step, score the newest observation against the current map
+  belief at the TRUE pose: RMS residual, the heading offset (within +-0.3 rad) that predicts it
+  best, and the chart's trust (1 - relative variance); averaged over each ``--every`` window.
+
+Uses the shipped pretrained emission (frozen; or ``--emission PATH``) and the engineered
+kinematic transition on a ``moderate-medium`` traversal ``simulate_traversal(..., seed=SEED)``.
+Prints one JSON line per row and a final JSON summary.
 """
 
 from __future__ import annotations
@@ -27,12 +37,82 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
+def parse_overrides(pairs):
+    over = {}
+    for kv in pairs:
+        k, _, v = kv.partition("=")
+        try:
+            over[k] = json.loads(v)
+        except json.JSONDecodeError:
+            over[k] = v
+    return over
+
+
+def pin_cache(slam, poses, seed):
+    """Make the cache hold ``poses [T, 3]`` (+ 1e-3 noise) whatever the filters store."""
+    import torch
+
+    poses = torch.as_tensor(poses, dtype=slam.cache.z.dtype)
+    gen = torch.Generator().manual_seed(seed)
+
+    def store(t, p, generator=None):  # [C] steps; the particles are ignored
+        N = slam.cache.num_particles
+        noise = 1e-3 * torch.randn(len(t), N, 3, generator=gen, dtype=poses.dtype)
+        slam.cache.z[t] = poses[t].unsqueeze(-2) + noise
+        slam.cache.filled[t] = True
+
+    slam.cache.store = store
+
+
+def freeze_cache(slam):
+    """The ELBO's chunk filter reads the cache but no longer writes it."""
+
+    class ReadOnly:
+        def __init__(self, cache):
+            self._cache = cache
+
+        def store(self, *args, **kwargs):
+            pass
+
+        def __getattr__(self, name):
+            return getattr(self._cache, name)
+
+    slam.elbo.cache = ReadOnly(slam.cache)
+
+
+def record_frontier(slam, true_poses, rows):
+    """After each filter step, score the newest observation at the true pose (``--frontier``)."""
+    import torch
+
+    true = torch.as_tensor(true_poses, dtype=slam.obs.dtype)
+    offsets = torch.linspace(-0.3, 0.3, 61, dtype=true.dtype)
+    filter_step = slam._filter_step
+
+    def step(t, M):
+        filter_step(t, M)
+        with torch.no_grad():
+            belief, g, z = slam.map_mean(t), slam.model.grid, true[t]
+            var = g.attend(belief.scale**2, z[:2], power=2).mean(-1)
+            var = var / g.attend(torch.ones_like(belief.scale[..., :1]), z[:2], power=2)[..., 0]
+            zs = z.repeat(len(offsets), 1)
+            zs[:, 2] += offsets
+            mse = (slam.model.emission_mean(belief.loc, zs) - slam.obs[t]).pow(2).mean(-1)
+            rows.append((float(mse[len(offsets) // 2].sqrt()), float(offsets[mse.argmin()]),
+                         float(1 - var)))  # fmt: skip
+
+    slam._filter_step = step
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--steps", type=int, default=1300)
     ap.add_argument("--every", type=int, default=50)
-    ap.add_argument("--oracle-map", action="store_true", help="train the map at true poses")
+    ap.add_argument("--map-poses", choices=["filter", "true", "pi"], default="filter")
+    ap.add_argument("--oracle-map", action="store_true", help="same as --map-poses true")
+    ap.add_argument("--frozen-cache", action="store_true", help="chunks do not refresh the cache")
+    ap.add_argument("--frontier", action="store_true", help="score the newest step at the truth")
+    ap.add_argument("--emission", type=Path, help="pretrained emission .pt (default: shipped)")
     ap.add_argument("--set", nargs="*", default=[], help="SLAMConfig overrides key=json-value")
     args = ap.parse_args(argv)
     import torch
@@ -43,35 +123,30 @@ def main(argv=None) -> int:
     from pyro_slam.slam import SLAM, SLAMConfig, path_integration
     from simulators import simulate_traversal
 
-    over = {}
-    for kv in args.set:
-        k, _, v = kv.partition("=")
-        try:
-            over[k] = json.loads(v)
-        except json.JSONDecodeError:
-            over[k] = v
+    map_poses = "true" if args.oracle_map else args.map_poses
+    over = parse_overrides(args.set)
     tr = simulate_traversal("moderate-medium", steps=args.steps, seed=args.seed)
     cfg = SLAMConfig(**{"learn_emission": False, **over, "seed": args.seed})
-    em = load_emission(PRETRAINED / "emission_lidar20.pt", tr, cfg)
+    em = load_emission(args.emission or PRETRAINED / "emission_lidar20.pt", tr, cfg)
     slam = SLAM(tr, cfg, emission=em)
-    if args.oracle_map:
-        true = torch.as_tensor(tr.poses, dtype=slam.cache.z.dtype)
-        gen = torch.Generator().manual_seed(args.seed)
-
-        def store_true_poses(t, p, generator=None):  # [C] steps; the particles are ignored
-            N = slam.cache.num_particles
-            noise = 1e-3 * torch.randn(len(t), N, 3, generator=gen, dtype=true.dtype)
-            slam.cache.z[t] = true[t].unsqueeze(-2) + noise
-            slam.cache.filled[t] = True
-
-        slam.cache.store = store_true_poses
+    pi = path_integration(tr, slam.model.transition)  # [T, 3]
+    if map_poses != "filter":
+        pin_cache(slam, tr.poses if map_poses == "true" else pi, args.seed)
+    if args.frozen_cache:
+        freeze_cache(slam)
+    frontier = []
+    if args.frontier:
+        record_frontier(slam, tr.poses, frontier)
     res = slam.run("online", progress=True)
-    pi = path_integration(tr, slam.model.transition)
     true = tr.poses
+
+    def heading(a, b):
+        return np.abs(np.asarray(wrap_angle(torch.as_tensor(a[:, 2] - b[:, 2]))))
+
     pos = np.linalg.norm(res["mean"][:, :2] - true[:, :2], axis=1)
     pos_pi = np.linalg.norm(pi[:, :2] - true[:, :2], axis=1)
-    head = np.abs(np.asarray(wrap_angle(torch.as_tensor(res["mean"][:, 2] - true[:, 2]))))
-    head_pi = np.abs(np.asarray(wrap_angle(torch.as_tensor(pi[:, 2] - true[:, 2]))))
+    dev_pi = np.linalg.norm(res["mean"][:, :2] - pi[:, :2], axis=1)
+    head, head_pi = heading(res["mean"], true), heading(pi, true)
     for t in list(range(0, args.steps, args.every)) + [args.steps - 1]:
         row = dict(
             t=t,
@@ -79,23 +154,34 @@ def main(argv=None) -> int:
             err_pi=round(float(pos_pi[t]), 3),
             heading_err=round(float(head[t]), 3),
             heading_err_pi=round(float(head_pi[t]), 3),
+            dev_pi=round(float(dev_pi[t]), 3),
             std=[round(float(s), 3) for s in res["std"][t]],
         )
+        if frontier:
+            win = np.asarray(frontier[max(t - args.every + 1, 0) : t + 1])
+            row.update(frontier_rms=round(float(win[:, 0].mean()), 3),
+                       frontier_best_offset=round(float(win[:, 1].mean()), 3),
+                       frontier_trust=round(float(win[:, 2].mean()), 2))  # fmt: skip
         print(json.dumps(row))
-    print(
-        json.dumps(
-            dict(
-                config=over,
-                oracle_map=args.oracle_map,
-                seed=args.seed,
-                final_err=float(pos[-1]),
-                final_err_pi=float(pos_pi[-1]),
-                max_heading_err=float(head.max()),
-                max_heading_err_pi=float(head_pi.max()),
-                median_heading_std=float(np.median(res["std"][:, 2])),
-            )
-        )
+    summary = dict(
+        config=over,
+        map_poses=map_poses,
+        frozen_cache=args.frozen_cache,
+        oracle_map=map_poses == "true",
+        seed=args.seed,
+        final_err=float(pos[-1]),
+        final_err_pi=float(pos_pi[-1]),
+        mean_err=float(pos.mean()),
+        mean_err_pi=float(pos_pi.mean()),
+        max_heading_err=float(head.max()),
+        max_heading_err_pi=float(head_pi.max()),
+        median_heading_std=float(np.median(res["std"][:, 2])),
     )
+    if frontier:
+        f = np.asarray(frontier)
+        summary.update(frontier_rms=float(f[:, 0].mean()),
+                       frontier_best_offset=float(f[:, 1].mean()))  # fmt: skip
+    print(json.dumps(summary))
     return 0
 
 

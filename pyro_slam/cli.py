@@ -74,10 +74,12 @@ def load_emission(path, traversal: Traversal, config):
     blob = torch.load(path, weights_only=True)
     meta = blob.get("meta", {})
     n_world = meta.get("n_world", 20)
-    if n_world != max(traversal.num_beams, 20) or meta.get("map_dim", 10) != config.map_dim:
+    wanted = max(traversal.num_beams, config.n_world)
+    if n_world != wanted or meta.get("map_dim", 10) != config.map_dim:
         raise DatasetError(
-            f"{path}: emission pretrained for {n_world} beams / map_dim {meta.get('map_dim')}, "
-            f"but the traversal has {traversal.num_beams} beams / map_dim {config.map_dim}"
+            f"{path}: emission pretrained for {n_world} world directions / map_dim "
+            f"{meta.get('map_dim')}, but the traversal has {traversal.num_beams} beams, "
+            f"n_world {config.n_world}, map_dim {config.map_dim}"
         )
     em = EmissionMLP(
         config.map_dim, n_world, config.emission_hidden, config.emission_layers,
@@ -217,7 +219,7 @@ def cmd_pretrain(args) -> int:
     em, stats = pretrain_emission([tr], cfg, steps=args.emission_steps, seed=args.seed)
     blob = {
         "state_dict": em.state_dict(),
-        "meta": {"n_world": 20, "map_dim": cfg.map_dim, "scale": tr.max_range,
+        "meta": {"n_world": em.n_world, "map_dim": cfg.map_dim, "scale": tr.max_range,
                  "maze": args.maze, "seed": args.seed, **stats},
     }  # fmt: skip
     torch.save(blob, args.out / EMISSION_FILE)

@@ -65,3 +65,16 @@ def test_slam_trace_prints_rows_and_summary():
     final = rows[-1]
     assert final["seed"] == 11 and 0 <= final["final_err"] < 0.05
     assert final["max_heading_err"] >= 0 and final["median_heading_std"] > 0
+
+
+def test_slam_trace_diagnostics_pin_or_freeze_the_cache_and_score_the_frontier():
+    lines = run("slam_trace.py", "--steps", "30", "--every", "10", "--map-poses", "pi",
+                "--frozen-cache", "--frontier").strip().splitlines()  # fmt: skip
+    rows = [json.loads(line) for line in lines if line.startswith("{")]
+    final = rows[-1]
+    assert final["map_poses"] == "pi" and final["frozen_cache"] and not final["oracle_map"]
+    for r in rows[:-1]:
+        # the residual of a 20-beam scan in [0, 0.53]; an offset within the searched +-0.3 rad
+        assert 0 < r["frontier_rms"] < 0.53 and abs(r["frontier_best_offset"]) <= 0.3
+        assert -1e-3 <= r["frontier_trust"] <= 1 and r["dev_pi"] >= 0
+    assert 0 < final["frontier_rms"] < 0.53

@@ -140,6 +140,41 @@ def test_revisit_gating_before_any_revisit_is_path_integration(traversal, weight
         assert resampling.ess(slam.particles.logw) > 0.9 * K
 
 
+@pytest.mark.parametrize("train_sigma", [None, 0.1])
+def test_elbo_chunk_filter_sigma(traversal, train_sigma):
+    # the ELBO's chunk filter weighs with filter_sigma unless train_sigma overrides it (e.g.
+    # with the model's own sigma_E = 0.1)
+    from pyro_slam.filtering import ChunkBatch
+
+    slam = SLAM(traversal, config(filter_sigma=0.02, train_sigma=train_sigma))
+    t = 5
+    true = torch.as_tensor(traversal.poses, dtype=slam.cache.z.dtype)
+    slam.cache.z[:] = true.unsqueeze(1)  # every cached particle at the true pose
+    slam.cache.filled[:] = True
+    M = 0.5 * torch.randn(slam.model.grid.shape, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        ev = slam.elbo.chunk_log_evidence(M, ChunkBatch(torch.tensor([t]), 1))
+        scan = slam.model.emission_mean(M, true[t])
+        sigma = 0.02 if train_sigma is None else train_sigma
+        expected = slam.model.emission_log_prob(slam.obs[t], scan, sigma=sigma)
+    assert slam.pf.sigma_emission == 0.02
+    torch.testing.assert_close(ev[0], expected, rtol=1e-3, atol=1e-2)
+
+
+def test_n_world_sets_the_emission_profile_resolution(traversal):
+    from pyro_slam.cli import load_emission
+
+    slam = SLAM(traversal, config(n_world=40))
+    assert slam.model.emission.n_world == 40
+    assert slam.model.emission_mean(slam.guide.params()[0].detach(), torch.zeros(3)).shape == (
+        traversal.num_beams,
+    )
+    # a shipped 20-direction emission does not fit a 40-direction config
+    with pytest.raises(pyro_slam.data.DatasetError, match="40"):
+        shipped = REPO / "pyro_slam/pretrained/emission_lidar20.pt"
+        load_emission(shipped, traversal, config(n_world=40))
+
+
 def test_bad_mode(traversal):
     with pytest.raises(ValueError, match="mode must be"):
         SLAM(traversal, config()).run("sideways", progress=False)
