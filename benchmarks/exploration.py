@@ -9,11 +9,12 @@ Full run (paper budget, days of CPU)::
 
     python benchmarks/exploration.py --paper --scales all --seeds 2
 
-Reduced run used in docs/exploration.md::
+Reduced run used in docs/exploration.md (plan horizon T = 50 as in the paper; ``--workers 2``
+runs two agents at a time, one thread each)::
 
     python benchmarks/exploration.py --scales all --seeds 2 --step-fraction 0.2 \
         --max-steps 1800 --ars-iterations 20 --ars-directions 8 --ars-mazes 3 \
-        --ars-steps 200 --out out/exploration
+        --ars-steps 200 --workers 2 --out out/exploration
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ import argparse
 import json
 import math
 import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -47,11 +50,14 @@ def main(argv=None) -> int:
     ap.add_argument("--ars-directions", type=int, default=8)
     ap.add_argument("--ars-mazes", type=int, default=3)
     ap.add_argument("--ars-steps", type=int, default=300)
+    ap.add_argument("--horizon", type=int, default=50, help="plan horizon T (paper: 50)")
+    ap.add_argument("--workers", type=int, default=1, help="agents run in parallel (1 thread each)")
     ap.add_argument("--out", default="out/exploration")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     scales = list(SCALES) if args.scales == ["all"] else args.scales
     cfg = ExploreConfig() if args.paper else ExploreConfig.smoke()
+    cfg = replace(cfg, horizon=args.horizon)
     if args.paper:
         ars_cfg, n_mazes, ars_steps = ARSConfig(), 10, 1000
     else:
@@ -69,20 +75,52 @@ def main(argv=None) -> int:
         steps = SCALES[name].steps if args.paper else int(SCALES[name].steps * args.step_fraction)
         steps_of[name] = min(steps, args.max_steps or steps)
     bar = tqdm(total=sum(steps_of.values()) * len(AGENTS) * args.seeds, desc="agent steps")
-    for name in scales:
-        for agent in AGENTS:
-            for seed in range(args.seeds):
-                t = time.time()
-                c = run_agent(name, agent, steps_of[name], cfg, seed, policy, progress=bar)
-                c["seconds"] = time.time() - t
-                results.setdefault(name, {}).setdefault(agent, []).append(c)
-                msg = f"ratio {c['ratio'][-1]:.3f} infogain {c['infogain'][-1]:.1f}"
-                bar.write(f"{name} {agent} seed {seed}: {msg} ({c['seconds']:.0f} s)")
-        summary = save(results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, t0)
+    jobs = [(n, a, steps_of[n], cfg, s, policy) for n in scales for a in AGENTS
+            for s in range(args.seeds)]  # fmt: skip
+    with ProcessPoolExecutor(args.workers) if args.workers > 1 else _Serial() as pool:
+        futures = [pool.submit(_timed_run, *job) for job in jobs]
+        for (name, agent, steps, _, seed, _), fut in zip(jobs, futures):
+            c = fut.result()
+            bar.update(steps)
+            results.setdefault(name, {}).setdefault(agent, []).append(c)
+            msg = f"ratio {c['ratio'][-1]:.3f} infogain {c['infogain'][-1]:.1f}"
+            bar.write(f"{name} {agent} seed {seed}: {msg} ({c['seconds']:.0f} s)")
+            if all(len(results.get(name, {}).get(a, [])) == args.seeds for a in AGENTS):
+                summary = save(
+                    results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, t0
+                )
     bar.close()
     print(json.dumps(summary["final"], indent=1))
     print(f"total {summary['seconds']:.0f} s (ARS {t_ars:.0f} s)")
     return 0
+
+
+def _timed_run(name, agent, steps, cfg, seed, policy) -> dict:
+    torch.set_num_threads(1)
+    t = time.time()
+    c = run_agent(name, agent, steps, cfg, seed, policy)
+    c["seconds"] = time.time() - t
+    return c
+
+
+class _Serial:
+    """``ProcessPoolExecutor``'s interface, running each job here when its result is asked for."""
+
+    class _Job:
+        def __init__(self, fn, args):
+            self.fn, self.args = fn, args
+
+        def result(self):
+            return self.fn(*self.args)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, fn, *args):
+        return self._Job(fn, args)
 
 
 def save(results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, t0) -> dict:
@@ -97,6 +135,7 @@ def save(results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, 
             "seconds": t_ars,
         },  # fmt: skip
         "step_fraction": 1.0 if args.paper else args.step_fraction,
+        "workers": args.workers,
         "max_steps": args.max_steps,
         "seeds": args.seeds,
         "steps": {n: len(r["mi"][0]["path"]) - 1 for n, r in results.items()},

@@ -78,3 +78,25 @@ def test_slam_trace_diagnostics_pin_or_freeze_the_cache_and_score_the_frontier()
         assert 0 < r["frontier_rms"] < 0.53 and abs(r["frontier_best_offset"]) <= 0.3
         assert -1e-3 <= r["frontier_trust"] <= 1 and r["dev_pi"] >= 0
     assert 0 < final["frontier_rms"] < 0.53
+
+
+def test_exploration_benchmark_same_curves_serial_and_parallel(tmp_path):
+    args = ("--scales", "simple-small", "--seeds", "2", "--step-fraction", "0.02",
+            "--ars-iterations", "1", "--ars-directions", "2", "--ars-mazes", "1",
+            "--ars-steps", "10", "--horizon", "10")  # fmt: skip
+    out = {}
+    for workers in (1, 2):
+        d = tmp_path / f"w{workers}"
+        run("exploration.py", *args, "--workers", str(workers), "--out", str(d))
+        out[workers] = json.loads((d / "exploration.json").read_text())
+        assert (d / "exploration_curves.png").stat().st_size > 10_000
+    a, b = out[1], out[2]
+    assert a["config"]["horizon"] == 10 and a["steps"] == {"simple-small": 30}
+    assert a["curves"] == b["curves"]  # seeded agents: parallel runs change nothing
+    for agent in ("mi", "pema", "random"):
+        runs = a["curves"]["simple-small"][agent]
+        assert len(runs) == 2
+        for r in runs:
+            assert r["steps"][0] == 0 and r["steps"][-1] == 30
+            assert 0 < r["ratio"][-1] <= 1 and r["ratio"] == sorted(r["ratio"])  # never shrinks
+            assert r["infogain"][-1] > 0
