@@ -46,6 +46,12 @@ def main(argv=None) -> int:
     p.add_argument("--pairs-limit", type=int, default=0, help="random pairs per maze (0: all)")
     p.add_argument("--max-expansions", type=int, default=1500)
     p.add_argument("--fit-steps", type=int, default=1500)
+    p.add_argument("--traversal-steps", type=int, default=3000, help="mapping traversal length")
+    p.add_argument(
+        "--emission-steps", type=int, default=0,
+        help="fit the emission per maze (true poses) for this many steps (0: shipped, frozen)",
+    )  # fmt: skip
+    p.add_argument("--n-world", type=int, default=20, help="world directions of a fitted emission")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sleep-steps", type=int, default=3000, help="q(z|x) sleep-phase steps")
     p.add_argument("--inverse-steps", type=int, default=1000, help="q(z|x) ELBO steps")
@@ -69,7 +75,10 @@ def main(argv=None) -> int:
         pairs = [(a, b) for a in range(len(pts)) for b in range(len(pts)) if a != b]
         if args.pairs_limit:
             pairs = [pairs[i] for i in rng.choice(len(pairs), args.pairs_limit, replace=False)]
-        lenv, _, traversal = learned_env(maze, fit_steps=args.fit_steps)
+        lenv, _, traversal = learned_env(
+            maze, steps=args.traversal_steps, fit_steps=args.fit_steps,
+            emission_steps=args.emission_steps, n_world=args.n_world,
+        )  # fmt: skip
         envs = {"learned": lenv, "ground_truth": GroundTruthEnv(maze)}
         t = time.perf_counter()
         inv = fit_inverse(

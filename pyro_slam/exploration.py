@@ -364,17 +364,26 @@ def controls_from_params(p: torch.Tensor, cfg: ExploreConfig) -> torch.Tensor:
 
 
 def kinematic_rollout(z0: torch.Tensor, controls: torch.Tensor, sigma=0.0, generator=None):
-    """Poses ``[..., T, 3]`` from ``z0 [3]`` under ``controls [..., T-1, 2]`` (rotate, move)."""
-    z = z0.expand(*controls.shape[:-2], 3)
-    out = [z]
-    for t in range(controls.shape[-2]):
-        h = z[..., 2] + controls[..., t, 0]
-        d = controls[..., t, 1]
-        z = torch.stack([z[..., 0] + d * torch.cos(h), z[..., 1] + d * torch.sin(h), h], -1)
-        if sigma:
-            z = z + sigma * torch.randn(z.shape, generator=generator, dtype=z.dtype)
-        out.append(z)
-    return torch.stack(out, -2)
+    """Poses ``[..., T, 3]`` from ``z0 [3]`` under ``controls [..., T-1, 2]`` (rotate, move).
+
+    Step ``t``: ``h = h_{t-1} + rot_t``, ``p_t = p_{t-1} + d_t (cos h, sin h)``, then
+    ``z_t += sigma * eps_t``. Computed with cumulative sums (no loop over time), which is what
+    makes candidate optimisation with hundreds of Adam steps affordable.
+    """
+    z0 = z0.expand(*controls.shape[:-2], 3)
+    rot, d = controls[..., 0], controls[..., 1]  # [..., T-1]
+    if sigma:
+        eps = sigma * torch.randn((*rot.shape, 3), generator=generator, dtype=controls.dtype)
+        eh = eps[..., 2].cumsum(-1)  # [..., T-1] heading noise up to and including step t
+        h_move = z0[..., 2:3] + rot.cumsum(-1) + eh - eps[..., 2]  # heading of step t's move
+        h = z0[..., 2:3] + rot.cumsum(-1) + eh
+        dxy = eps[..., :2]  # [..., T-1, 2]
+    else:
+        h_move = h = z0[..., 2:3] + rot.cumsum(-1)
+        dxy = 0.0
+    step = torch.stack([d * torch.cos(h_move), d * torch.sin(h_move)], -1) + dxy
+    xy = z0[..., None, :2] + step.cumsum(-2)  # [..., T-1, 2]
+    return torch.cat([z0[..., None, :], torch.cat([xy, h.unsqueeze(-1)], -1)], -2)
 
 
 def generate_candidates(mapper: Mapper, pose, cfg: ExploreConfig, generator=None):

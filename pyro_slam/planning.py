@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 import heapq
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -314,21 +314,32 @@ def learned_env(
     poses=None,
     progress: bool = False,
     max_std: float = 0.5,
+    emission_steps: int = 0,
+    n_world: int = 20,
 ):
     """A :class:`LearnedEnv` for ``maze``: simulate a traversal (unless given), fit ``q(M)``
     with :func:`~pyro_slam.slam.fit_map` at ``poses`` (default: the true poses, i.e. mapping
-    with known poses) under the shipped frozen emission.
+    with known poses) under a frozen emission.
+
+    The emission is the shipped pretrained one (``emission_steps = 0``; 20 world directions)
+    or, with ``emission_steps > 0``, one fitted to this traversal together with a map by
+    :func:`~pyro_slam.slam.pretrain_emission` (``n_world`` world directions, from scratch, at
+    the same ``poses``), after which ``q(M)`` is refitted under it.
 
     Returns ``(env, (q_loc, q_scale), traversal)``."""
     from .cli import EMISSION_FILE, PRETRAINED, load_emission
-    from .slam import SLAMConfig, build_model, fit_map
+    from .slam import SLAMConfig, build_model, fit_map, pretrain_emission
 
     if traversal is None:
         from simulators import simulate_traversal
 
         traversal = simulate_traversal(maze, steps=steps, seed=seed)
-    cfg = SLAMConfig(learn_emission=False)
-    em = load_emission(PRETRAINED / EMISSION_FILE, traversal, cfg)
+    cfg = SLAMConfig(learn_emission=False, n_world=n_world)
+    if emission_steps > 0:
+        fit_on = traversal if poses is None else replace(traversal, poses=np.asarray(poses))
+        em, _ = pretrain_emission([fit_on], cfg, steps=emission_steps, seed=seed, progress=progress)
+    else:
+        em = load_emission(PRETRAINED / EMISSION_FILE, traversal, cfg)
     model, _ = build_model(traversal, cfg, emission=em)
     loc, scale = fit_map(traversal, model, poses, fit_steps, seed=seed, progress=progress)
     env = LearnedEnv(model, loc, bounds=maze_bounds(maze), scale=scale, max_std=max_std)
@@ -442,6 +453,11 @@ def add_navigate_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--traversal-steps", type=int, default=3000)
     p.add_argument("--fit-steps", type=int, default=1500)
+    p.add_argument(
+        "--emission-steps", type=int, default=0,
+        help="fit the emission on the mapping traversal for this many steps (0: shipped, frozen)",
+    )  # fmt: skip
+    p.add_argument("--n-world", type=int, default=20, help="world directions of a fitted emission")
     p.add_argument("--max-expansions", type=int, default=3000)
     p.add_argument("--noise", action="store_true", help="execute with actuation noise")
     p.add_argument("--out", type=Path, default=Path("navigate.png"))
@@ -470,7 +486,10 @@ def run_navigate(args) -> int:
             "online", progress=True
         )
         poses = np.asarray(res["mean"])
-    lenv, _, _ = learned_env(maze, tr, fit_steps=args.fit_steps, poses=poses, progress=True)
+    lenv, _, _ = learned_env(
+        maze, tr, fit_steps=args.fit_steps, poses=poses, progress=True,
+        emission_steps=args.emission_steps, n_world=args.n_world,
+    )  # fmt: skip
     env = lenv if args.planner == "learned" else GroundTruthEnv(maze)
     inferred = None
     if args.target_scan_from_pose is not None:

@@ -604,13 +604,13 @@ def pretrain_emission(
         opt.zero_grad()
         loss.backward()
         opt.step()
-        bar.set_postfix(loss=f"{float(loss):.2f}")
+        bar.set_postfix(loss=f"{loss.item():.2f}")
     with torch.no_grad():
         m, (obs, mask, poses, loc, _) = models[0], data[0]
         rmse = (m.emission_mean(loc, poses) - obs).pow(2).mean().sqrt().item()
     if isinstance(emission, LidarEmission):  # the network (what the LiDAR checkpoints hold)
         emission = emission.net
-    return emission, {"final_loss": float(loss), "rmse_first_traversal": rmse}
+    return emission, {"final_loss": loss.item(), "rmse_first_traversal": rmse}
 
 
 def fit_map(
