@@ -51,6 +51,10 @@ def main(argv=None) -> int:
     ap.add_argument("--ars-mazes", type=int, default=3)
     ap.add_argument("--ars-steps", type=int, default=300)
     ap.add_argument("--horizon", type=int, default=50, help="plan horizon T (paper: 50)")
+    ap.add_argument(
+        "--execute-steps", type=int, default=None,
+        help="steps of each plan executed before replanning (default: 25, --paper: all T)",
+    )  # fmt: skip
     ap.add_argument("--workers", type=int, default=1, help="agents run in parallel (1 thread each)")
     ap.add_argument("--out", default="out/exploration")
     args = ap.parse_args(argv)
@@ -58,6 +62,8 @@ def main(argv=None) -> int:
     scales = list(SCALES) if args.scales == ["all"] else args.scales
     cfg = ExploreConfig() if args.paper else ExploreConfig.smoke()
     cfg = replace(cfg, horizon=args.horizon)
+    if args.execute_steps is not None:
+        cfg = replace(cfg, execute_steps=args.execute_steps)
     if args.paper:
         ars_cfg, n_mazes, ars_steps = ARSConfig(), 10, 1000
     else:

@@ -73,7 +73,8 @@ def knn_entropy(x, k: int = 1) -> float:
 class ExploreConfig:
     """Paper values (Appendix D/E) by default; :meth:`smoke` gives a CPU-sized budget."""
 
-    horizon: int = 50  # T: steps executed per plan
+    horizon: int = 50  # T: steps planned (and, by default, executed) per plan
+    execute_steps: int = 0  # steps of each plan executed before the next (0: all, the paper)
     candidates: int = 40  # F
     cand_steps: int = 500  # Adam steps of candidate optimisation
     cand_lr: float = 1e-3
@@ -100,7 +101,7 @@ class ExploreConfig:
     hist_factor: int = 4  # obstacle histogram bins per side = hist_factor * map cells per side
     endpoints: str = "predicted"  # obstacle histogram from "predicted" (paper) or "observed" scans
     hist_blur: float = 1.0  # Gaussian blur of the histogram counts (bins; 0 = none)
-    max_replans: int = 0  # MI agent: replans within one T-step block (blocked move ahead)
+    max_replans: int = 0  # MI agent: replans within one block (blocked move ahead)
     block_radius: float = 0.0  # >0: moves towards an observed laser end point closer than
     # this are blocked in the planner's rollouts (MI, execution); 0 = paper (no blocking)
     seed: int = 0
@@ -109,11 +110,12 @@ class ExploreConfig:
     def smoke(cls, **over) -> ExploreConfig:
         base = cls(
             horizon=25,
+            execute_steps=25,  # with the benchmark's T = 50: replan after half of each plan
             cand_init_std=0.05,
-            max_replans=8,
+            max_replans=1000,  # i.e. replan at every blocked move
             block_radius=0.02,
             candidates=8,
-            cand_steps=60,
+            cand_steps=200,
             cand_lr=2e-2,
             mi_L=20,
             mi_M=8,
@@ -435,9 +437,11 @@ def run_agent(
 
     ``policy``: ``"mi"`` (Algorithm 1), ``"random"`` (rotation ~ U(-max_turn, max_turn)) or
     ``"pema"`` (``pema_policy``, a :class:`~pyro_slam.pema.PEMAPolicy` with its weights).
-    Every ``cfg.horizon`` steps: append the executed data, ``cfg.train_steps`` SVI steps,
-    record infogain and exploration ratio. Returns curves and the true path. ``progress``:
-    ``True`` prints each block, a tqdm bar is advanced by the executed steps.
+    Every block of ``cfg.execute_steps`` steps (default ``cfg.horizon``: the whole plan, as in
+    Algorithm 1; fewer is receding-horizon control): append the executed data,
+    ``cfg.train_steps`` SVI steps, record infogain and exploration ratio. Returns curves and the
+    true path. ``progress``: ``True`` prints each block, a tqdm bar is advanced by the executed
+    steps.
     """
     from simulators import SCALES, World, make_maze
 
@@ -469,7 +473,7 @@ def run_agent(
         return cands[best].numpy()
 
     while done < steps:
-        n = min(cfg.horizon, steps - done)
+        n = min(cfg.execute_steps or cfg.horizon, cfg.horizon, steps - done)
         if policy == "mi":
             ctl, k, replans = plan(), 0, 0
         poses, scans, flushed = [], [], 0

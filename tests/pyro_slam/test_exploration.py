@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -134,6 +135,9 @@ def test_run_agent_smoke():
     c = run_agent("simple-small", "mi", 20, cfg)
     assert c["steps"] == [0, 10, 20] and len(c["mi"]) >= 2
     assert c["infogain"][-1] > 0 and 0 < c["ratio"][-1] <= 1
+    # receding horizon: 10-step plans, 4 steps of each executed, then a new plan
+    c = run_agent("simple-small", "mi", 12, replace(cfg, execute_steps=4, max_replans=0))
+    assert c["steps"] == [0, 4, 8, 12] and len(c["mi"]) == 3
 
 
 def test_kinematic_rollout_matches_step_by_step_loop():
