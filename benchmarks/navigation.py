@@ -6,8 +6,11 @@ learned model and, as the upper bound, with the simulator's true geometry and ki
 the controls open loop in the pymunk World (noise-free, and again with the calibrated actuation
 noise); success = final position within 0.05 of the target.
 
-The learned model's map belief ``q(M)`` is fitted with *known poses* (``fit_map`` on a 3000-step
-traversal at its true poses, shipped frozen emission), not by SLAM.
+The learned model's map belief ``q(M)`` is fitted with *known poses* (``fit_map`` at the true
+poses of a ``--traversal-steps`` traversal, default 6000), not by SLAM. The emission is fitted
+to the same traversal first (``--emission-steps`` 3000, ``--n-world`` 60 world directions) and
+then frozen; ``--emission-steps 0 --n-world 20 --traversal-steps 3000`` is the earlier setting
+(the shipped pretrained emission).
 
 A* is deterministic, so one search with the largest budget gives the whole curve: a pair
 succeeds at budget B iff the search found the goal within B expansions and the execution ended
@@ -46,12 +49,12 @@ def main(argv=None) -> int:
     p.add_argument("--pairs-limit", type=int, default=0, help="random pairs per maze (0: all)")
     p.add_argument("--max-expansions", type=int, default=1500)
     p.add_argument("--fit-steps", type=int, default=1500)
-    p.add_argument("--traversal-steps", type=int, default=3000, help="mapping traversal length")
+    p.add_argument("--traversal-steps", type=int, default=6000, help="mapping traversal length")
     p.add_argument(
-        "--emission-steps", type=int, default=0,
+        "--emission-steps", type=int, default=3000,
         help="fit the emission per maze (true poses) for this many steps (0: shipped, frozen)",
     )  # fmt: skip
-    p.add_argument("--n-world", type=int, default=20, help="world directions of a fitted emission")
+    p.add_argument("--n-world", type=int, default=60, help="world directions of a fitted emission")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sleep-steps", type=int, default=3000, help="q(z|x) sleep-phase steps")
     p.add_argument("--inverse-steps", type=int, default=1000, help="q(z|x) ELBO steps")
