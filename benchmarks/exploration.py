@@ -43,6 +43,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scales", nargs="+", default=["simple-small", "simple-medium"])
     ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--first-seed", type=int, default=0, help="evaluation mazes first..+seeds-1")
+    ap.add_argument(
+        "--merge", nargs="+", metavar="JSON",
+        help="combine the seeds of several runs' exploration.json into --out (no agents run)",
+    )  # fmt: skip
     ap.add_argument("--step-fraction", type=float, default=0.2)
     ap.add_argument("--max-steps", type=int, default=None, help="cap on steps per run")
     ap.add_argument("--paper", action="store_true", help="paper budgets (Appendix D/E/F)")
@@ -58,6 +63,10 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=1, help="agents run in parallel (1 thread each)")
     ap.add_argument("--out", default="out/exploration")
     args = ap.parse_args(argv)
+    if args.merge:
+        summary = merge(args.merge, Path(args.out))
+        print(json.dumps(summary["final"], indent=1))
+        return 0
     torch.set_num_threads(1)
     scales = list(SCALES) if args.scales == ["all"] else args.scales
     cfg = ExploreConfig() if args.paper else ExploreConfig.smoke()
@@ -82,7 +91,7 @@ def main(argv=None) -> int:
         steps_of[name] = min(steps, args.max_steps or steps)
     bar = tqdm(total=sum(steps_of.values()) * len(AGENTS) * args.seeds, desc="agent steps")
     jobs = [(n, a, steps_of[n], cfg, s, policy) for n in scales for a in AGENTS
-            for s in range(args.seeds)]  # fmt: skip
+            for s in range(args.first_seed, args.first_seed + args.seeds)]  # fmt: skip
     with ProcessPoolExecutor(args.workers) if args.workers > 1 else _Serial() as pool:
         futures = [pool.submit(_timed_run, *job) for job in jobs]
         for (name, agent, steps, _, seed, _), fut in zip(jobs, futures):
@@ -144,22 +153,10 @@ def save(results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, 
         "workers": args.workers,
         "max_steps": args.max_steps,
         "seeds": args.seeds,
+        "first_seed": args.first_seed,
         "steps": {n: len(r["mi"][0]["path"]) - 1 for n, r in results.items()},
         "seconds": time.time() - t0,
-        "final": {
-            n: {
-                a: {
-                    "ratio_mean": float(np.mean([c["ratio"][-1] for c in r[a]])),
-                    "ratio_std": float(np.std([c["ratio"][-1] for c in r[a]])),
-                    "infogain_mean": float(np.mean([c["infogain"][-1] for c in r[a]])),
-                    "infogain_std": float(np.std([c["infogain"][-1] for c in r[a]])),
-                    "collisions_mean": float(np.mean([c["collisions"] for c in r[a]])),
-                    "seconds_mean": float(np.mean([c["seconds"] for c in r[a]])),
-                }
-                for a in AGENTS
-            }
-            for n, r in results.items()
-        },
+        "final": finals(results),
     }
     keys = ("steps", "ratio", "infogain", "mi", "collisions")
     curves = {n: {a: [{k: c[k] for k in keys} for c in r[a]] for a in AGENTS}
@@ -167,6 +164,51 @@ def save(results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, 
     (out / "exploration.json").write_text(json.dumps({**summary, "curves": curves}, indent=1))
     plot(results, out / "exploration_curves.png")
     plot_paths(results, out / "exploration_paths.png")
+    return summary
+
+
+def finals(results) -> dict:
+    """Per scale and agent: mean and std over seeds of the final exploration ratio and infogain,
+    mean blocked moves (and mean run time where recorded)."""
+    out = {}
+    for n, r in results.items():
+        out[n] = {}
+        for a in AGENTS:
+            row = {}
+            for key in ("ratio", "infogain"):
+                v = [c[key][-1] for c in r[a]]
+                row[f"{key}_mean"], row[f"{key}_std"] = float(np.mean(v)), float(np.std(v))
+            row["collisions_mean"] = float(np.mean([c["collisions"] for c in r[a]]))
+            if all("seconds" in c for c in r[a]):
+                row["seconds_mean"] = float(np.mean([c["seconds"] for c in r[a]]))
+            row["seeds"] = len(r[a])
+            out[n][a] = row
+    return out
+
+
+def merge(paths, out: Path) -> dict:
+    """Concatenate the per-seed curves of several ``exploration.json`` (same config, disjoint
+    seeds) and write the combined summary and curves figure to ``out``."""
+    runs = [json.loads(Path(p).read_text()) for p in paths]
+    cfg0 = {k: v for k, v in runs[0]["config"].items()}
+    for p, r in zip(paths, runs):
+        if r["config"] != cfg0 or r["steps"] != runs[0]["steps"]:
+            raise ValueError(f"{p}: config or steps differ from {paths[0]}; cannot merge")
+    curves = {}
+    for r in runs:
+        for n, by_agent in r["curves"].items():
+            for a, cs in by_agent.items():
+                curves.setdefault(n, {}).setdefault(a, []).extend(cs)
+    summary = {
+        **{k: v for k, v in runs[0].items() if k not in ("curves", "final", "seconds")},
+        "merged_from": [str(p) for p in paths],
+        "seeds": sum(r["seeds"] for r in runs),
+        "seconds": sum(r["seconds"] for r in runs),
+        "final": finals(curves),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "exploration.json").write_text(json.dumps({**summary, "curves": curves}, indent=1))
+    plot(curves, out / "exploration_curves.png")
     return summary
 
 

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -100,3 +102,15 @@ def test_exploration_benchmark_same_curves_serial_and_parallel(tmp_path):
             assert r["steps"][0] == 0 and r["steps"][-1] == 30
             assert 0 < r["ratio"][-1] <= 1 and r["ratio"] == sorted(r["ratio"])  # never shrinks
             assert r["infogain"][-1] > 0
+    # seeds split over two runs (--first-seed) and merged give the same curves and finals
+    one = ("--seeds", "1", "--workers", "1")
+    run("exploration.py", *args, *one, "--out", str(tmp_path / "s0"))
+    run("exploration.py", *args, *one, "--first-seed", "1", "--out", str(tmp_path / "s1"))
+    parts = [str(tmp_path / d / "exploration.json") for d in ("s0", "s1")]
+    run("exploration.py", "--merge", *parts, "--out", str(tmp_path / "m"))
+    m = json.loads((tmp_path / "m" / "exploration.json").read_text())
+    assert m["seeds"] == 2 and m["curves"] == a["curves"]
+    for agent in ("mi", "pema", "random"):
+        fa, fm = a["final"]["simple-small"][agent], m["final"]["simple-small"][agent]
+        assert fm["ratio_mean"] == pytest.approx(fa["ratio_mean"]) and fm["seeds"] == 2
+        assert fm["infogain_std"] == pytest.approx(fa["infogain_std"])
