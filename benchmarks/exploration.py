@@ -190,7 +190,7 @@ def merge(paths, out: Path) -> dict:
     """Concatenate the per-seed curves of several ``exploration.json`` (same config, disjoint
     seeds) and write the combined summary and curves figure to ``out``."""
     runs = [json.loads(Path(p).read_text()) for p in paths]
-    cfg0 = {k: v for k, v in runs[0]["config"].items()}
+    cfg0 = runs[0]["config"]
     for p, r in zip(paths, runs):
         if r["config"] != cfg0 or r["steps"] != runs[0]["steps"]:
             raise ValueError(f"{p}: config or steps differ from {paths[0]}; cannot merge")
