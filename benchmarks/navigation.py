@@ -55,6 +55,11 @@ def main(argv=None) -> int:
         help="fit the emission per maze (true poses) for this many steps (0: shipped, frozen)",
     )  # fmt: skip
     p.add_argument("--n-world", type=int, default=60, help="world directions of a fitted emission")
+    p.add_argument("--max-std", type=float, default=0.6, help="explored: chart std below this")
+    p.add_argument(
+        "--check-path", action=argparse.BooleanOptionalAction, default=True,
+        help="every step of a primitive must be explored (not only its end pose)",
+    )  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sleep-steps", type=int, default=3000, help="q(z|x) sleep-phase steps")
     p.add_argument("--inverse-steps", type=int, default=1000, help="q(z|x) ELBO steps")
@@ -80,7 +85,7 @@ def main(argv=None) -> int:
             pairs = [pairs[i] for i in rng.choice(len(pairs), args.pairs_limit, replace=False)]
         lenv, _, traversal = learned_env(
             maze, steps=args.traversal_steps, fit_steps=args.fit_steps,
-            emission_steps=args.emission_steps, n_world=args.n_world,
+            emission_steps=args.emission_steps, n_world=args.n_world, max_std=args.max_std,
         )  # fmt: skip
         envs = {"learned": lenv, "ground_truth": GroundTruthEnv(maze)}
         t = time.perf_counter()
@@ -126,7 +131,10 @@ def main(argv=None) -> int:
             for name in ("learned", "ground_truth", "learned_obs"):
                 env, goal = envs[name.removesuffix("_obs")], goals[name]
                 t = time.perf_counter()
-                r = plan(env, start, goal, max_expansions=args.max_expansions)
+                r = plan(
+                    env, start, goal, max_expansions=args.max_expansions,
+                    check_path=args.check_path,
+                )  # fmt: skip
                 wall = time.perf_counter() - t
                 row = {
                     "maze": ms,

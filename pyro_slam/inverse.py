@@ -321,10 +321,11 @@ class InversePose:
         self,
         scans,
         n_samples: int = 16,
-        n_restarts: int = 8,
+        n_restarts: int = 32,
         refine_steps: int = 50,
         lr: float = 3e-3,
-        restart_spacing: float = 0.04,
+        restart_spacing: float = 0.03,
+        restart_headings: int = 36,
         seed: int = 0,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Target poses for observations: ``scans [N, B]`` (or ``[B]``) -> poses ``[N, 3]``
@@ -347,9 +348,9 @@ class InversePose:
             eps = torch.randn((x.shape[0], n_samples, 3), generator=gen)
             cands = [loc.unsqueeze(1), loc.unsqueeze(1) + scale.unsqueeze(1) * eps]
             if n_restarts:
-                key = (restart_spacing,)
+                key = (restart_spacing, restart_headings)
                 if getattr(self, "_grid_key", None) != key:
-                    self._grid = self.restart_grid(restart_spacing)  # [C, 3]
+                    self._grid = self.restart_grid(restart_spacing, restart_headings)  # [C, 3]
                     self._grid_scans = self.decode(self._grid)  # [C, B]
                     self._grid_key = key
                 ll = self.dvbflm.emission_log_prob(

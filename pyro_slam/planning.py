@@ -92,7 +92,7 @@ class LearnedEnv:
         clip_margin: float = 0.01,
         bounds=None,
         scale: torch.Tensor | None = None,
-        max_std: float = 0.5,
+        max_std: float = 0.6,
     ):
         self.model, self.M, self.scale, self.max_std = model, M, scale, max_std
         self.transition = KinematicTransition(0.0, "rotate_forward", clip_margin=clip_margin)
@@ -203,6 +203,7 @@ def plan(
     safety_weight: float = 1.0,
     heuristic_weight: float = 1.0,
     safety_kw: dict | None = None,
+    check_path: bool = True,
 ) -> PlanResult:
     """Hybrid A* from pose ``start [3]`` to position ``goal [2+]`` in ``env``.
 
@@ -241,7 +242,10 @@ def plan(
         z, g = nodes[k][0], nodes[k][1]
         ends, travel, scans, paths = env.rollout(z, prims)
         cost = travel + safety_weight * safety_cost(scans, **safety_kw).double().numpy()
-        ok = env.valid(ends)
+        if check_path:  # every step of the primitive must be valid, not only its end
+            ok = env.valid(paths[:, 1:].reshape(-1, 3)).reshape(len(ends), -1).all(1)
+        else:
+            ok = env.valid(ends)
         for p in range(len(ends)):
             e = ends[p]
             ke = key(e)
@@ -313,7 +317,7 @@ def learned_env(
     fit_steps: int = 1500,
     poses=None,
     progress: bool = False,
-    max_std: float = 0.5,
+    max_std: float = 0.6,
     emission_steps: int = 0,
     n_world: int = 20,
 ):

@@ -79,3 +79,26 @@ def test_learned_env_fitted_emission_beats_shipped_on_its_maze():
         rms = [(e.model.emission_mean(m, z) - x).pow(2).mean().sqrt() for e, m in
                ((shipped, loc0), (fitted, loc1))]  # fmt: skip
     assert rms[1] < 0.8 * rms[0], rms
+
+
+class _StripEnv(GroundTruthEnv):
+    """True geometry, but positions in a thin vertical strip count as unexplored."""
+
+    def valid(self, z) -> np.ndarray:
+        x = np.asarray(z)[:, 0]
+        return ~((x > 0.2) & (x < 0.215))
+
+
+def test_check_path_rejects_primitives_crossing_unexplored_space():
+    """A primitive's end poses (0.04 apart) can jump a strip narrower than that; with
+    ``check_path`` every step (0.008 apart) must be valid, so no plan crosses the strip."""
+    maze = make_maze("simple-medium", 3)
+    env = _StripEnv(maze)
+    start, goal = np.array([0.08, 0.08, 0.0]), np.array([0.42, 0.08])
+    loose = plan(env, start, goal, max_expansions=600, check_path=False)
+    assert loose.success
+    assert np.any((loose.path[:, 0] > 0.2) & (loose.path[:, 0] < 0.215))  # it went through
+    strict = plan(env, start, goal, max_expansions=600, check_path=True)
+    assert not strict.success
+    assert strict.expansions < 600  # the search exhausted the reachable side
+    assert np.all(strict.visited[:, 0] < 0.2)
