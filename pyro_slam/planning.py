@@ -242,8 +242,11 @@ def plan(
         z, g = nodes[k][0], nodes[k][1]
         ends, travel, scans, paths = env.rollout(z, prims)
         cost = travel + safety_weight * safety_cost(scans, **safety_kw).double().numpy()
-        if check_path:  # every step of the primitive must be valid, not only its end
-            ok = env.valid(paths[:, 1:].reshape(-1, 3)).reshape(len(ends), -1).all(1)
+        if check_path:  # every step of the primitive must be valid, not only its end;
+            # turning on the spot stays valid (the search may start in unexplored space)
+            steps = paths[:, 1:]  # [P, L, 3]
+            here = np.all(steps[..., :2] == z[:2], -1)
+            ok = (env.valid(steps.reshape(-1, 3)).reshape(here.shape) | here).all(1)
         else:
             ok = env.valid(ends)
         for p in range(len(ends)):

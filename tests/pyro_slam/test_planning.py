@@ -102,3 +102,12 @@ def test_check_path_rejects_primitives_crossing_unexplored_space():
     assert not strict.success
     assert strict.expansions < 600  # the search exhausted the reachable side
     assert np.all(strict.visited[:, 0] < 0.2)
+
+
+def test_check_path_allows_leaving_an_unexplored_start():
+    """Turning on the spot at an unexplored start is not a step into unexplored space."""
+    maze = make_maze("simple-medium", 3)
+    env = _StripEnv(maze)
+    start, goal = np.array([0.207, 0.08, 0.0]), np.array([0.42, 0.08])
+    r = plan(env, start, goal, max_expansions=600, check_path=True)
+    assert r.success and r.expansions > 1
