@@ -114,3 +114,23 @@ def test_exploration_benchmark_same_curves_serial_and_parallel(tmp_path):
         fa, fm = a["final"]["simple-small"][agent], m["final"]["simple-small"][agent]
         assert fm["ratio_mean"] == pytest.approx(fa["ratio_mean"]) and fm["seeds"] == 2
         assert fm["infogain_std"] == pytest.approx(fa["infogain_std"])
+
+
+def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(tmp_path):
+    args = ("--mazes", "1", "--pairs-limit", "2", "--traversal-steps", "300",
+            "--emission-steps", "30", "--fit-steps", "30", "--sleep-steps", "30",
+            "--inverse-steps", "10", "--max-expansions", "60", "--out", str(tmp_path))  # fmt: skip
+    run("navigation.py", *args)
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["pairs"] == 2 and s["budgets"][-1] == 60
+    for name in ("learned", "ground_truth", "learned_obs"):
+        curve = s[f"{name}_noiseless"]
+        assert len(curve) == len(s["budgets"]) and all(0 <= v <= 1 for v in curve)
+        assert curve == sorted(curve)  # success can only grow with the budget
+    inv = s["inverse"]
+    assert inv["targets"] == 50  # 25 grid points x 2 headings
+    assert 0 <= inv["mode_far_true_scan_matches"] <= 1 - inv["mode_within_0.05"] + 1e-9
+    runs = json.loads((tmp_path / "runs.json").read_text())
+    assert len(runs) == 6 and {r["planner"] for r in runs} == {"learned", "ground_truth",
+                                                               "learned_obs"}  # fmt: skip
+    assert (tmp_path / "navigation.png").stat().st_size > 10_000
