@@ -245,7 +245,7 @@ def plan(
         if check_path:  # every step of the primitive must be valid, not only its end;
             # turning on the spot stays valid (the search may start in unexplored space)
             steps = paths[:, 1:]  # [P, L, 3]
-            here = np.all(steps[..., :2] == z[:2], -1)
+            here = np.hypot(*(steps[..., :2] - z[:2]).transpose(2, 0, 1)) < 1e-5
             ok = (env.valid(steps.reshape(-1, 3)).reshape(here.shape) | here).all(1)
         else:
             ok = env.valid(ends)
