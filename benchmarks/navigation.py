@@ -2,7 +2,9 @@
 
 For each test maze (moderate-medium, maze seeds 1001-1006), start/target pairs from a 5 x 5 grid
 over free space (start heading 0): plan with hybrid A* (:mod:`pyro_slam.planning`) in the
-learned model and, as the upper bound, with the simulator's true geometry and kinematics; execute
+learned model and, as the upper bound, with the simulator's true geometry and kinematics (the
+learned planner also trusts the free space of the agent's real, noise-free scan at the start,
+``--start-scan``; :meth:`~pyro_slam.planning.LearnedEnv.with_observation`); execute
 the controls open loop in the pymunk World (noise-free, and again with the calibrated actuation
 noise); success = final position within 0.05 of the target.
 
@@ -62,6 +64,10 @@ def main(argv=None) -> int:
     p.add_argument(
         "--check-path", action=argparse.BooleanOptionalAction, default=True,
         help="every step of a primitive must be explored (not only its end pose)",
+    )  # fmt: skip
+    p.add_argument(
+        "--start-scan", action=argparse.BooleanOptionalAction, default=True,
+        help="the learned planner also trusts the free space of the real scan at the start",
     )  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sleep-steps", type=int, default=3000, help="q(z|x) sleep-phase steps")
@@ -134,8 +140,12 @@ def main(argv=None) -> int:
         for a, b in pairs:
             start = np.array([*pts[a], 0.0])
             goals = {"learned": pts[b], "ground_truth": pts[b], "learned_obs": mode[2 * b, :2]}
+            if args.start_scan:  # the agent's own scan at the start: trusted free space
+                seen = lenv.with_observation(start, envs["ground_truth"].scan(start)[0].numpy())
             for name in ("learned", "ground_truth", "learned_obs"):
                 env, goal = envs[name.removesuffix("_obs")], goals[name]
+                if args.start_scan and name != "ground_truth":
+                    env = seen
                 t = time.perf_counter()
                 r = plan(
                     env, start, goal, max_expansions=args.max_expansions,

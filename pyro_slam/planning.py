@@ -21,6 +21,7 @@ map belief next to the executed trajectory.
 from __future__ import annotations
 
 import argparse
+import copy
 import heapq
 import math
 from dataclasses import dataclass, field, replace
@@ -72,6 +73,19 @@ class Primitives:
         return torch.as_tensor(np.stack(pad), dtype=torch.get_default_dtype())
 
 
+def inside_scan(xy, pose, scan, margin: float = SAFETY_DELTA) -> np.ndarray:
+    """Positions ``xy [N, 2]`` inside the free space that a scan ``[B]`` (beams evenly spaced
+    over the circle, the first along the heading) shows from ``pose [3]``, at least
+    ``margin`` before the shorter of the two beams around each position's bearing: ``[N]``."""
+    scan = np.asarray(scan, dtype=np.float64)
+    B = len(scan)
+    d = np.asarray(xy, dtype=np.float64) - pose[:2]
+    bearing = np.remainder(np.arctan2(d[:, 1], d[:, 0]) - pose[2], 2 * np.pi)
+    i0 = np.floor(bearing / (2 * np.pi / B)).astype(int) % B
+    reach = np.minimum(scan[i0], scan[(i0 + 1) % B])
+    return np.hypot(d[:, 0], d[:, 1]) <= reach - margin
+
+
 # --------------------------------------------------------------------------- environments
 class LearnedEnv:
     """The DVBF-LM model with a fixed map ``M`` (mean of ``q(M)``) as planning environment.
@@ -97,6 +111,15 @@ class LearnedEnv:
         self.model, self.M, self.scale, self.max_std = model, M, scale, max_std
         self.transition = KinematicTransition(0.0, "rotate_forward", clip_margin=clip_margin)
         self.bounds = bounds if bounds is not None else model.grid.extent()
+        self.seen: list[tuple[np.ndarray, np.ndarray]] = []  # (pose [3], real scan [B])
+
+    def with_observation(self, pose, scan, margin: float = SAFETY_DELTA) -> LearnedEnv:
+        """A copy that also trusts the free space of a *real* scan ``[B]`` taken at ``pose
+        [3]`` (e.g. the agent's own LiDAR at the start): positions at least ``margin`` inside
+        it count as valid even where the map is unexplored."""
+        out = copy.copy(self)
+        out.seen = [*self.seen, (np.asarray(pose, float), np.asarray(scan, float), margin)]
+        return out
 
     @torch.no_grad()
     def scan(self, z: torch.Tensor) -> torch.Tensor:
@@ -114,7 +137,10 @@ class LearnedEnv:
         model's predicted scans are extrapolations elsewhere."""
         if self.scale is None:
             return np.ones(len(z), dtype=bool)
-        return self.std(z) < self.max_std
+        ok = self.std(z) < self.max_std
+        for pose, scan, margin in self.seen:
+            ok |= inside_scan(np.asarray(z)[:, :2], pose, scan, margin)
+        return ok
 
     @torch.no_grad()
     def rollout(self, z0: np.ndarray, controls: torch.Tensor):
@@ -497,7 +523,10 @@ def run_navigate(args) -> int:
         maze, tr, fit_steps=args.fit_steps, poses=poses, progress=True,
         emission_steps=args.emission_steps, n_world=args.n_world,
     )  # fmt: skip
-    env = lenv if args.planner == "learned" else GroundTruthEnv(maze)
+    if args.planner == "learned":  # the agent's own scan at the start: trusted free space
+        env = lenv.with_observation(start, GroundTruthEnv(maze).scan(start)[0].numpy())
+    else:
+        env = GroundTruthEnv(maze)
     inferred = None
     if args.target_scan_from_pose is not None:
         from .inverse import fit_inverse

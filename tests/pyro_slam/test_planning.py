@@ -11,6 +11,7 @@ from pyro_slam.planning import (
     GroundTruthEnv,
     execute,
     free_grid,
+    inside_scan,
     learned_env,
     plan,
     safety,
@@ -115,3 +116,34 @@ def test_check_path_allows_leaving_an_unexplored_start():
     start, goal = np.array([0.207, 0.08, 0.0]), np.array([0.42, 0.08])
     r = plan(env, start, goal, max_expansions=600, check_path=True)
     assert r.success and r.expansions > 1
+
+
+def test_inside_scan_is_the_seen_free_space_minus_a_margin():
+    maze = make_maze("simple-medium", 3)
+    gt = GroundTruthEnv(maze)
+    pose = np.array([*free_grid(maze, 3)[4], 0.3])
+    scan = gt.scan(pose[None])[0].numpy()
+    rng = np.random.default_rng(0)
+    xy = pose[:2] + rng.uniform(-0.25, 0.25, (2000, 2))
+    ok = inside_scan(xy, pose, scan, margin=0.03)
+    assert 0.05 < ok.mean() < 0.95
+    seg = np.stack([np.broadcast_to(pose[:2], xy.shape), xy], 1)  # [N, 2, 2]
+    assert not any(segments_cross(s, maze.walls) for s in seg[ok])  # seen, so free
+    # a beam's own direction: free up to its range minus the margin, not beyond
+    d = np.array([[np.cos(0.3), np.sin(0.3)]])
+    assert inside_scan(pose[:2] + (scan[0] - 0.031) * d, pose, scan, 0.03)[0]
+    assert not inside_scan(pose[:2] + (scan[0] - 0.029) * d, pose, scan, 0.03)[0]
+
+
+def test_with_observation_trusts_the_seen_free_space_without_changing_the_env():
+    torch.manual_seed(0)
+    maze = make_maze("simple-medium", 3)
+    env, _, _ = learned_env(maze, steps=300, fit_steps=30, max_std=0.0)  # nothing explored
+    start = np.array([*free_grid(maze, 3)[0], 0.0])
+    seen = env.with_observation(start, GroundTruthEnv(maze).scan(start[None])[0].numpy())
+    near = start + np.array([[0.03, 0.0, 0.0], [0.0, 0.03, 0.0]])
+    assert not env.valid(near).any() and seen.valid(near).all()
+    assert env.seen == [] and len(seen.seen) == 1
+    r = plan(seen, start, start[:2] + [0.0, 0.3], max_expansions=200)
+    assert not r.success and r.expansions > 1  # moves in the seen free space, no further
+    assert np.all(np.hypot(*(r.visited[:, :2] - start[:2]).T) < 0.3)
