@@ -73,11 +73,12 @@ class Primitives:
         return torch.as_tensor(np.stack(pad), dtype=torch.get_default_dtype())
 
 
-def inside_scan(xy, pose, scan, margin: float = SAFETY_DELTA) -> np.ndarray:
+def inside_scan(xy, pose, scan, margin: float = SAFETY_DELTA, radius: float = 0.1) -> np.ndarray:
     """Positions ``xy [N, 2]`` inside the free space that a scan ``[B]`` (beams evenly spaced
-    over the circle, the first along the heading) shows from ``pose [3]``, at least
-    ``margin`` before the shorter of the two beams around each position's bearing: ``[N]``."""
-    scan = np.asarray(scan, dtype=np.float64)
+    over the circle, the first along the heading) shows from ``pose [3]``: at least ``margin``
+    before the shorter of the two beams around each position's bearing, and within
+    ``radius`` of the pose (farther out, a corner can hide between two beams): ``[N]``."""
+    scan = np.minimum(np.asarray(scan, dtype=np.float64), radius + margin)
     B = len(scan)
     d = np.asarray(xy, dtype=np.float64) - pose[:2]
     bearing = np.remainder(np.arctan2(d[:, 1], d[:, 0]) - pose[2], 2 * np.pi)
@@ -113,12 +114,16 @@ class LearnedEnv:
         self.bounds = bounds if bounds is not None else model.grid.extent()
         self.seen: list[tuple[np.ndarray, np.ndarray]] = []  # (pose [3], real scan [B])
 
-    def with_observation(self, pose, scan, margin: float = SAFETY_DELTA) -> LearnedEnv:
+    def with_observation(
+        self, pose, scan, margin: float = SAFETY_DELTA, radius: float = 0.1
+    ) -> LearnedEnv:
         """A copy that also trusts the free space of a *real* scan ``[B]`` taken at ``pose
         [3]`` (e.g. the agent's own LiDAR at the start): positions at least ``margin`` inside
-        it count as valid even where the map is unexplored."""
+        it and within ``radius`` of the pose (:func:`inside_scan`) count as valid even where
+        the map is unexplored."""
         out = copy.copy(self)
-        out.seen = [*self.seen, (np.asarray(pose, float), np.asarray(scan, float), margin)]
+        seen = (np.asarray(pose, float), np.asarray(scan, float), margin, radius)
+        out.seen = [*self.seen, seen]
         return out
 
     @torch.no_grad()
@@ -138,8 +143,8 @@ class LearnedEnv:
         if self.scale is None:
             return np.ones(len(z), dtype=bool)
         ok = self.std(z) < self.max_std
-        for pose, scan, margin in self.seen:
-            ok |= inside_scan(np.asarray(z)[:, :2], pose, scan, margin)
+        for pose, scan, margin, radius in self.seen:
+            ok |= inside_scan(np.asarray(z)[:, :2], pose, scan, margin, radius)
         return ok
 
     @torch.no_grad()

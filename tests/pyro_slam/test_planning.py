@@ -129,10 +129,12 @@ def test_inside_scan_is_the_seen_free_space_minus_a_margin():
     assert 0.05 < ok.mean() < 0.95
     seg = np.stack([np.broadcast_to(pose[:2], xy.shape), xy], 1)  # [N, 2, 2]
     assert not any(segments_cross(s, maze.walls) for s in seg[ok])  # seen, so free
+    assert np.all(np.hypot(*(xy[ok] - pose[:2]).T) <= 0.1)  # trusted radius
     # a beam's own direction: free up to its range minus the margin, not beyond
     d = np.array([[np.cos(0.3), np.sin(0.3)]])
-    assert inside_scan(pose[:2] + (scan[0] - 0.031) * d, pose, scan, 0.03)[0]
-    assert not inside_scan(pose[:2] + (scan[0] - 0.029) * d, pose, scan, 0.03)[0]
+    far = dict(margin=0.03, radius=np.inf)
+    assert inside_scan(pose[:2] + (scan[0] - 0.031) * d, pose, scan, **far)[0]
+    assert not inside_scan(pose[:2] + (scan[0] - 0.029) * d, pose, scan, **far)[0]
 
 
 def test_with_observation_trusts_the_seen_free_space_without_changing_the_env():
