@@ -12,6 +12,8 @@
   continuous pose that first reached it; successors by motion primitives (turn on the spot, then
   ``forward_steps`` straight steps); edge cost = travel distance + ``L_safe`` at the primitive's
   end pose; heuristic = Euclidean distance; backtracking gives the executable control sequence.
+  Every step of a primitive must be valid: explored (chart std under ``q(M)`` below
+  ``max_std``) or inside the free space of a real scan (:meth:`LearnedEnv.with_observation`).
 * :func:`execute` -- run a control sequence in the pymunk :class:`~simulators.World`.
 
 ``pyro-slam navigate`` (:func:`add_navigate_parser`) plans in one maze and plots the plan over the
@@ -112,7 +114,7 @@ class LearnedEnv:
         self.model, self.M, self.scale, self.max_std = model, M, scale, max_std
         self.transition = KinematicTransition(0.0, "rotate_forward", clip_margin=clip_margin)
         self.bounds = bounds if bounds is not None else model.grid.extent()
-        self.seen: list[tuple[np.ndarray, np.ndarray]] = []  # (pose [3], real scan [B])
+        self.seen: list[tuple] = []  # (pose [3], real scan [B], margin, radius)
 
     def with_observation(
         self, pose, scan, margin: float = SAFETY_DELTA, radius: float = 0.1
@@ -242,7 +244,8 @@ def plan(
     the continuous pose that first reached it). Edge cost: travel distance +
     ``safety_weight * L_safe`` at the end pose; heuristic: ``heuristic_weight`` x Euclidean
     distance to the goal. The goal test (end pose within ``goal_tol``) is applied when a
-    successor is generated; ``expansions`` counts popped nodes.
+    successor is generated; ``expansions`` counts popped nodes. ``check_path``: every step of a
+    primitive (not only its end pose) must be ``env.valid``, except turning on the spot.
     """
     primitives = primitives or Primitives()
     prims = primitives.padded()
