@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 import tempfile
 import zipfile
 import zlib
@@ -264,6 +265,22 @@ def validate(tr: Traversal, src: str = "traversal") -> Traversal:
     return tr
 
 
+def _check_member_count(path: Path, n: int) -> None:
+    """``zipfile`` stops reading the central directory at an entry whose (corrupted) length
+    fields overrun it, silently dropping the members after it: compare the ``n`` members it
+    found with the count in the end-of-central-directory record (raises ``zipfile.BadZipFile``)."""
+    with open(path, "rb") as fh:
+        fh.seek(0, os.SEEK_END)
+        fh.seek(max(0, fh.tell() - (1 << 16) - 22))
+        tail = fh.read()
+    at = tail.rfind(b"PK\x05\x06")
+    if at < 0 or len(tail) < at + 12:
+        raise zipfile.BadZipFile("no end-of-central-directory record")
+    declared = struct.unpack("<H", tail[at + 10 : at + 12])[0]
+    if declared != 0xFFFF and declared != n:  # 0xFFFF: zip64, counted elsewhere
+        raise zipfile.BadZipFile(f"central directory lists {n} of {declared} members")
+
+
 def load(path: str | os.PathLike) -> Traversal:
     """Read and validate a traversal written by :meth:`Traversal.save`."""
     path = Path(path)
@@ -280,6 +297,7 @@ def load(path: str | os.PathLike) -> Traversal:
         f = np.load(path, allow_pickle=False)
         if isinstance(f, np.lib.npyio.NpzFile):  # not a bare .npy array
             with f:
+                _check_member_count(path, len(f.files))
                 data = {k: f[k] for k in f.files}
     except (*unreadable, ValueError, KeyError) as e:
         raise DatasetError(f"{src}: not a readable .npz dataset ({type(e).__name__}: {e})") from e

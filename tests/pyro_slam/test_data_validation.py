@@ -293,6 +293,19 @@ def test_every_encrypted_flag_bit_fails_cleanly(good_file):
         assert isinstance(out, str) and "RuntimeError" in out, out
 
 
+def test_dropped_directory_entries_fail_cleanly(good_file):
+    """A corrupted comment length in a central-directory entry makes zipfile stop reading
+    the directory there without an error, dropping the members after it (hypothesis found
+    it: ``poses`` vanished silently); the end record's member count catches it."""
+    _, raw = good_file
+    last = raw.rfind(b"PK\x01\x02")
+    second_last = raw.rfind(b"PK\x01\x02", 0, last)
+    b = bytearray(raw)
+    b[second_last + 32 : second_last + 34] = (0xFFF0).to_bytes(2, "little")  # comment length
+    out = load_bytes(bytes(b))
+    assert isinstance(out, str) and "members" in out, out
+
+
 @SETTINGS
 @given(st.binary(max_size=300))
 def test_garbage_files(raw):
