@@ -134,3 +134,31 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     assert len(runs) == 6 and {r["planner"] for r in runs} == {"learned", "ground_truth",
                                                                "learned_obs"}  # fmt: skip
     assert (tmp_path / "navigation.png").stat().st_size > 10_000
+
+
+def test_frontier_ceiling_reprojection_is_exact_on_straight_walls_and_beats_copy():
+    import numpy as np
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from frontier_ceiling import read_profile, reproject
+
+    from simulators import raycast
+
+    # a 1 x 1 room: the polygon of a profile seen from the centre lies on the walls except
+    # where a segment cuts a corner, so beams that hit a wall away from the corners are exact
+    walls = np.array([[0, 0, 1, 0], [1, 0, 1, 1], [1, 1, 0, 1], [0, 1, 0, 0]], float)
+    n, beams, R = 360, np.array([0.0, 0.5 * np.pi, np.pi, 1.5 * np.pi]), 2.0
+    centre = np.array([[0.5, 0.5]])
+    prof = raycast(walls, centre, 2 * np.pi * np.arange(n) / n, R)  # [1, n]
+    pose = np.array([[0.6, 0.45, 0.0]])
+    truth = raycast(walls, pose[:, :2], pose[:, 2:] + beams, R)
+    np.testing.assert_allclose(reproject(prof, centre, pose, beams, R), truth, atol=1e-9)
+    np.testing.assert_allclose(read_profile(prof, np.zeros(1), beams), [[0.5, 0.5, 0.5, 0.5]])
+    # copying the view ignores the 0.1 / 0.05 shift
+    assert np.abs(read_profile(prof, pose[:, 2], beams) - truth).max() > 0.09
+
+    out = json.loads(run("frontier_ceiling.py", "--steps", "300"))
+    lag = out["n_world=60"]["lag8"]
+    assert 0.02 < lag["distance_mean"] < 0.08
+    assert lag["reproject"]["rms"] < lag["copy"]["rms"]
+    assert out["n_world=60"]["self"]["rms"] < out["n_world=20"]["self"]["rms"]
