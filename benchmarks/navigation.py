@@ -30,6 +30,10 @@ of whether a wrong mode is the world's own ambiguity (``mode_far_true_scan_match
 by less than ``--alias-tol``).
 
     python benchmarks/navigation.py --out out/navigation --pairs-limit 4
+
+Each maze's rows are saved to ``OUT/mazes/m<seed>.json`` when the maze is done; a re-run with the
+same settings resumes from them (``wall_s`` then counts only the mazes computed in that run,
+``resumed_mazes`` lists the others).
 """
 
 from __future__ import annotations
@@ -78,101 +82,37 @@ def main(argv=None) -> int:
     import torch
 
     torch.set_num_threads(1)
-    from pyro_slam.inverse import fit_inverse, heading_error
-    from pyro_slam.planning import GroundTruthEnv, execute, free_grid, learned_env, plan
+    from pyro_slam.planning import free_grid
     from simulators import make_maze
 
     args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "mazes").mkdir(exist_ok=True)
     rng = np.random.default_rng(args.seed)
-    runs, targets = [], []
+    runs, targets, resumed = [], [], []
     t0 = time.perf_counter()
+    settings = {k: str(v) for k, v in vars(args).items() if k not in ("out", "mazes")}
     for ms in MAZE_SEEDS[: args.mazes]:
         maze = make_maze("moderate-medium", ms)
-        pts = free_grid(maze)
-        pairs = [(a, b) for a in range(len(pts)) for b in range(len(pts)) if a != b]
-        if args.pairs_limit:
+        n = len(free_grid(maze))
+        pairs = [(a, b) for a in range(n) for b in range(n) if a != b]
+        if args.pairs_limit:  # drawn for every maze, so a resumed run draws the same pairs
             pairs = [pairs[i] for i in rng.choice(len(pairs), args.pairs_limit, replace=False)]
-        lenv, _, traversal = learned_env(
-            maze, steps=args.traversal_steps, fit_steps=args.fit_steps,
-            emission_steps=args.emission_steps, n_world=args.n_world, max_std=args.max_std,
-        )  # fmt: skip
-        envs = {"learned": lenv, "ground_truth": GroundTruthEnv(maze)}
-        t = time.perf_counter()
-        inv = fit_inverse(
-            lenv, traversal, steps=args.inverse_steps, sleep_steps=args.sleep_steps, seed=ms
-        )
-        inv_fit_s = time.perf_counter() - t
-        # observation targets: every grid point, two random headings each (own rng: the pairs
-        # drawn above stay those of the pose-to-pose runs)
-        trng = np.random.default_rng([args.seed, ms])
-        tposes = np.concatenate(
-            [np.repeat(pts, 2, 0), trng.uniform(-np.pi, np.pi, (2 * len(pts), 1))], 1
-        )
-        tscans = envs["ground_truth"].scan(tposes)  # [2 * 25, B]
-        t = time.perf_counter()
-        mode, ll_mode = (v.numpy() for v in inv.infer(tscans))
-        infer_s = (time.perf_counter() - t) / len(tposes)
-        # is the model's likelihood higher near the truth than at the mode? (search failure)
-        zt = inv.refine(tscans, torch.as_tensor(tposes, dtype=tscans.dtype))
-        ll_true = inv.log_likelihood(tscans, zt).detach().numpy()
-        enc = inv.infer(tscans, n_samples=0, n_restarts=0, refine_steps=0)[0].numpy()
-        aliased = _aliased(envs["ground_truth"], maze, tposes, tscans.numpy(), args.alias_tol)
-        # the world's own ambiguity at the answer: the TRUE scan at the mode vs the target scan
-        mode_diff = np.abs(envs["ground_truth"].scan(mode).numpy() - tscans.numpy()).mean(1)
-        for i, tp in enumerate(tposes):
-            targets.append(
-                {
-                    "maze": ms,
-                    "point": i // 2,
-                    "pose": tp.tolist(),
-                    "mode": mode[i].tolist(),
-                    "error_mode": float(np.hypot(*(mode[i, :2] - tp[:2]))),
-                    "error_encoder": float(np.hypot(*(enc[i, :2] - tp[:2]))),
-                    "heading_error_mode": float(heading_error(mode[i, 2], tp[2])),
-                    "aliased": bool(aliased[i]),
-                    "true_scan_diff_at_mode": float(mode_diff[i]),
-                    "ll_mode": float(ll_mode[i]),
-                    "ll_true_refined": float(ll_true[i]),
-                    "fit_s": inv_fit_s,
-                    "infer_s": infer_s,
-                }
-            )
-        for a, b in pairs:
-            start = np.array([*pts[a], 0.0])
-            goals = {"learned": pts[b], "ground_truth": pts[b], "learned_obs": mode[2 * b, :2]}
-            if args.start_scan:  # the agent's own scan at the start: trusted free space
-                seen = lenv.with_observation(start, envs["ground_truth"].scan(start)[0].numpy())
-            for name in ("learned", "ground_truth", "learned_obs"):
-                env, goal = envs[name.removesuffix("_obs")], goals[name]
-                if args.start_scan and name != "ground_truth":
-                    env = seen
-                t = time.perf_counter()
-                r = plan(
-                    env, start, goal, max_expansions=args.max_expansions,
-                    check_path=args.check_path,
-                )  # fmt: skip
-                wall = time.perf_counter() - t
-                row = {
-                    "maze": ms,
-                    "start": a,
-                    "goal": b,
-                    "planner": name,
-                    "found": r.success,
-                    "expansions": r.expansions,
-                    "steps": len(r.controls),
-                    "plan_s": wall,
-                }
-                if name == "learned_obs":
-                    row["target_heading"] = float(tposes[2 * b, 2])
-                    row["inference_error"] = float(np.hypot(*(goal - pts[b])))
-                for noise_name, noise in (("noiseless", 0), ("noisy", None)):
-                    ex, coll = execute(maze, start, r.controls, noise=noise, seed=a * 100 + b)
-                    err = float(np.hypot(*(ex[-1, :2] - pts[b])))  # to the TRUE target
-                    row[f"error_{noise_name}"] = err
-                    row[f"success_{noise_name}"] = bool(r.success and err <= 0.05)
-                    row[f"collisions_{noise_name}"] = int(coll)
-                runs.append(row)
-                print(json.dumps(row), flush=True)
+        done = args.out / "mazes" / f"m{ms}.json"
+        if done.exists():
+            saved = json.loads(done.read_text())
+            if saved["settings"] == settings:
+                print(f"maze {ms}: resumed from {done}", file=sys.stderr)
+                runs += saved["runs"]
+                targets += saved["targets"]
+                resumed.append(ms)
+                continue
+            print(f"maze {ms}: {done} has other settings, recomputing", file=sys.stderr)
+        r, t = run_maze(maze, ms, pairs, args)
+        tmp = done.with_suffix(".tmp")  # written whole, then renamed: no half-written results
+        tmp.write_text(json.dumps({"settings": settings, "runs": r, "targets": t}))
+        tmp.replace(done)
+        runs += r
+        targets += t
     budgets = sorted(
         {int(b) for b in np.linspace(min(100, args.max_expansions), args.max_expansions, 15)}
     )
@@ -180,6 +120,7 @@ def main(argv=None) -> int:
         "budgets": budgets,
         "pairs": len(runs) // 3,
         "wall_s": time.perf_counter() - t0,
+        "resumed_mazes": resumed,
         "args": {k: str(v) for k, v in vars(args).items()},
     }
     for name in ("learned", "ground_truth", "learned_obs"):
@@ -247,6 +188,103 @@ def main(argv=None) -> int:
     _plot(summary, args.out / "navigation.png")
     print(json.dumps({k: v for k, v in summary.items() if k != "args"}))
     return 0
+
+
+def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
+    """Fit the learned model of maze ``ms``, evaluate q(z|x), plan and execute ``pairs``.
+
+    Returns the rows of ``runs.json`` and ``targets.json`` for this maze.
+    """
+    import torch
+    from tqdm.auto import tqdm
+
+    from pyro_slam.inverse import fit_inverse, heading_error
+    from pyro_slam.planning import GroundTruthEnv, execute, free_grid, learned_env, plan
+
+    runs, targets = [], []
+    pts = free_grid(maze)
+    lenv, _, traversal = learned_env(
+        maze, steps=args.traversal_steps, fit_steps=args.fit_steps,
+        emission_steps=args.emission_steps, n_world=args.n_world, max_std=args.max_std,
+    )  # fmt: skip
+    envs = {"learned": lenv, "ground_truth": GroundTruthEnv(maze)}
+    t = time.perf_counter()
+    inv = fit_inverse(
+        lenv, traversal, steps=args.inverse_steps, sleep_steps=args.sleep_steps, seed=ms
+    )
+    inv_fit_s = time.perf_counter() - t
+    # observation targets: every grid point, two random headings each (own rng: the pairs
+    # drawn in main stay those of the pose-to-pose runs)
+    trng = np.random.default_rng([args.seed, ms])
+    tposes = np.concatenate(
+        [np.repeat(pts, 2, 0), trng.uniform(-np.pi, np.pi, (2 * len(pts), 1))], 1
+    )
+    tscans = envs["ground_truth"].scan(tposes)  # [2 * 25, B]
+    t = time.perf_counter()
+    mode, ll_mode = (v.numpy() for v in inv.infer(tscans))
+    infer_s = (time.perf_counter() - t) / len(tposes)
+    # is the model's likelihood higher near the truth than at the mode? (search failure)
+    zt = inv.refine(tscans, torch.as_tensor(tposes, dtype=tscans.dtype))
+    ll_true = inv.log_likelihood(tscans, zt).detach().numpy()
+    enc = inv.infer(tscans, n_samples=0, n_restarts=0, refine_steps=0)[0].numpy()
+    aliased = _aliased(envs["ground_truth"], maze, tposes, tscans.numpy(), args.alias_tol)
+    # the world's own ambiguity at the answer: the TRUE scan at the mode vs the target scan
+    mode_diff = np.abs(envs["ground_truth"].scan(mode).numpy() - tscans.numpy()).mean(1)
+    for i, tp in enumerate(tposes):
+        targets.append(
+            {
+                "maze": ms,
+                "point": i // 2,
+                "pose": tp.tolist(),
+                "mode": mode[i].tolist(),
+                "error_mode": float(np.hypot(*(mode[i, :2] - tp[:2]))),
+                "error_encoder": float(np.hypot(*(enc[i, :2] - tp[:2]))),
+                "heading_error_mode": float(heading_error(mode[i, 2], tp[2])),
+                "aliased": bool(aliased[i]),
+                "true_scan_diff_at_mode": float(mode_diff[i]),
+                "ll_mode": float(ll_mode[i]),
+                "ll_true_refined": float(ll_true[i]),
+                "fit_s": inv_fit_s,
+                "infer_s": infer_s,
+            }
+        )
+    for a, b in tqdm(pairs, desc=f"maze {ms} pairs", leave=False):
+        start = np.array([*pts[a], 0.0])
+        goals = {"learned": pts[b], "ground_truth": pts[b], "learned_obs": mode[2 * b, :2]}
+        if args.start_scan:  # the agent's own scan at the start: trusted free space
+            seen = lenv.with_observation(start, envs["ground_truth"].scan(start)[0].numpy())
+        for name in ("learned", "ground_truth", "learned_obs"):
+            env, goal = envs[name.removesuffix("_obs")], goals[name]
+            if args.start_scan and name != "ground_truth":
+                env = seen
+            t = time.perf_counter()
+            r = plan(
+                env, start, goal, max_expansions=args.max_expansions,
+                check_path=args.check_path,
+            )  # fmt: skip
+            wall = time.perf_counter() - t
+            row = {
+                "maze": ms,
+                "start": a,
+                "goal": b,
+                "planner": name,
+                "found": r.success,
+                "expansions": r.expansions,
+                "steps": len(r.controls),
+                "plan_s": wall,
+            }
+            if name == "learned_obs":
+                row["target_heading"] = float(tposes[2 * b, 2])
+                row["inference_error"] = float(np.hypot(*(goal - pts[b])))
+            for noise_name, noise in (("noiseless", 0), ("noisy", None)):
+                ex, coll = execute(maze, start, r.controls, noise=noise, seed=a * 100 + b)
+                err = float(np.hypot(*(ex[-1, :2] - pts[b])))  # to the TRUE target
+                row[f"error_{noise_name}"] = err
+                row[f"success_{noise_name}"] = bool(r.success and err <= 0.05)
+                row[f"collisions_{noise_name}"] = int(coll)
+            runs.append(row)
+            tqdm.write(json.dumps(row))
+    return runs, targets
 
 
 def _aliased(gt_env, maze, poses, scans, tol, spacing=0.02, headings=24) -> np.ndarray:

@@ -134,6 +134,11 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     assert len(runs) == 6 and {r["planner"] for r in runs} == {"learned", "ground_truth",
                                                                "learned_obs"}  # fmt: skip
     assert (tmp_path / "navigation.png").stat().st_size > 10_000
+    assert s["resumed_mazes"] == []
+    # a second run resumes from the finished maze: the same rows, timings included
+    run("navigation.py", *args)
+    assert json.loads((tmp_path / "runs.json").read_text()) == runs
+    assert json.loads((tmp_path / "summary.json").read_text())["resumed_mazes"] == [1001]
 
 
 def test_frontier_ceiling_reprojection_is_exact_on_straight_walls_and_beats_copy():
