@@ -15,6 +15,9 @@ runs two agents at a time, one thread each)::
     python benchmarks/exploration.py --scales all --seeds 2 --step-fraction 0.2 \
         --max-steps 1800 --ars-iterations 20 --ars-directions 8 --ars-mazes 3 \
         --ars-steps 200 --workers 2 --out out/exploration
+
+An interrupted run resumes: the trained PEMA policy (``OUT/pema.pt``) and every finished agent
+run (``OUT/runs/<scale>_<agent>_s<seed>.json``) are reused when the settings match.
 """
 
 from __future__ import annotations
@@ -81,9 +84,10 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
+    per_job = ("out", "workers", "seeds", "first_seed", "scales")  # not in a run's settings
+    settings = {k: str(v) for k, v in vars(args).items() if k not in per_job}
     policy = PEMAPolicy(step_length=cfg.step_length, max_turn=cfg.max_turn)
-    ars_hist = train_pema(policy, ars_cfg, n_mazes=n_mazes, steps=ars_steps, progress=True)
-    t_ars = time.time() - t0
+    ars_hist, t_ars = _trained_pema(policy, out / "pema.pt", settings, ars_cfg, n_mazes, ars_steps)
     results = {}
     steps_of = {}
     for name in scales:
@@ -92,10 +96,25 @@ def main(argv=None) -> int:
     bar = tqdm(total=sum(steps_of.values()) * len(AGENTS) * args.seeds, desc="agent steps")
     jobs = [(n, a, steps_of[n], cfg, s, policy) for n in scales for a in AGENTS
             for s in range(args.first_seed, args.first_seed + args.seeds)]  # fmt: skip
+    (out / "runs").mkdir(exist_ok=True)
+    cached = {}
+    for job in jobs:  # finished runs of an interrupted benchmark with the same settings
+        f = _run_file(out, job)
+        if f.exists() and (saved := json.loads(f.read_text()))["settings"] == settings:
+            cached[f] = saved["curve"]
     with ProcessPoolExecutor(args.workers) if args.workers > 1 else _Serial() as pool:
-        futures = [pool.submit(_timed_run, *job) for job in jobs]
-        for (name, agent, steps, _, seed, _), fut in zip(jobs, futures):
-            c = fut.result()
+        futures = [None if _run_file(out, j) in cached else pool.submit(_timed_run, *j)
+                   for j in jobs]  # fmt: skip
+        for job, fut in zip(jobs, futures):
+            name, agent, steps, _, seed, _ = job
+            f = _run_file(out, job)
+            if fut is None:
+                c = cached[f]
+            else:
+                c = fut.result()
+                tmp = f.with_suffix(".tmp")  # written whole, then renamed
+                tmp.write_text(json.dumps({"settings": settings, "curve": c}))
+                tmp.replace(f)
             bar.update(steps)
             results.setdefault(name, {}).setdefault(agent, []).append(c)
             msg = f"ratio {c['ratio'][-1]:.3f} infogain {c['infogain'][-1]:.1f}"
@@ -108,6 +127,30 @@ def main(argv=None) -> int:
     print(json.dumps(summary["final"], indent=1))
     print(f"total {summary['seconds']:.0f} s (ARS {t_ars:.0f} s)")
     return 0
+
+
+def _run_file(out: Path, job) -> Path:
+    name, agent, _, _, seed, _ = job
+    return out / "runs" / f"{name}_{agent}_s{seed}.json"
+
+
+def _trained_pema(policy, path: Path, settings, ars_cfg, n_mazes, ars_steps):
+    """Train PEMA with ARS, or load it from ``path`` if trained there with the same settings.
+
+    Returns ``(ars_history, seconds)``; ``policy.theta`` is set.
+    """
+    if path.exists():
+        saved = torch.load(path, weights_only=False)
+        if saved["settings"] == settings:
+            policy.theta = saved["theta"]
+            return saved["history"], saved["seconds"]
+    t = time.time()
+    hist = train_pema(policy, ars_cfg, n_mazes=n_mazes, steps=ars_steps, progress=True)
+    t = time.time() - t
+    tmp = path.with_suffix(".tmp")
+    torch.save({"settings": settings, "theta": policy.theta, "history": hist, "seconds": t}, tmp)
+    tmp.replace(path)
+    return hist, t
 
 
 def _timed_run(name, agent, steps, cfg, seed, policy) -> dict:

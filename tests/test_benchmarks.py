@@ -93,6 +93,13 @@ def test_exploration_benchmark_same_curves_serial_and_parallel(tmp_path):
         out[workers] = json.loads((d / "exploration.json").read_text())
         assert (d / "exploration_curves.png").stat().st_size > 10_000
     a, b = out[1], out[2]
+    # a re-run resumes: PEMA and the 6 finished runs are loaded, not recomputed (same timings)
+    assert len(list((tmp_path / "w1" / "runs").glob("*.json"))) == 6
+    assert (tmp_path / "w1" / "pema.pt").exists()
+    run("exploration.py", *args, "--workers", "1", "--out", str(tmp_path / "w1"))
+    again = json.loads((tmp_path / "w1" / "exploration.json").read_text())
+    assert again["curves"] == a["curves"] and again["final"] == a["final"]
+    assert again["ars"]["seconds"] == a["ars"]["seconds"]
     assert a["config"]["horizon"] == 10 and a["steps"] == {"simple-small": 30}
     assert a["curves"] == b["curves"]  # seeded agents: parallel runs change nothing
     for agent in ("mi", "pema", "random"):
