@@ -85,6 +85,10 @@ def pretrained_emission(path: Path, cfg, steps: int, pretrain_steps: int):
     return em, meta
 
 
+def _run_job(job) -> dict:
+    return run_one(*job)
+
+
 def run_one(maze_seed, seed, steps, cfg, emission, path: Path, threads: int = 1) -> dict:
     import torch
 
@@ -157,6 +161,8 @@ def main(argv=None) -> int:
     import torch
 
     torch.set_num_threads(args.threads)
+    from tqdm import tqdm
+
     from pyro_slam.plotting import plot_error_bands
     from pyro_slam.slam import SLAMConfig
 
@@ -175,15 +181,20 @@ def main(argv=None) -> int:
         files.append(f)
         if not f.is_file():
             jobs.append((m, 1, args.steps, cfg, em, f, args.threads))
+    bar = tqdm(total=len(jobs), desc="visual SLAM runs")
     if args.workers > 1 and len(jobs) > 1:
         import multiprocessing as mp
 
         with mp.get_context("spawn").Pool(args.workers) as pool:
-            for r in pool.starmap(run_one, jobs):
-                print(json.dumps(r), flush=True)
+            for r in pool.imap_unordered(_run_job, jobs):
+                bar.update()
+                bar.write(json.dumps(r))
     else:
         for job in jobs:
-            print(json.dumps(run_one(*job)), flush=True)
+            r = run_one(*job)
+            bar.update()
+            bar.write(json.dumps(r))
+    bar.close()
     data = [np.load(f) for f in files]
     e = np.stack([d["slam"] for d in data])
     pi = np.stack([d["pi"] for d in data])

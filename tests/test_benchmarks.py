@@ -174,3 +174,24 @@ def test_frontier_ceiling_reprojection_is_exact_on_straight_walls_and_beats_copy
     assert 0.02 < lag["distance_mean"] < 0.08
     assert lag["reproject"]["rms"] < lag["copy"]["rms"]
     assert out["n_world=60"]["self"]["rms"] < out["n_world=20"]["self"]["rms"]
+
+
+def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
+    args = ("--mazes", "2", "--steps", "60", "--pretrain-steps", "5", "--pretrain-traversal",
+            "100", "--workers", "2", "--config", '{"offline_svi_steps": 10}', "--out",
+            str(tmp_path))  # fmt: skip
+    run("visual_slam.py", *args)
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["steps"] == 60 and s["mazes"] == [1001, 1002]
+    for key in ("offline", "path_integration"):
+        per = s[key]["per_maze"]
+        assert len(per) == 2 and all(0 <= v < 1 for v in per)
+        assert s[key]["final_mean"] == pytest.approx(sum(per) / 2)
+    for png in ("error_bands.png", "reconstructions.png"):
+        assert (tmp_path / png).stat().st_size > 10_000
+    runs = sorted((tmp_path / "runs").glob("*.npz"))
+    stamps = [f.stat().st_mtime_ns for f in runs]
+    assert len(runs) == 2
+    run("visual_slam.py", *args)  # resumes: the finished runs are not recomputed
+    assert [f.stat().st_mtime_ns for f in runs] == stamps
+    assert json.loads((tmp_path / "summary.json").read_text())["offline"] == s["offline"]
