@@ -357,8 +357,11 @@ def learned_env(
     max_std: float = 0.6,
     emission_steps: int = 0,
     n_world: int = 20,
+    tour=None,
 ):
-    """A :class:`LearnedEnv` for ``maze``: simulate a traversal (unless given), fit ``q(M)``
+    """A :class:`LearnedEnv` for ``maze``: simulate a traversal (unless given; ``steps``
+    exploring steps, then a tour through the positions ``tour`` ``[P, 2]`` it missed, see
+    :func:`simulators.simulate_traversal`), fit ``q(M)``
     with :func:`~pyro_slam.slam.fit_map` at ``poses`` (default: the true poses, i.e. mapping
     with known poses) under a frozen emission.
 
@@ -374,7 +377,7 @@ def learned_env(
     if traversal is None:
         from simulators import simulate_traversal
 
-        traversal = simulate_traversal(maze, steps=steps, seed=seed)
+        traversal = simulate_traversal(maze, steps=steps, seed=seed, tour=tour)
     cfg = SLAMConfig(learn_emission=False, n_world=n_world)
     if emission_steps > 0:
         fit_on = traversal if poses is None else replace(traversal, poses=np.asarray(poses))

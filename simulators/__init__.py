@@ -10,7 +10,7 @@ Public API::
 """
 
 from simulators.camera import Camera, CameraConfig
-from simulators.driver import DriverConfig, ExploringDriver
+from simulators.driver import DriverConfig, ExploringDriver, TourDriver
 from simulators.maze import SCALES, Maze, Scale, make_maze
 from simulators.raycast import raycast
 from simulators.traversal import SIMULATOR_VERSION, integrate_controls, simulate_traversal
@@ -23,6 +23,7 @@ __all__ = [
     "CameraConfig",
     "DriverConfig",
     "ExploringDriver",
+    "TourDriver",
     "LidarConfig",
     "Maze",
     "OdometryNoise",

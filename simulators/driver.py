@@ -110,3 +110,85 @@ class ExploringDriver:
         if not np.isfinite(score).any():  # boxed in: turn towards the most open beam
             return float(absolute[np.argmax(ranges)])
         return float(absolute[np.argmax(score)])
+
+
+class TourDriver:
+    """Drives to each of a list of positions in turn, through the maze's cell graph.
+
+    For a mapping traversal that must *cover* given places (e.g. the navigation benchmark's
+    start/target grid, which a random walk can miss for 20,000 steps): the next point is the
+    one fewest cells away (breadth-first search over :meth:`Maze.neighbours`); the agent goes
+    through the centres of the cells on the way, then to the point itself, turning on the spot
+    towards each waypoint (at most ``max_rotation`` per step) and moving forward once facing it.
+    The points must lie in free space with room for the agent (e.g.
+    :func:`pyro_slam.planning.free_grid`). Closed loop on the true pose, like
+    :class:`ExploringDriver`.
+
+    Args:
+        maze: the maze (cell graph and corridor width).
+        points: positions to visit ``[P, 2]``.
+        speed: forward offset per step, corridor widths.
+        tol: a point counts as reached within this distance (cell centres: 2 * tol).
+    """
+
+    def __init__(self, maze: Maze, points, speed: float = 0.05, max_rotation: float = 0.3,
+                 tol: float = 0.005):  # fmt: skip
+        self.maze = maze
+        self.todo = [np.asarray(p, dtype=np.float64) for p in np.asarray(points).reshape(-1, 2)]
+        self.step_len = speed * maze.corridor_width
+        self.max_rotation = max_rotation
+        self.tol = tol
+        self.route: list[np.ndarray] = []  # waypoints to the current point, the point last
+        self.reached: list[np.ndarray] = []
+
+    @property
+    def done(self) -> bool:
+        return not self.route and not self.todo
+
+    def _cell_path(self, a, b) -> list[tuple[int, int]]:
+        """Cells from ``a`` to ``b`` (inclusive) by breadth-first search."""
+        a, b = tuple(int(v) for v in a), tuple(int(v) for v in b)
+        prev, frontier = {a: None}, [a]
+        while frontier and b not in prev:
+            nxt = []
+            for c in frontier:
+                for n in self.maze.neighbours(*c):
+                    if n not in prev:
+                        prev[n] = c
+                        nxt.append(n)
+            frontier = nxt
+        if b not in prev:
+            raise ValueError(f"cell {b} cannot be reached from cell {a}")
+        path = [b]
+        while path[-1] != a:
+            path.append(prev[path[-1]])
+        return path[::-1]
+
+    def _plan(self, xy) -> None:
+        here = self.maze.cell_of(xy)
+        paths = [self._cell_path(here, self.maze.cell_of(p)) for p in self.todo]
+        k = int(np.argmin([len(p) for p in paths]))
+        point = self.todo.pop(k)
+        self.route = [self.maze.cell_center(*c) for c in paths[k]] + [point]
+
+    def act(self, pose) -> np.ndarray | None:
+        """Control ``[2]`` towards the next waypoint, or ``None`` when every point is reached."""
+        pose = np.asarray(pose, dtype=np.float64)
+        while True:
+            if not self.route:
+                if not self.todo:
+                    return None
+                self._plan(pose[:2])
+            d = self.route[0] - pose[:2]
+            dist = float(np.hypot(*d))
+            last = len(self.route) == 1
+            if dist > (self.tol if last else 2 * self.tol):
+                break
+            p = self.route.pop(0)
+            if last:
+                self.reached.append(p)
+        err = float(wrap_angle(np.arctan2(d[1], d[0]) - pose[2]))
+        rot = float(np.clip(err, -self.max_rotation, self.max_rotation))
+        left = err - rot  # heading error after the rotation
+        fwd = min(self.step_len, dist) * np.cos(left) if abs(left) < 0.1 else 0.0
+        return np.array([rot, fwd])

@@ -2,7 +2,10 @@
 
 A ray ``o + t d`` (``|d| = 1``, ``t >= 0``) meets a segment ``p + s e`` (``0 <= s <= 1``) at
 ``t = (q x e) / (d x e)``, ``s = (q x d) / (d x e)`` with ``q = p - o`` and ``a x b`` the 2-D cross
-product. Parallel segments (``d x e = 0``) never count as hits.
+product. A parallel segment (``d x e = 0``) is hit only if the ray runs along it (collinear,
+within a relative ``1e-9``): at its nearer end, or at ``t = 0`` from a point on it -- the wall's
+end face, which a thin-segment test would miss (an agent standing on a wall's line saw straight
+through the wall).
 """
 
 from __future__ import annotations
@@ -58,8 +61,18 @@ def _raycast_chunk(walls, origins, angles, max_range):
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (qx * ey - qy * ex) / denom
         s = (qx * dy - qy * dx) / denom
-    hit = (denom != 0) & (t >= 0) & (s >= 0) & (s <= 1) & (t < max_range)
+    length = np.hypot(ex, ey)  # [W]
+    parallel = np.abs(denom) <= 1e-12 * length
+    hit = ~parallel & (t >= 0) & (s >= 0) & (s <= 1) & (t < max_range)
     t = np.where(hit, t, np.inf)
+    # collinear: the origin lies on the segment's line (distance below 1e-9 x its length)
+    online = np.abs(qx * ey - qy * ex) <= 1e-9 * length**2  # [n, 1, W]
+    if (parallel & online).any():
+        t0 = qx * dx + qy * dy  # [n, B, W] ray parameter of the segment's first end
+        t1 = t0 + ex * dx + ey * dy  # ... and of its second end
+        tc = np.where(t0 * t1 <= 0, 0.0, np.minimum(t0, t1))  # from a point on it: 0
+        tc = np.where((parallel & online) & (tc >= 0) & (tc < max_range), tc, np.inf)
+        t = np.minimum(t, tc)
     idx = np.argmin(t, axis=-1)  # [n, B]
     best = np.take_along_axis(t, idx[..., None], axis=-1)[..., 0]
     found = np.isfinite(best)

@@ -6,7 +6,7 @@ import numpy as np
 
 from pyro_slam.data import Traversal
 from simulators.camera import Camera, CameraConfig
-from simulators.driver import DriverConfig, ExploringDriver
+from simulators.driver import DriverConfig, ExploringDriver, TourDriver
 from simulators.maze import Maze, make_maze
 from simulators.world import AGENT_RADIUS, LidarConfig, OdometryNoise, World, wrap_angle
 
@@ -32,6 +32,9 @@ def simulate_traversal(
     lidar: LidarConfig = LidarConfig(),  # noqa: B008 (frozen dataclass)
     camera: CameraConfig = CameraConfig(),  # noqa: B008
     driver: DriverConfig = DriverConfig(),  # noqa: B008
+    tour=None,
+    tour_skip: float = 0.02,
+    max_tour_steps: int = 20000,
 ) -> Traversal:
     """Drive the scripted explorer through a maze for ``steps`` time steps.
 
@@ -41,6 +44,10 @@ def simulate_traversal(
         seed: seeds maze, distractor layout, start pose, actuation noise and driver.
         images: also render first-person camera frames ``[T, 24, 32]``.
         distractors: number of boxes visible to the sensors but absent from ``walls``.
+        tour: positions ``[P, 2]`` to visit after the ``steps`` exploring steps (a
+            :class:`TourDriver` drives there; the traversal then has more than ``steps``
+            steps). Points the exploring steps passed within ``tour_skip`` are left out. Used to
+            make a mapping traversal cover given places; at most ``max_tour_steps`` extra steps.
         noise: actuation noise, see :class:`OdometryNoise` (``None`` = calibrated defaults,
             ``0`` = noiseless).
     Returns:
@@ -54,14 +61,34 @@ def simulate_traversal(
     agent = ExploringDriver(
         maze, lidar.beam_angles, seed=np.random.SeedSequence([seed, 1]), config=driver
     )
-    obs = np.empty((steps, lidar.n_beams))  # [T, B]
-    poses = np.empty((steps, 3))  # [T, 3]
-    controls = np.empty((steps - 1, 2))  # [T-1, 2]
+    obs, poses, controls = [], [], []  # [T, B], [T, 3], [T-1, 2]
     for t in range(steps):
-        poses[t], obs[t] = world.pose, world.lidar()
+        poses.append(world.pose)
+        obs.append(world.lidar())
         if t < steps - 1:
-            controls[t] = agent.act(obs[t], poses[t])
+            controls.append(agent.act(obs[t], poses[t]))
             world.step(controls[t])
+    toured = None
+    if tour is not None:
+        tour = np.asarray(tour, dtype=np.float64).reshape(-1, 2)
+        seen = np.linalg.norm(np.asarray(poses)[None, :, :2] - tour[:, None], axis=2).min(1)
+        guide = TourDriver(maze, tour[seen > tour_skip])
+        for _ in range(max_tour_steps):
+            u = guide.act(world.pose)
+            if u is None:
+                break
+            controls.append(u)
+            world.step(u)
+            poses.append(world.pose)
+            obs.append(world.lidar())
+        toured = {
+            "points": tour[seen > tour_skip].tolist(),
+            "reached": len(guide.reached),
+            "steps": len(poses) - steps,
+            "skip": tour_skip,
+        }
+    obs, poses = np.array(obs), np.array(poses)
+    controls = np.array(controls).reshape(-1, 2)
     frames = None
     if images:
         frames = Camera(maze.walls, maze.corridor_width, world.distractor_segments, camera).render(
@@ -93,6 +120,7 @@ def simulate_traversal(
         "distractor_segments": world.distractor_segments.tolist(),
         "collisions": world.collisions,
         "coverage": agent.coverage(),
+        "tour": toured,
     }
     return Traversal(
         observations=obs.astype(np.float32),

@@ -137,6 +137,9 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     inv = s["inverse"]
     assert inv["targets"] == 50  # 25 grid points x 2 headings
     assert 0 <= inv["mode_far_true_scan_matches"] <= 1 - inv["mode_within_0.05"] + 1e-9
+    # --cover-grid (default): the 300-step walk is followed by a tour through the grid points
+    targets = json.loads((tmp_path / "targets.json").read_text())
+    assert min(t["traversal_steps"] for t in targets) > 300
     runs = json.loads((tmp_path / "runs.json").read_text())
     assert len(runs) == 6 and {r["planner"] for r in runs} == {"learned", "ground_truth",
                                                                "learned_obs"}  # fmt: skip

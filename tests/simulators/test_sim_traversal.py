@@ -127,3 +127,34 @@ def test_cli_and_plot(tmp_path, capsys):
 def test_driver_config_is_recorded():
     tr = simulate_traversal("simple-small", 50, seed=0, driver=DriverConfig(speed=0.03))
     assert tr.metadata["driver"]["speed"] == 0.03
+
+
+def test_tour_visits_the_points_a_random_walk_missed():
+    from pyro_slam.planning import free_grid
+
+    maze = make_maze("moderate-medium", 1005)
+    pts = free_grid(maze)  # [25, 2]
+    walk = simulate_traversal(maze, steps=400, seed=1)
+    tr = simulate_traversal(maze, steps=400, seed=1, tour=pts)
+    np.testing.assert_array_equal(tr.poses[:400], walk.poses)  # the walk itself is unchanged
+    dist = np.linalg.norm(tr.poses[None, :, :2] - pts[:, None], axis=2).min(1)  # [25]
+    seen = np.linalg.norm(walk.poses[None, :, :2] - pts[:, None], axis=2).min(1)
+    assert (seen > 0.02).sum() >= 10  # the walk alone misses many points
+    tour = tr.metadata["tour"]
+    assert tour["reached"] == len(tour["points"]) == (seen > 0.02).sum()
+    assert dist.max() <= 0.02 and dist[seen > 0.02].max() <= 0.01
+    assert tr.metadata["collisions"] == 0
+    assert len(tr.poses) == 400 + tour["steps"] == len(tr.controls) + 1
+    assert np.abs(tr.controls[:, 0]).max() <= 0.3 + 1e-9
+    assert tr.controls[:, 1].max() <= 0.05 * maze.corridor_width + 1e-12
+    assert tr.observations.shape == (len(tr.poses), 20)
+
+
+def test_tour_driver_rejects_an_unreachable_point():
+    from simulators import TourDriver
+
+    maze = make_maze("moderate-medium", 1005)
+    maze.v_walls[1, :] = True  # wall off column 0 entirely
+    drv = TourDriver(maze, [maze.cell_center(0, 0)])
+    with pytest.raises(ValueError, match="cannot be reached"):
+        drv.act(np.array([*maze.cell_center(3, 3), 0.0]))
