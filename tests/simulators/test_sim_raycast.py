@@ -62,7 +62,9 @@ def test_a_ray_along_a_wall_hits_its_end():
     # an agent standing on a wall's line (grid points at 0.5 in a maze of 1/6 cells) used to
     # see straight through the wall: parallel segments never counted as hits
     wall = np.array([[0.5, 0.5, 5 / 6, 0.5]])
-    r = raycast(wall, [[0.9, 0.5], [0.7, 0.5], [0.2, 0.5]], np.array([[np.pi], [np.pi], [0.0]]), 0.53)
+    r = raycast(
+        wall, [[0.9, 0.5], [0.7, 0.5], [0.2, 0.5]], np.array([[np.pi], [np.pi], [0.0]]), 0.53
+    )
     np.testing.assert_allclose(r[:, 0], [0.9 - 5 / 6, 0.0, 0.3], atol=1e-12)
     # just off the line, or pointing away, it passes by
     off = raycast(wall, [[0.9, 0.5001], [0.9, 0.5]], np.array([[np.pi], [0.0]]), 0.53)
