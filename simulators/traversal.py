@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from pyro_slam.data import Traversal
@@ -81,6 +83,12 @@ def simulate_traversal(
             world.step(u)
             poses.append(world.pose)
             obs.append(world.lidar())
+        if not guide.done:
+            warnings.warn(
+                f"tour: {len(guide.reached)} of {int((seen > tour_skip).sum())} points reached "
+                f"within max_tour_steps={max_tour_steps}",
+                stacklevel=2,
+            )
         toured = {
             "points": tour[seen > tour_skip].tolist(),
             "reached": len(guide.reached),
