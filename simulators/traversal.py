@@ -46,12 +46,12 @@ def simulate_traversal(
         seed: seeds maze, distractor layout, start pose, actuation noise and driver.
         images: also render first-person camera frames ``[T, 24, 32]``.
         distractors: number of boxes visible to the sensors but absent from ``walls``.
+        noise: actuation noise, see :class:`OdometryNoise` (``None`` = calibrated defaults,
+            ``0`` = noiseless).
         tour: positions ``[P, 2]`` to visit after the ``steps`` exploring steps (a
             :class:`TourDriver` drives there; the traversal then has more than ``steps``
             steps). Points the exploring steps passed within ``tour_skip`` are left out. Used to
             make a mapping traversal cover given places; at most ``max_tour_steps`` extra steps.
-        noise: actuation noise, see :class:`OdometryNoise` (``None`` = calibrated defaults,
-            ``0`` = noiseless).
     Returns:
         a :class:`Traversal` with LiDAR observations ``[T, B]``, commanded controls
         ``[T-1, 2]``, true poses ``[T, 3]`` and the maze walls.
@@ -74,7 +74,8 @@ def simulate_traversal(
     if tour is not None:
         tour = np.asarray(tour, dtype=np.float64).reshape(-1, 2)
         seen = np.linalg.norm(np.asarray(poses)[None, :, :2] - tour[:, None], axis=2).min(1)
-        guide = TourDriver(maze, tour[seen > tour_skip])
+        missed = tour[seen > tour_skip]  # [P', 2]
+        guide = TourDriver(maze, missed)
         for _ in range(max_tour_steps):
             u = guide.act(world.pose)
             if u is None:
@@ -85,12 +86,12 @@ def simulate_traversal(
             obs.append(world.lidar())
         if not guide.done:
             warnings.warn(
-                f"tour: {len(guide.reached)} of {int((seen > tour_skip).sum())} points reached "
+                f"tour: {len(guide.reached)} of {len(missed)} points reached "
                 f"within max_tour_steps={max_tour_steps}",
                 stacklevel=2,
             )
         toured = {
-            "points": tour[seen > tour_skip].tolist(),
+            "points": missed.tolist(),
             "reached": len(guide.reached),
             "steps": len(poses) - steps,
             "skip": tour_skip,
