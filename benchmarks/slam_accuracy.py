@@ -8,6 +8,12 @@ plot (median, 50% and 80% bands) of error and error relative to distance travell
 
     python benchmarks/slam_accuracy.py --out out/slam_accuracy            # full: 24 runs x modes
     python benchmarks/slam_accuracy.py --mazes 2 --traversals 1 --steps 1000 --modes online
+    python benchmarks/slam_accuracy.py --modes online --map-poses true --out out/slam_oracle
+
+``--map-poses true|pi`` is a diagnostic: the particle cache is pinned to the true (or the
+path-integration) poses, so the map is learned there while the filter still localises against
+it (:meth:`pyro_slam.slam.SLAM.pin_cache`); the gap to the default ``filter`` is what pose errors
+written into the map cost.
 
 Each run's result is written to ``OUT/runs/<mode>_m<maze>_t<traversal>.npz`` as it finishes, so
 an interrupted benchmark resumes where it stopped (finished runs are not recomputed).
@@ -38,7 +44,7 @@ def _traversal(maze_seed: int, seed: int, steps: int):
 
 def run_one(job) -> dict:
     """One SLAM run (in a worker process, 1 thread); returns errors over time."""
-    mode, maze_seed, seed, steps, over, transition_kind, path = job
+    mode, maze_seed, seed, steps, over, transition_kind, map_poses, path = job
     import torch
 
     torch.set_num_threads(1)
@@ -54,9 +60,11 @@ def run_one(job) -> dict:
         tran = load_transition(PRETRAINED / TRANSITION_FILE)
     t0 = time.perf_counter()
     slam = SLAM(tr, cfg, transition=tran, emission=em)
+    pi = path_integration(tr, slam.model.transition)
+    if map_poses != "filter":  # diagnostic: the map is learned at these poses, see --map-poses
+        slam.pin_cache(tr.poses if map_poses == "true" else pi, seed=seed)
     res = slam.run(mode, progress=False)
     wall = time.perf_counter() - t0
-    pi = path_integration(tr, slam.model.transition)
     out = {
         "slam": metrics.localisation_error(res["mean"], tr.poses),
         "pi": metrics.localisation_error(pi, tr.poses),
@@ -82,6 +90,12 @@ def main(argv=None) -> int:
     p.add_argument("--transition", choices=["learned", "kinematic"], default="learned")
     p.add_argument("--config", default="{}", help="JSON SLAMConfig overrides")
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument(
+        "--map-poses",
+        choices=["filter", "true", "pi"],
+        default="filter",
+        help="diagnostic: learn the map at the true / path-integration poses (SLAM.pin_cache)",
+    )
     args = p.parse_args(argv)
     from tqdm import tqdm
 
@@ -95,20 +109,23 @@ def main(argv=None) -> int:
     for mode in modes:
         for m in MAZE_SEEDS[: args.mazes]:
             for s in range(1, args.traversals + 1):
-                f = runs / f"{mode}_m{m}_t{s}_T{args.steps}.npz"
+                tag = "" if args.map_poses == "filter" else f"_map-{args.map_poses}"
+                f = runs / f"{mode}{tag}_m{m}_t{s}_T{args.steps}.npz"
                 files.setdefault(mode, []).append(f)
                 if not f.is_file():
-                    jobs.append((mode, m, s, args.steps, over, args.transition, f))
+                    jobs.append((mode, m, s, args.steps, over, args.transition, args.map_poses, f))
     with mp.get_context("spawn").Pool(args.workers) as pool:
         for r in tqdm(pool.imap_unordered(run_one, jobs), total=len(jobs), desc="SLAM runs"):
             tqdm.write(json.dumps(r))
     summary = {"steps": args.steps, "runs_per_mode": args.mazes * args.traversals,
-               "transition": args.transition, "config": {**BENCH_CONFIG, **over}}  # fmt: skip
+               "transition": args.transition, "config": {**BENCH_CONFIG, **over},
+               "map_poses": args.map_poses}  # fmt: skip
     curves = {}
     for mode in modes:
         data = [np.load(f) for f in files[mode]]
         e = np.stack([d["slam"] for d in data])  # [R, T]
-        curves[f"{mode} SLAM"] = e
+        label = "" if args.map_poses == "filter" else f" (map at {args.map_poses} poses)"
+        curves[f"{mode} SLAM{label}"] = e
         pi, dist = np.stack([d["pi"] for d in data]), np.stack([d["distance"] for d in data])
         summary[mode] = {
             "final_mean": float(e[:, -1].mean()),

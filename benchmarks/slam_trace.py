@@ -48,22 +48,6 @@ def parse_overrides(pairs):
     return over
 
 
-def pin_cache(slam, poses, seed):
-    """Make the cache hold ``poses [T, 3]`` (+ 1e-3 noise) whatever the filters store."""
-    import torch
-
-    poses = torch.as_tensor(poses, dtype=slam.cache.z.dtype)
-    gen = torch.Generator().manual_seed(seed)
-
-    def store(t, p, generator=None):  # [C] steps; the particles are ignored
-        N = slam.cache.num_particles
-        noise = 1e-3 * torch.randn(len(t), N, 3, generator=gen, dtype=poses.dtype)
-        slam.cache.z[t] = poses[t].unsqueeze(-2) + noise
-        slam.cache.filled[t] = True
-
-    slam.cache.store = store
-
-
 def freeze_cache(slam):
     """The ELBO's chunk filter reads the cache but no longer writes it."""
 
@@ -131,7 +115,7 @@ def main(argv=None) -> int:
     slam = SLAM(tr, cfg, emission=em)
     pi = path_integration(tr, slam.model.transition)  # [T, 3]
     if map_poses != "filter":
-        pin_cache(slam, tr.poses if map_poses == "true" else pi, args.seed)
+        slam.pin_cache(tr.poses if map_poses == "true" else pi, seed=args.seed)
     if args.frozen_cache:
         freeze_cache(slam)
     frontier = []

@@ -16,6 +16,9 @@ plus reconstructed vs true images at a few poses.
     python benchmarks/visual_slam.py --out out/visual_slam                       # full
     python benchmarks/visual_slam.py --mazes 2 --steps 1000 --out out/visual_slam_small
 
+``--map-poses true|pi`` is the diagnostic of ``slam_accuracy.py``: the map is learned at the true
+(or path-integration) poses while the filter still localises against it.
+
 Finished runs are kept in ``OUT/runs`` and the pretrained emission in ``OUT/emission_image.pt``
 (``--pretrain-steps``), so an interrupted benchmark resumes.
 """
@@ -89,7 +92,9 @@ def _run_job(job) -> dict:
     return run_one(*job)
 
 
-def run_one(maze_seed, seed, steps, cfg, emission, path: Path, threads: int = 1) -> dict:
+def run_one(
+    maze_seed, seed, steps, cfg, emission, path: Path, threads: int = 1, map_poses="filter"
+) -> dict:
     import torch
 
     torch.set_num_threads(threads)
@@ -101,9 +106,11 @@ def run_one(maze_seed, seed, steps, cfg, emission, path: Path, threads: int = 1)
     emission = copy.deepcopy(emission)  # fine-tuning must not leak from one maze to the next
     t0 = time.perf_counter()
     slam = SLAM(tr, cfg, emission=emission)
+    pi = path_integration(tr, slam.model.transition)
+    if map_poses != "filter":  # diagnostic: the map is learned at these poses, see --map-poses
+        slam.pin_cache(tr.poses if map_poses == "true" else pi, seed=seed)
     res = slam.run("offline", progress=False)
     wall = time.perf_counter() - t0
-    pi = path_integration(tr, slam.model.transition)
     # reconstructions: emission mean under the map mean at the SLAM estimate, a few steps
     idx = np.linspace(0, steps - 1, 5).round().astype(int)
     with torch.no_grad():
@@ -157,6 +164,12 @@ def main(argv=None) -> int:
     p.add_argument("--config", default="{}", help="JSON SLAMConfig overrides")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--workers", type=int, default=1, help="SLAM runs in parallel processes")
+    p.add_argument(
+        "--map-poses",
+        choices=["filter", "true", "pi"],
+        default="filter",
+        help="diagnostic: learn the map at the true / path-integration poses (SLAM.pin_cache)",
+    )
     args = p.parse_args(argv)
     import torch
 
@@ -177,10 +190,11 @@ def main(argv=None) -> int:
     pretrain_s = time.perf_counter() - t0
     files, jobs = [], []
     for m in MAZE_SEEDS[: args.mazes]:
-        f = runs / f"m{m}_T{args.steps}.npz"
+        tag = "" if args.map_poses == "filter" else f"_map-{args.map_poses}"
+        f = runs / f"m{m}{tag}_T{args.steps}.npz"
         files.append(f)
         if not f.is_file():
-            jobs.append((m, 1, args.steps, cfg, em, f, args.threads))
+            jobs.append((m, 1, args.steps, cfg, em, f, args.threads, args.map_poses))
     bar = tqdm(total=len(jobs), desc="visual SLAM runs")
     if args.workers > 1 and len(jobs) > 1:
         import multiprocessing as mp
@@ -203,6 +217,7 @@ def main(argv=None) -> int:
         "steps": args.steps,
         "mazes": list(MAZE_SEEDS[: args.mazes]),
         "config": {**BENCH_CONFIG, **over},
+        "map_poses": args.map_poses,
         "emission_pretraining": {**em_meta, "wall_s_this_call": pretrain_s},
         "offline": {
             "final_mean": float(e[:, -1].mean()),
@@ -218,7 +233,8 @@ def main(argv=None) -> int:
             "per_maze": [float(v) for v in pi[:, -1]],
         },
     }
-    curves = {"offline visual SLAM": e, "path integration": pi}
+    label = "" if args.map_poses == "filter" else f" (map at {args.map_poses} poses)"
+    curves = {f"offline visual SLAM{label}": e, "path integration": pi}
     plot_error_bands(curves, args.out / "error_bands.png", distance=dist, title="visual DVBF-LM")
     plot_reconstructions(data[0], args.out / "reconstructions.png")
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))

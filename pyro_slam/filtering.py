@@ -38,6 +38,7 @@ class MapBelief:
     loc: torch.Tensor
     scale: torch.Tensor
     usable: torch.Tensor | None = None  # [w, h] in [0, 1]: cells the weights may use
+    trust: float = 1.0  # in [0, 1]: one factor on the trust of every particle (cloud-wide)
 
 
 @dataclass
@@ -147,6 +148,8 @@ class ParticleFilter:
             if M.usable is not None:
                 usable = g.attend(M.usable.unsqueeze(-1), xy)  # [..., K, 1]
                 trust = (trust * usable).clamp_min(1e-2)
+            if M.trust != 1.0:
+                trust = (trust * M.trust).clamp_min(1e-2)
             M = M.loc
             if self.weighting == "predictive":
                 # linearised marginal of q(M): predictive variance s0^2 + v * s_p^2, where

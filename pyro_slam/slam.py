@@ -81,6 +81,8 @@ class SLAMConfig:
     proposal: str = "gaussian"
     proposal_shrink: float = 1.0  # scale of the cache proposal's std for map training
     revisit_gap: int = 0  # online: cells first mapped < gap steps ago do not weigh particles
+    revisit_radius: float | None = None  # online: trust by distance to poses >= gap steps old
+    write_lag: int = 0  # online: SVI learns the map from steps at least this old
     seed: int = 0
     checkpoint_every: int = 1000
     beam_stride: int = 1  # SLAM uses every k-th beam (see prepare_traversal)
@@ -285,6 +287,10 @@ class SLAM:
         checkpoint: str | Path | None = None,
     ):
         self.cfg = config or SLAMConfig()
+        if self.cfg.revisit_radius is not None and not self.cfg.revisit_radius > 0:
+            raise ValueError(f"revisit_radius must be > 0, got {self.cfg.revisit_radius}")
+        if self.cfg.write_lag < 0:
+            raise ValueError(f"write_lag must be >= 0, got {self.cfg.write_lag}")
         self.tr = traversal = prepare_traversal(traversal, self.cfg)
         self.obs, self.ctl, self.mask, self.init_pose = _tensors(traversal)
         self.T = self.obs.shape[0]
@@ -308,6 +314,7 @@ class SLAM:
         self.cache = ParticleCache(self.T, self.cfg.cache_particles)
         w, h, _ = self.model.grid.shape
         self.first_seen = torch.full((w, h), float("inf"))  # [w, h] step of first mapping
+        self.track = torch.full((self.T, 2), float("nan"))  # [T, 2] online position estimates
         self.elbo = ParticleChunkELBO(
             train_pf,
             self.cache,
@@ -340,12 +347,25 @@ class SLAM:
         steps before ``t`` are masked: a map written from the last few poses repeats what
         odometry already says, and matching against it pulls the estimate back along the path;
         only revisits of older map regions (loop closures) correct drift.
+
+        With ``revisit_radius = r`` instead, the whole particle cloud trusts the map by
+        ``exp(-d^2 / (2 r^2))`` (at least 0.01), ``d`` the distance from the cloud's mean to the
+        nearest position estimated at least ``revisit_gap`` steps before ``t``: flat weights
+        (path integration) at the map's frontier, where the chart is a copy of the one behind,
+        full weights where the agent is back on an old track -- one factor for all particles, so
+        it does not pull them towards well-covered places.
         """
         loc, scale = self.guide.params()
-        usable = None
-        if t is not None and self.cfg.revisit_gap > 0:
-            usable = (t - self.first_seen >= self.cfg.revisit_gap).to(loc.dtype)
-        return MapBelief(loc.detach(), scale.detach(), usable)
+        usable, trust = None, 1.0
+        gap, radius = self.cfg.revisit_gap, self.cfg.revisit_radius
+        if t is not None and radius is not None:
+            trust = 0.01
+            if t - gap > 0 and self.particles is not None:
+                d2 = (self.track[: t - gap] - self.particles.mean()[:2]).pow(2).sum(-1).min()
+                trust = max(math.exp(-0.5 * float(d2) / radius**2), 0.01)
+        elif t is not None and gap > 0:
+            usable = (t - self.first_seen >= gap).to(loc.dtype)
+        return MapBelief(loc.detach(), scale.detach(), usable, trust)
 
     def _mark_seen(self, t: int) -> None:
         """Record the first time each grid cell near the pose estimate was mapped."""
@@ -391,13 +411,18 @@ class SLAM:
             with torch.no_grad():
                 self._filter_step(t, self.map_mean(t))
                 self._mark_seen(t)
+                self.track[t] = self.particles.mean()[:2]
             if st.phase == "online":
                 st.estimates.append(self.particles.mean().tolist())
                 st.stds.append(_std(self.particles).tolist())
-            if t >= L - 1 and t % self.cfg.svi_every == 0:
-                self.elbo.num_steps_seen = t + 1
+            # the map is learned from the steps up to t - write_lag only: the filter then
+            # matches a scan against what older steps wrote (a revisit), not against a copy of
+            # its own latest scans written where it believes it is
+            tw = t - self.cfg.write_lag
+            if tw >= L - 1 and t % self.cfg.svi_every == 0:
+                self.elbo.num_steps_seen = tw + 1
                 for _ in range(self.cfg.svi_steps):
-                    st.losses.append(self._svi_step(0, t - L + 1, t - L + 1))
+                    st.losses.append(self._svi_step(0, tw - L + 1, tw - L + 1))
             st.t += 1
             bar.update(1)
             if self.checkpoint and st.t % self.cfg.checkpoint_every == 0:
@@ -474,6 +499,31 @@ class SLAM:
             "map_scale": self.guide.params()[1].detach().numpy(),
         }
 
+    def pin_cache(self, poses, noise: float = 1e-3, seed: int = 0) -> None:
+        """Diagnostic: the particle cache holds ``poses [T, 3]`` (+ ``noise`` std) from now on.
+
+        Every later store (the online filter's, the ELBO chunks' refreshes, the offline
+        passes') writes the given poses with fresh noise instead of its particles, so the map is
+        learned at those poses (e.g. the ground truth or path integration) while the filter
+        still localises against it. This separates "the filter cannot use the map" from "pose
+        errors written into the map feed back into the filter"
+        (``benchmarks/slam_accuracy.py --map-poses``, ``benchmarks/slam_trace.py``). The pin is
+        not part of checkpoints: call it again after :meth:`resume`.
+        """
+        cache = self.cache
+        poses = torch.as_tensor(np.asarray(poses), dtype=cache.z.dtype)
+        if poses.shape != (self.T, 3):
+            shape = tuple(poses.shape)
+            raise ValueError(f"pin_cache needs poses of shape ({self.T}, 3), got {shape}")
+        gen = torch.Generator().manual_seed(seed)
+
+        def store(t, p, generator=None):  # [C] steps; the particles p are ignored
+            eps = torch.randn(len(t), cache.num_particles, 3, generator=gen, dtype=poses.dtype)
+            cache.z[t] = poses[t].unsqueeze(-2) + noise * eps
+            cache.filled[t] = True
+
+        cache.store = store
+
     # --------------------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict:
         return {
@@ -488,6 +538,7 @@ class SLAM:
             "torch_rng": torch.get_rng_state(),
             "elbo_seen": self.elbo.num_steps_seen,
             "first_seen": self.first_seen.clone(),
+            "track": self.track.clone(),
         }
 
     def save(self, path) -> None:
@@ -514,6 +565,8 @@ class SLAM:
         torch.set_rng_state(d["torch_rng"])
         self.elbo.num_steps_seen = d["elbo_seen"]
         self.first_seen.copy_(d["first_seen"])
+        if "track" in d:  # (checkpoints before revisit_radius have none)
+            self.track.copy_(d["track"])
         self.state = SLAMState(**d["state"])
         return self
 

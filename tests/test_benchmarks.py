@@ -57,6 +57,13 @@ def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path
     run("slam_accuracy.py", *args)  # finished runs are reused, not recomputed
     assert runs[0].stat().st_mtime_ns == stamp
     assert json.loads((tmp_path / "summary.json").read_text()) == summary
+    # the diagnostic: the map learned at the true poses; its runs are kept apart
+    run("slam_accuracy.py", *args, "--map-poses", "true")
+    oracle = json.loads((tmp_path / "summary.json").read_text())
+    assert oracle["map_poses"] == "true" and summary["map_poses"] == "filter"
+    assert 0 <= oracle["online"]["final_mean"] < 0.05
+    assert oracle["online"]["final_mean"] != summary["online"]["final_mean"]
+    assert len(list((tmp_path / "runs").glob("online_map-true_*.npz"))) == 1
 
 
 def test_slam_trace_prints_rows_and_summary():
@@ -198,3 +205,10 @@ def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
     run("visual_slam.py", *args)  # resumes: the finished runs are not recomputed
     assert [f.stat().st_mtime_ns for f in runs] == stamps
     assert json.loads((tmp_path / "summary.json").read_text())["offline"] == s["offline"]
+    # the diagnostic: the map learned at the true poses, stored apart; the emission is reused
+    run("visual_slam.py", *args[:-2], "--mazes", "1", "--map-poses", "true", "--workers", "1",
+        "--out", str(tmp_path))  # fmt: skip
+    o = json.loads((tmp_path / "summary.json").read_text())
+    assert o["map_poses"] == "true" and s["map_poses"] == "filter" and o["mazes"] == [1001]
+    assert 0 <= o["offline"]["per_maze"][0] < 1
+    assert len(list((tmp_path / "runs").glob("m1001_map-true_*.npz"))) == 1

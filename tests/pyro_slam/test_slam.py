@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -128,6 +130,22 @@ def test_same_seed_same_result_other_seed_differs(traversal):
     assert not np.array_equal(c["mean"], ra["mean"])
 
 
+def test_pin_cache_learns_the_map_at_the_given_poses(traversal):
+    slam = SLAM(traversal, config())
+    shifted = traversal.poses + np.array([0.05, 0.0, 0.0])
+    slam.pin_cache(shifted, noise=1e-3)
+    res = slam.run("offline", progress=False)
+    # every store (online sweep, chunk refreshes, offline passes) kept the pinned poses
+    dev = slam.cache.z.numpy() - shifted[:, None].astype(np.float32)
+    assert slam.cache.filled.all() and np.abs(dev).max() < 6e-3 and dev.std() > 5e-4
+    # the filter still ran on its own: its estimates are not the pinned poses
+    assert np.abs(res["mean"][:, 0] - shifted[:, 0]).mean() > 1e-3
+    T = traversal.num_steps
+    msg = re.escape(f"pin_cache needs poses of shape ({T}, 3), got ({T - 1}, 3)")
+    with pytest.raises(ValueError, match=msg):
+        slam.pin_cache(shifted[:-1])
+
+
 @pytest.mark.parametrize("weighting", ["marginal", "tempered", "predictive"])
 def test_revisit_gating_before_any_revisit_is_path_integration(traversal, weighting):
     # every cell is younger than the gap: the map may not weigh particles, so the filter is a
@@ -138,6 +156,56 @@ def test_revisit_gating_before_any_revisit_is_path_integration(traversal, weight
     K = slam.particles.num_particles
     if weighting != "predictive":  # "predictive" scores unusable charts by the prior predictive
         assert resampling.ess(slam.particles.logw) > 0.9 * K
+
+
+def test_revisit_radius_trusts_the_map_by_distance_to_old_positions(traversal):
+    slam = SLAM(traversal, config(revisit_gap=5, revisit_radius=0.02))
+    res = slam.run("online", progress=False)
+    assert np.isfinite(res["mean"]).all()
+    np.testing.assert_allclose(slam.track.numpy(), res["mean"][:, :2], atol=1e-6)
+    here = slam.particles.mean()[:2]
+    # the cloud sits on a position estimated >= 5 steps before t: full trust
+    slam.track[:] = here + torch.tensor([3.0, 0.0])
+    slam.track[10] = here
+    assert slam.map_mean(16).trust == pytest.approx(1.0)
+    assert slam.map_mean(15).trust == pytest.approx(0.01)  # step 10 is too recent (gap 5)
+    slam.track[10] = here + torch.tensor([0.0, 0.02])  # one radius away
+    assert slam.map_mean(16).trust == pytest.approx(math.exp(-0.5), rel=1e-4)
+    assert slam.map_mean(2).trust == 0.01  # nothing old enough yet: path integration
+    assert slam.map_mean().trust == 1.0  # offline passes: the whole map
+    with pytest.raises(ValueError, match="revisit_radius must be > 0, got 0.0"):
+        SLAM(traversal, config(revisit_radius=0.0))
+
+
+def test_write_lag_learns_the_map_only_from_old_enough_steps(traversal):
+    T, L = traversal.num_steps, CFG["chunk_length"]
+    slam = SLAM(traversal, config(write_lag=5))
+    seen = []
+    step = slam._svi_step
+    slam._svi_step = lambda lo, hi, newest: seen.append((hi, newest)) or step(lo, hi, newest)
+    res = slam.run("online", progress=False)
+    # one SVI step per time step t >= write_lag + L - 1, on chunks ending <= t - write_lag
+    assert len(res["losses"]) == T - 5 - L + 1
+    assert seen[0] == (0, 0) and seen[-1] == (T - 1 - 5 - L + 1,) * 2
+    prior = SLAM(traversal, config(write_lag=T)).run("online", progress=False)
+    assert len(prior["losses"]) == 0 and (prior["map_loc"] == 0).all()
+    with pytest.raises(ValueError, match="write_lag must be >= 0, got -1"):
+        SLAM(traversal, config(write_lag=-1))
+
+
+def test_cloud_wide_trust_flattens_the_weights_of_every_particle(traversal):
+    from pyro_slam.filtering import MapBelief
+
+    slam = SLAM(traversal, config())
+    slam.run("online", progress=False)
+    b, p = slam.map_mean(), slam.particles
+    flat = torch.zeros_like(p.logw)
+    spread = {}
+    for trust in (1.0, 0.01):
+        belief = MapBelief(b.loc, b.scale, None, trust)
+        w, _ = slam.pf._weigh(p.z, belief, slam.obs[-1], None, flat, step=0)
+        spread[trust] = float(w.logw.detach().max() - w.logw.detach().min())
+    assert spread[1.0] > 0.5 and spread[0.01] < 0.1 * spread[1.0]
 
 
 @pytest.mark.parametrize("train_sigma", [None, 0.1])
@@ -192,26 +260,27 @@ def test_path_integration_reproduces_noiseless_motion():
 
 # ---------------------------------------------------------------------------- resume
 @pytest.mark.parametrize(
-    "mode, crash_at",
+    "mode, crash_at, over",
     [
-        ("online", 2),  # online, after step 14
-        ("offline", 2),  # inside the online sweep that starts offline SLAM
-        ("offline", 5),  # between the two offline rounds
-        ("offline", 7),  # after the final checkpoint: nothing is redone
+        ("online", 2, {}),  # online, after step 14
+        ("offline", 2, {}),  # inside the online sweep that starts offline SLAM
+        ("offline", 5, {}),  # between the two offline rounds
+        ("offline", 7, {}),  # after the final checkpoint: nothing is redone
+        ("online", 2, {"revisit_gap": 3, "revisit_radius": 0.01}),  # the track is restored
     ],
 )
-def test_resume_reproduces_uninterrupted_run(traversal, tmp_path, mode, crash_at):
-    ref = SLAM(traversal, config())
+def test_resume_reproduces_uninterrupted_run(traversal, tmp_path, mode, crash_at, over):
+    ref = SLAM(traversal, config(**over))
     r_ref = ref.run(mode, progress=False)
 
     ckpt = tmp_path / "ckpt.pt"
-    first = SLAM(traversal, config(), checkpoint=ckpt)
+    first = SLAM(traversal, config(**over), checkpoint=ckpt)
     crash_after_save(first, crash_at)
     with pytest.raises(Crash):
         first.run(mode, progress=False)
     del first
 
-    resumed = SLAM(traversal, config(), checkpoint=ckpt).resume(ckpt)
+    resumed = SLAM(traversal, config(**over), checkpoint=ckpt).resume(ckpt)
     assert 0 < resumed.state.t or resumed.state.round > 0 or resumed.state.phase != "online"
     r_res = resumed.run(mode, progress=False)
     assert_same_run(ref, r_ref, resumed, r_res)
