@@ -78,6 +78,8 @@ def run_one(job) -> dict:
 
 # settings used for the figures in the issue notes (see docs/results/slam.md)
 BENCH_CONFIG = dict(learn_emission=False)  # frozen pretrained emission; SLAMConfig defaults
+# with the learned transition, SLAM filters with its sigma_T scaled by TRANSITION_SCALE (from
+# pyro_slam.cli; measured in docs/benchmarks.md) unless --config sets transition_scale
 
 
 def main(argv=None) -> int:
@@ -99,11 +101,14 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     from tqdm import tqdm
 
+    from pyro_slam.cli import TRANSITION_SCALE
     from pyro_slam.plotting import plot_error_bands
 
     runs = args.out / "runs"
     runs.mkdir(parents=True, exist_ok=True)
     over = json.loads(args.config)
+    if args.transition == "learned":
+        over = {"transition_scale": list(TRANSITION_SCALE), **over}
     modes = args.modes.split(",")
     jobs, files = [], {}
     for mode in modes:

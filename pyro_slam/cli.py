@@ -27,6 +27,10 @@ from .data import DatasetError, Traversal, atomic_write
 PRETRAINED = Path(__file__).parent / "pretrained"
 EMISSION_FILE = "emission_lidar20.pt"
 TRANSITION_FILE = "transition_moderate_medium.pt"
+# SLAMConfig.transition_scale for the shipped transition: SLAM filters with its sigma_T scaled by
+# these factors (x, y, heading). A stiffer heading keeps the map's frontier from tilting it, more
+# position noise lets revisits pull the position back (docs/benchmarks.md, session 10)
+TRANSITION_SCALE = (3.0, 3.0, 0.2)
 
 
 # ----------------------------------------------------------------------------------- helpers
@@ -242,9 +246,10 @@ def cmd_demo(args) -> int:
     tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
     tr.save(out / "traversal.npz")
     plot_traversal(tr, out / "traversal.png")
-    cfg = SLAMConfig(seed=args.seed, learn_emission=False)
+    cfg = SLAMConfig(seed=args.seed, learn_emission=False, transition_scale=TRANSITION_SCALE)
     emission = load_emission(_default_emission(tr), tr, cfg)
-    report = run_slam(tr, out, args.mode, cfg, emission, resume=args.resume)
+    transition = load_transition(PRETRAINED / TRANSITION_FILE)
+    report = run_slam(tr, out, args.mode, cfg, emission, transition, resume=args.resume)
     _print_report(report, out)
     return 0
 
@@ -268,7 +273,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="pretrained emission .pt ('none': learn from scratch; default: the shipped one "
         "when the sensor matches the simulator's)",
     )
-    s.add_argument("--transition", help="pretrained LearnedTransition .pt (default: kinematic)")
+    s.add_argument(
+        "--transition",
+        help="pretrained LearnedTransition .pt (default: kinematic); the demo and benchmarks "
+        "filter the shipped one with --config '{\"transition_scale\": [3, 3, 0.2]}'",
+    )
     s.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     s.add_argument(
         "--odometry-noise",

@@ -61,6 +61,9 @@ class SLAMConfig:
     filter_sigma: float | None = 0.05  # sigma_E used to weigh the filter's particles
     train_sigma: float | None = None  # sigma_E of the ELBO's chunk filter (None: filter_sigma)
     transition_sigma: tuple[float, float, float] = (5e-4, 5e-4, 8e-3)
+    # factors on sigma_T (x, y, heading) of the transition SLAM filters with (the paper lets
+    # sigma_T -> 0); the transition passed in is copied, not changed
+    transition_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
     uncertainty_gain: float = 1.0
     weighting: str = "marginal"  # filter weights under q(M): marginal | tempered | predictive
     outlier_prob: float = 0.0  # per-beam outlier floor of the tempered weights
@@ -142,6 +145,15 @@ def build_model(
     if transition is None:
         control_model = traversal.metadata.get("control_model", "rotate_forward")
         transition = KinematicTransition(config.transition_sigma, control_model)
+    scale = torch.as_tensor(config.transition_scale, dtype=transition.sigma.dtype)
+    if scale.shape != (3,) or not bool((scale > 0).all()):
+        raise ValueError(
+            f"transition_scale must be 3 positive factors (x, y, heading), "
+            f"got {config.transition_scale!r}"
+        )
+    if not bool((scale == 1).all()):
+        transition = copy.deepcopy(transition)
+        transition.sigma.mul_(scale)
     model = DVBFLM(grid, emission, transition, traversal.beam_angles, config.sigma_emission)
     model.learn_emission = config.learn_emission
     guide = MapGuide(grid.shape)

@@ -16,6 +16,7 @@ import pytest
 import torch
 
 import pyro_slam.data
+import pyro_slam.filtering
 from pyro_slam import resampling
 from pyro_slam.metrics import localisation_error
 from pyro_slam.slam import SLAM, SLAMConfig, path_integration
@@ -177,6 +178,23 @@ def test_revisit_radius_trusts_the_map_by_distance_to_old_positions(traversal):
         SLAM(traversal, config(revisit_radius=0.0))
 
 
+def test_transition_scale_scales_a_copy_of_sigma_t(traversal):
+    tran = KinematicTransition((5e-4, 5e-4, 8e-3))
+    slam = SLAM(traversal, config(transition_scale=(3.0, 3.0, 0.2)), transition=tran)
+    torch.testing.assert_close(slam.model.transition.sigma, torch.tensor([1.5e-3, 1.5e-3, 1.6e-3]))
+    torch.testing.assert_close(tran.sigma, torch.tensor([5e-4, 5e-4, 8e-3]))  # not changed
+    # the filter's particles spread by the scaled sigma: heading spread shrinks 5x
+    z = torch.zeros(4000, 3)
+    p = slam.pf.propagate(pyro_slam.filtering.Particles(z, torch.zeros(4000)), torch.zeros(2))
+    spread = p - slam.model.transition.mean(z, torch.zeros(1, 2))
+    np.testing.assert_allclose(spread.std(0).numpy(), [1.5e-3, 1.5e-3, 1.6e-3], rtol=0.06)
+    same = SLAM(traversal, config(), transition=tran)
+    assert same.model.transition is tran  # factors of 1: the transition as given
+    for bad in [(1.0, 1.0), (1.0, 0.0, 1.0)]:
+        with pytest.raises(ValueError, match="transition_scale must be 3 positive factors"):
+            SLAM(traversal, config(transition_scale=bad))
+
+
 def test_write_lag_learns_the_map_only_from_old_enough_steps(traversal):
     T, L = traversal.num_steps, CFG["chunk_length"]
     slam = SLAM(traversal, config(write_lag=5))
@@ -267,6 +285,7 @@ def test_path_integration_reproduces_noiseless_motion():
         ("offline", 5, {}),  # between the two offline rounds
         ("offline", 7, {}),  # after the final checkpoint: nothing is redone
         ("online", 2, {"revisit_gap": 3, "revisit_radius": 0.01}),  # the track is restored
+        ("offline", 5, {"transition_scale": (3.0, 3.0, 0.2)}),  # scaled once, not on resume
     ],
 )
 def test_resume_reproduces_uninterrupted_run(traversal, tmp_path, mode, crash_at, over):
