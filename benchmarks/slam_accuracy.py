@@ -76,7 +76,7 @@ def run_one(job) -> dict:
             "pi": float(out["pi"][-1]), "wall_s": wall}  # fmt: skip
 
 
-# settings used for the figures in the issue notes (see docs/results/slam.md)
+# settings used for the figures in the issue notes (see docs/benchmarks.md)
 BENCH_CONFIG = dict(learn_emission=False)  # frozen pretrained emission; SLAMConfig defaults
 # with the learned transition, SLAM filters with its sigma_T scaled by TRANSITION_SCALE (from
 # pyro_slam.cli; measured in docs/benchmarks.md) unless --config sets transition_scale

@@ -276,7 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--transition",
         help="pretrained LearnedTransition .pt (default: kinematic); the demo and benchmarks "
-        "filter the shipped one with --config '{\"transition_scale\": [3, 3, 0.2]}'",
+        f"filter the shipped one with transition_scale {list(TRANSITION_SCALE)} (--config)",
     )
     s.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     s.add_argument(
