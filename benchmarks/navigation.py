@@ -9,7 +9,9 @@ the controls open loop in the pymunk World (noise-free, and again with the calib
 noise); success = final position within 0.05 of the target.
 
 The learned model's map belief ``q(M)`` is fitted with *known poses* (``fit_map`` at the true
-poses of a ``--traversal-steps`` traversal, default 6000), not by SLAM. With ``--cover-grid``
+poses of a ``--traversal-steps`` traversal, default 6000), or with ``--map-poses slam`` at the
+pose means of online DVBF-LM SLAM on that traversal (then no ground truth enters the learned
+model: emission and map are both fitted at the SLAM poses). With ``--cover-grid``
 (default) the mapping traversal ends with a tour through the grid points its random walk
 passed farther than 0.02 from (a few hundred steps: the walk misses some dead ends for
 20,000 steps), so every start and target has been seen. The emission is fitted
@@ -86,6 +88,11 @@ def main(argv=None) -> int:
     p.add_argument("--sleep-steps", type=int, default=3000, help="q(z|x) sleep-phase steps")
     p.add_argument("--inverse-steps", type=int, default=1000, help="q(z|x) ELBO steps")
     p.add_argument("--alias-tol", type=float, default=0.01)
+    p.add_argument(
+        "--map-poses", choices=["true", "slam"], default="true",
+        help="poses the emission and q(M) are fitted at: the traversal's true poses (mapping "
+        "with known poses) or the pose means of online DVBF-LM SLAM on it",
+    )  # fmt: skip
     args = p.parse_args(argv)
 
     import torch
@@ -189,6 +196,9 @@ def main(argv=None) -> int:
         ),
         "mode_within_0.05_not_aliased": float(np.mean(em[~al] <= 0.05)) if (~al).any() else None,
         "fit_s_per_maze": float(np.mean([t["fit_s"] for t in targets])),
+        "slam_error": {  # --map-poses slam: per maze, the SLAM run the map was fitted at
+            str(t["maze"]): t["slam_error"] for t in targets if t.get("slam_error")
+        },
         "infer_s_per_scan": float(np.mean([t["infer_s"] for t in targets])),
     }
     (args.out / "targets.json").write_text(json.dumps(targets, indent=1))
@@ -212,10 +222,14 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
 
     runs, targets = [], []
     pts = free_grid(maze)
+    tour = pts if args.cover_grid else None
+    traversal, poses, slam_err = None, None, None
+    if args.map_poses == "slam":
+        traversal, poses, slam_err = _slam_poses(maze, tour, args.traversal_steps)
     lenv, _, traversal = learned_env(
-        maze, steps=args.traversal_steps, fit_steps=args.fit_steps,
-        emission_steps=args.emission_steps, n_world=args.n_world, max_std=args.max_std,
-        tour=pts if args.cover_grid else None,
+        maze, traversal=traversal, poses=poses, steps=args.traversal_steps,
+        fit_steps=args.fit_steps, emission_steps=args.emission_steps, n_world=args.n_world,
+        max_std=args.max_std, tour=tour,
     )  # fmt: skip
     envs = {"learned": lenv, "ground_truth": GroundTruthEnv(maze)}
     t = time.perf_counter()
@@ -256,6 +270,7 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
                 "ll_true_refined": float(ll_true[i]),
                 "fit_s": inv_fit_s,
                 "traversal_steps": len(traversal.poses),
+                "slam_error": slam_err,
                 "infer_s": infer_s,
             }
         )
@@ -296,6 +311,35 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
             runs.append(row)
             tqdm.write(json.dumps(row))
     return runs, targets
+
+
+def _slam_poses(maze, tour, steps: int, seed: int = 1):
+    """``--map-poses slam``: online DVBF-LM SLAM on the mapping traversal, with the settings of
+    ``benchmarks/slam_accuracy.py`` (shipped frozen emission, learned transition filtered with
+    ``TRANSITION_SCALE``). Returns ``(traversal, pose means [T, 3], error summary)``; the
+    traversal is the one :func:`~pyro_slam.planning.learned_env` would simulate (same seed)."""
+    from pyro_slam import metrics
+    from pyro_slam.cli import (
+        EMISSION_FILE,
+        PRETRAINED,
+        TRANSITION_FILE,
+        TRANSITION_SCALE,
+        load_emission,
+        load_transition,
+    )
+    from pyro_slam.slam import SLAM, SLAMConfig, path_integration
+    from simulators import simulate_traversal
+
+    tr = simulate_traversal(maze, steps=steps, seed=seed, tour=tour)
+    cfg = SLAMConfig(learn_emission=False, transition_scale=TRANSITION_SCALE, seed=seed)
+    em = load_emission(PRETRAINED / EMISSION_FILE, tr, cfg)
+    slam = SLAM(tr, cfg, transition=load_transition(PRETRAINED / TRANSITION_FILE), emission=em)
+    est = slam.run("online", progress=False)["mean"]  # [T, 3]
+    err = metrics.localisation_error(est, tr.poses)  # [T]
+    pi = metrics.localisation_error(path_integration(tr, slam.model.transition), tr.poses)
+    summary = {"final": float(err[-1]), "mean": float(err.mean()), "max": float(err.max()),
+               "pi_final": float(pi[-1]), "pi_mean": float(pi.mean())}  # fmt: skip
+    return tr, est, summary
 
 
 def _aliased(gt_env, maze, poses, scans, tol, spacing=0.02, headings=24) -> np.ndarray:

@@ -158,6 +158,23 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     assert json.loads((tmp_path / "summary.json").read_text())["resumed_mazes"] == [1001]
 
 
+def test_navigation_benchmark_maps_at_slam_poses(tmp_path):
+    # --map-poses slam: emission and q(M) are fitted at the pose means of online SLAM on the
+    # mapping traversal; the SLAM run's error is reported per maze
+    args = ("--mazes", "1", "--pairs-limit", "1", "--traversal-steps", "200", "--no-cover-grid",
+            "--emission-steps", "20", "--fit-steps", "20", "--sleep-steps", "20",
+            "--inverse-steps", "5", "--max-expansions", "30", "--map-poses", "slam",
+            "--out", str(tmp_path))  # fmt: skip
+    run("navigation.py", *args)
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["args"]["map_poses"] == "slam" and s["pairs"] == 1
+    err = s["inverse"]["slam_error"]["1001"]
+    # 200 steps: both estimates stay within a few cells of the truth
+    assert 0 < err["mean"] <= err["max"] < 0.1 and 0 <= err["pi_final"] < 0.1
+    targets = json.loads((tmp_path / "targets.json").read_text())
+    assert {t["traversal_steps"] for t in targets} == {200}
+
+
 def test_frontier_ceiling_reprojection_is_exact_on_straight_walls_and_beats_copy():
     import numpy as np
 
