@@ -319,21 +319,12 @@ def _slam_poses(maze, tour, steps: int, seed: int = 1):
     ``TRANSITION_SCALE``). Returns ``(traversal, pose means [T, 3], error summary)``; the
     traversal is the one :func:`~pyro_slam.planning.learned_env` would simulate (same seed)."""
     from pyro_slam import metrics
-    from pyro_slam.cli import (
-        EMISSION_FILE,
-        PRETRAINED,
-        TRANSITION_FILE,
-        TRANSITION_SCALE,
-        load_emission,
-        load_transition,
-    )
-    from pyro_slam.slam import SLAM, SLAMConfig, path_integration
+    from pyro_slam.cli import shipped_slam
+    from pyro_slam.slam import path_integration
     from simulators import simulate_traversal
 
     tr = simulate_traversal(maze, steps=steps, seed=seed, tour=tour)
-    cfg = SLAMConfig(learn_emission=False, transition_scale=TRANSITION_SCALE, seed=seed)
-    em = load_emission(PRETRAINED / EMISSION_FILE, tr, cfg)
-    slam = SLAM(tr, cfg, transition=load_transition(PRETRAINED / TRANSITION_FILE), emission=em)
+    slam = shipped_slam(tr, seed=seed)
     est = slam.run("online", progress=False)["mean"]  # [T, 3]
     err = metrics.localisation_error(est, tr.poses)  # [T]
     pi = metrics.localisation_error(path_integration(tr, slam.model.transition), tr.poses)

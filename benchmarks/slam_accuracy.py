@@ -49,17 +49,12 @@ def run_one(job) -> dict:
 
     torch.set_num_threads(1)
     from pyro_slam import metrics
-    from pyro_slam.cli import PRETRAINED, TRANSITION_FILE, load_emission, load_transition
-    from pyro_slam.slam import SLAM, SLAMConfig, path_integration
+    from pyro_slam.cli import shipped_slam
+    from pyro_slam.slam import path_integration
 
     tr = _traversal(maze_seed, seed, steps)
-    cfg = SLAMConfig(**{**BENCH_CONFIG, **over, "seed": seed})
-    em = load_emission(PRETRAINED / "emission_lidar20.pt", tr, cfg)
-    tran = None
-    if transition_kind == "learned":
-        tran = load_transition(PRETRAINED / TRANSITION_FILE)
     t0 = time.perf_counter()
-    slam = SLAM(tr, cfg, transition=tran, emission=em)
+    slam = shipped_slam(tr, transition_kind, **{**BENCH_CONFIG, **over, "seed": seed})
     pi = path_integration(tr, slam.model.transition)
     if map_poses != "filter":  # diagnostic: the map is learned at these poses, see --map-poses
         slam.pin_cache(tr.poses if map_poses == "true" else pi, seed=seed)

@@ -100,6 +100,25 @@ def load_transition(path):
     return LearnedTransition.from_state(blob)
 
 
+def shipped_slam(traversal: Traversal, transition: str = "learned", **overrides):
+    """A :class:`~pyro_slam.slam.SLAM` with the shipped (frozen) LiDAR emission and the shipped
+    learned transition filtered with :data:`TRANSITION_SCALE` (``transition="kinematic"``: the
+    simulator's kinematics, unscaled), as the LiDAR benchmarks run it. ``overrides`` are
+    :class:`~pyro_slam.slam.SLAMConfig` fields and win over these defaults."""
+    from .slam import SLAM, SLAMConfig
+
+    if transition not in ("learned", "kinematic"):
+        raise ValueError(f"transition must be 'learned' or 'kinematic', got {transition!r}")
+    defaults = {"learn_emission": False}
+    tran = None
+    if transition == "learned":
+        defaults["transition_scale"] = TRANSITION_SCALE
+        tran = load_transition(PRETRAINED / TRANSITION_FILE)
+    cfg = SLAMConfig(**{**defaults, **overrides})
+    emission = load_emission(PRETRAINED / EMISSION_FILE, traversal, cfg)
+    return SLAM(traversal, cfg, transition=tran, emission=emission)
+
+
 def _default_emission(traversal: Traversal):
     """The shipped emission fits the simulator's 20-beam unit-maze LiDAR only."""
     f = PRETRAINED / EMISSION_FILE

@@ -74,3 +74,25 @@ def test_demo_end_to_end(tmp_path):
         assert (out / name).is_file()
     # SLAM stays within a corridor width of the truth over 400 steps
     assert report["slam"]["final_error"] < 1 / 6
+
+
+def test_shipped_slam_scales_the_learned_transition_and_freezes_the_emission():
+    import torch
+
+    from simulators import simulate_traversal
+
+    tr = simulate_traversal("moderate-medium", steps=30, seed=3)
+    fitted = cli.load_transition(cli.PRETRAINED / cli.TRANSITION_FILE).sigma
+    slam = cli.shipped_slam(tr, seed=2)
+    scale = torch.tensor(cli.TRANSITION_SCALE, dtype=fitted.dtype)
+    torch.testing.assert_close(slam.model.transition.sigma, fitted * scale)
+    assert slam.cfg.learn_emission is False and slam.cfg.seed == 2
+    # overrides win over the defaults; the kinematic transition is not scaled
+    same = cli.shipped_slam(tr, transition_scale=(1.0, 1.0, 1.0))
+    torch.testing.assert_close(same.model.transition.sigma, fitted)
+    kin = cli.shipped_slam(tr, "kinematic")
+    torch.testing.assert_close(
+        kin.model.transition.sigma, torch.tensor(kin.cfg.transition_sigma, dtype=fitted.dtype)
+    )
+    with pytest.raises(ValueError, match="transition must be 'learned' or 'kinematic'"):
+        cli.shipped_slam(tr, "linear")
