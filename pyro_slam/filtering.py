@@ -27,8 +27,10 @@ from pyro.infer import ELBO
 from torch.distributions import kl_divergence
 
 from . import resampling
-from .geometry import wrap_angle
+from .geometry import reproject_scan, wrap_angle
 from .model import DVBFLM
+
+WEIGHTINGS = ("marginal", "shared", "tempered", "predictive")
 
 
 @dataclass
@@ -92,8 +94,11 @@ class ParticleFilter:
             approximate marginalisation of ``q(M)`` that leaves the weights flat where the map
             is still at its prior (``var = 1``) and sharp where it is well determined.
         generator: ``torch.Generator`` for reproducible noise and resampling.
-        weighting: ``"marginal"`` (inflated sigma, above) or ``"tempered"`` (likelihood raised to
-            ``trust^2`` without the normaliser, so unmapped charts are neutral).
+        weighting: ``"marginal"`` (inflated sigma, above), ``"shared"`` (the same, with one
+            inflation for the whole cloud: the weighted mean of the particles' trust, so the
+            normaliser ``-B log sigma`` cancels and cannot favour particles in cells written more
+            often) or ``"tempered"`` (likelihood raised to ``trust^2`` without the normaliser,
+            so unmapped charts are neutral).
         outlier_prob: per-beam outlier floor of the tempered weights.
         prior_predictive_std: ``"predictive"`` weighting: per-beam std of scans under the map
             prior (SLAM sets it to the std of the observed ranges); the predictive std is
@@ -118,10 +123,8 @@ class ParticleFilter:
         self.prior_predictive_std = prior_predictive_std
         self.outlier_prob = outlier_prob
         self.autocast_dtype = autocast_dtype
-        if weighting not in ("marginal", "tempered", "predictive"):
-            raise ValueError(
-                f"weighting must be 'marginal', 'tempered' or 'predictive', got {weighting!r}"
-            )
+        if weighting not in WEIGHTINGS:
+            raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
         self.uncertainty_gain, self.weighting = uncertainty_gain, weighting
         if scheme not in resampling.SCHEMES:
             raise ValueError(f"unknown resampling scheme {scheme!r}")
@@ -150,6 +153,9 @@ class ParticleFilter:
                 trust = (trust * usable).clamp_min(1e-2)
             if M.trust != 1.0:
                 trust = (trust * M.trust).clamp_min(1e-2)
+            if self.weighting == "shared":
+                # one trust for the cloud: the normaliser is then the same for every particle
+                trust = (logw.exp().unsqueeze(-1) * trust).sum(-2, keepdim=True)  # [..., 1, 1]
             M = M.loc
             if self.weighting == "predictive":
                 # linearised marginal of q(M): predictive variance s0^2 + v * s_p^2, where
@@ -370,6 +376,13 @@ class ParticleChunkELBO(ELBO):
         observations ``[T, B]``, controls ``[T-1, D_u]``, mask ``[T, B]`` or None.
         num_particles: particles per chunk during training.
         num_steps_seen: ``T`` in the scaling (online SLAM: steps seen so far); default all.
+        reproject_radius: if > 0, each chunk step also writes the map around its pose: the scan
+            is reprojected (:func:`~pyro_slam.geometry.reproject_scan`) to ``reproject_samples``
+            positions drawn uniformly within this radius of the filtered mean pose, and the
+            emission log-likelihood of these pseudo-scans there, times ``reproject_weight``, is
+            added to the chunk's evidence in the loss (LiDAR only; ``max_range`` needed). The map
+            then learns, from one scan, the sub-cell parallax a scan matcher uses, and the cells
+            just ahead of the agent before it reaches them.
     """
 
     def __init__(
@@ -383,8 +396,21 @@ class ParticleChunkELBO(ELBO):
         proposal: str = "gaussian",
         proposal_shrink: float = 1.0,
         refresh: bool = True,
+        reproject_radius: float = 0.0,
+        reproject_samples: int = 4,
+        reproject_weight: float = 1.0,
+        max_range: float | None = None,
     ):
         super().__init__(num_particles=1)
+        if reproject_radius < 0 or reproject_samples < 1 or reproject_weight < 0:
+            raise ValueError(
+                "reproject_radius and reproject_weight must be >= 0 and reproject_samples >= 1, "
+                f"got {reproject_radius}, {reproject_samples}, {reproject_weight}"
+            )
+        if reproject_radius > 0 and (pf.model.beam_angles is None or max_range is None):
+            raise ValueError("reproject_radius > 0 needs a LiDAR emission and max_range")
+        self.reproject_radius, self.reproject_samples = reproject_radius, reproject_samples
+        self.reproject_weight, self.max_range = reproject_weight, max_range
         self.pf, self.cache = pf, cache
         self.observations, self.controls, self.mask = observations, controls, mask
         self.K = num_particles
@@ -392,6 +418,7 @@ class ParticleChunkELBO(ELBO):
         self.refresh = refresh
         self.num_steps_seen = observations.shape[0]
         self.last_log_evidence = None
+        self._poses = None  # [C, L, 3] filtered mean poses of the last chunks (reprojection)
 
     def chunk_log_evidence(self, M, batch: ChunkBatch):
         """Run the filter over the chunks; returns ``log p^ [C]`` and refreshes the cache."""
@@ -404,6 +431,7 @@ class ParticleChunkELBO(ELBO):
         z0 = z0.to(obs.dtype)
         p, ev = self.pf.init(z0, M, obs[t], None if mask is None else mask[t], step=int(t[0]))
         self.cache.store(t, p, self.pf.generator)
+        poses = [p.mean().detach()]  # L x [C, 3]
         for l in range(1, batch.length):
             tl = t + l
             p, inc = self.pf.step(
@@ -411,6 +439,8 @@ class ParticleChunkELBO(ELBO):
             )
             ev = ev + inc
             self.cache.store(tl, p, self.pf.generator)
+            poses.append(p.mean().detach())
+        self._poses = torch.stack(poses, -2)  # [C, L, 3]
         if self.refresh:
             nxt = t + batch.length
             ok = nxt < min(T, self.num_steps_seen)
@@ -421,6 +451,26 @@ class ParticleChunkELBO(ELBO):
                 z = self.pf.propagate(q, ctl[nxt[ok] - 1])
                 self.cache.store(nxt[ok], Particles(z, q.logw), self.pf.generator)
         return ev
+
+    def reprojection_log_lik(self, M, batch: ChunkBatch) -> torch.Tensor:
+        """Emission log-likelihood of the chunks' scans reprojected around their filtered mean
+        poses (see ``reproject_radius``), averaged over the samples, summed over steps: ``[C]``.
+        Call after :meth:`chunk_log_evidence` on the same batch."""
+        model, z = self.pf.model, self._poses  # [C, L, 3]
+        steps = batch.starts.unsqueeze(-1) + torch.arange(batch.length)  # [C, L]
+        x = self.observations[steps]  # [C, L, B]
+        mask = None if self.mask is None else self.mask[steps]
+        shape = (*z.shape[:-1], self.reproject_samples)  # [C, L, A]
+        g = self.pf.generator
+        r = self.reproject_radius * torch.rand(shape, generator=g, dtype=z.dtype).sqrt()
+        a = (2 * math.pi) * torch.rand(shape, generator=g, dtype=z.dtype)
+        d = torch.stack([r * torch.cos(a), r * torch.sin(a)], -1)  # [C, L, A, 2]
+        world = z[..., 2:3] + model.beam_angles.to(z.dtype)  # [C, L, B]
+        xs, valid = reproject_scan(x, world, d, self.max_range, mask)  # [C, L, A, B]
+        zs = z.unsqueeze(-2) + torch.cat([d, torch.zeros_like(d[..., :1])], -1)  # [C, L, A, 3]
+        sigma = self.pf.sigma_emission
+        ll = model.emission_log_prob(xs, model.emission_mean(M, zs), valid, sigma)  # [C, L, A]
+        return ll.mean(-1).sum(-1)
 
     def differentiable_loss(self, model, guide, batch: ChunkBatch, *args, **kwargs):
         guide_tr = poutine.trace(guide).get_trace()
@@ -437,6 +487,8 @@ class ParticleChunkELBO(ELBO):
                 kl = kl + site["fn"].log_prob(site["value"]).sum()
         ev = self.chunk_log_evidence(M, batch)  # [C]
         self.last_log_evidence = ev.detach()
+        if self.reproject_radius > 0 and self.reproject_weight > 0:
+            ev = ev + self.reproject_weight * self.reprojection_log_lik(M, batch)
         T = self.num_steps_seen
         C, L = len(batch.starts), batch.length
         return (-(T / (C * L)) * ev.sum() + kl) / T

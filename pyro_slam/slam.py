@@ -65,7 +65,7 @@ class SLAMConfig:
     # sigma_T -> 0); the transition passed in is copied, not changed
     transition_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
     uncertainty_gain: float = 1.0
-    weighting: str = "marginal"  # filter weights under q(M): marginal | tempered | predictive
+    weighting: str = "marginal"  # filter weights under q(M): marginal|shared|tempered|predictive
     outlier_prob: float = 0.0  # per-beam outlier floor of the tempered weights
     filter_particles: int = 128
     train_particles: int = 16
@@ -86,6 +86,11 @@ class SLAMConfig:
     revisit_gap: int = 0  # online: cells first mapped < gap steps ago do not weigh particles
     revisit_radius: float | None = None  # online: trust by distance to poses >= gap steps old
     write_lag: int = 0  # online: SVI learns the map from steps at least this old
+    # > 0: the ELBO also writes each scan, reprojected by the LiDAR geometry, at positions within
+    # this radius of its pose (ParticleChunkELBO); samples per step and weight vs the real scan
+    reproject_radius: float = 0.0
+    reproject_samples: int = 4
+    reproject_weight: float = 1.0
     seed: int = 0
     checkpoint_every: int = 1000
     beam_stride: int = 1  # SLAM uses every k-th beam (see prepare_traversal)
@@ -336,6 +341,10 @@ class SLAM:
             num_particles=self.cfg.train_particles,
             proposal=self.cfg.proposal,
             proposal_shrink=self.cfg.proposal_shrink,
+            reproject_radius=self.cfg.reproject_radius,
+            reproject_samples=self.cfg.reproject_samples,
+            reproject_weight=self.cfg.reproject_weight,
+            max_range=float(traversal.max_range),
         )
         lr = self.cfg
 

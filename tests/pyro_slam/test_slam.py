@@ -247,6 +247,62 @@ def test_elbo_chunk_filter_sigma(traversal, train_sigma):
     torch.testing.assert_close(ev[0], expected, rtol=1e-3, atol=1e-2)
 
 
+def test_reprojection_writes_the_map_around_the_chunk_poses(traversal):
+    # reproject_radius > 0: the loss also scores the scans reprojected within the radius, so
+    # map cells the chunk filter never reads get gradients; the chunk evidence is unchanged
+    from pyro_slam.filtering import ChunkBatch
+
+    true = torch.as_tensor(traversal.poses)
+    grads, evidence = {}, {}
+    for radius in (0.0, 0.1):
+        slam = SLAM(traversal, config(reproject_radius=radius, reproject_samples=16))
+        slam.cache.z[:] = true.to(slam.cache.z.dtype).unsqueeze(1)  # cached particles at truth
+        slam.cache.filled[:] = True
+        slam.model.transition.sigma = torch.full((3,), 1e-6)  # the chunk stays on the truth
+        loc, _ = slam.guide.params()
+        loss = slam.elbo.differentiable_loss(
+            slam.model.map_model, slam.guide, ChunkBatch(torch.tensor([0, 10]), 4)
+        )
+        (g,) = torch.autograd.grad(loss, loc)
+        kl_only = loc.detach()  # the KL's gradient is d/dloc KL / T = loc / T
+        grads[radius] = (g - kl_only / slam.elbo.num_steps_seen).abs().sum(-1)  # [w, h]
+        evidence[radius] = slam.elbo.last_log_evidence
+    torch.testing.assert_close(evidence[0.0], evidence[0.1])
+    read = grads[0.0] > 0
+    assert read.sum() >= 4  # the cells around the chunk poses
+    assert (grads[0.1][read] > 0).all()
+    assert ((grads[0.1] > 0) & ~read).sum() >= 4  # cells only the reprojection writes
+    with pytest.raises(ValueError, match="reproject_samples >= 1"):
+        SLAM(traversal, config(reproject_radius=0.1, reproject_samples=0))
+
+
+@pytest.mark.parametrize("weighting", ["marginal", "shared"])
+def test_shared_trust_removes_the_pull_towards_often_written_cells(traversal, weighting):
+    # a map whose mean is the same everywhere (every particle predicts the same scan, and the
+    # observation is that scan) but whose scale falls from 1 (unmapped) to 0.2 (written often)
+    # along x: per-particle trust ("marginal") prefers the particles in the often-written cells
+    # through the normaliser -B log sigma alone; one trust for the cloud ("shared") does not
+    from pyro_slam.filtering import MapBelief, ParticleFilter
+
+    slam = SLAM(traversal, config())
+    w, h, D = slam.model.grid.shape
+    scale = torch.linspace(1.0, 0.2, w).view(w, 1, 1).expand(w, h, D).contiguous()
+    belief = MapBelief(torch.full((w, h, D), 0.3), scale)
+    x0, x1, y0, y1 = slam.model.grid.extent()
+    z = torch.zeros(64, 3)
+    z[:, 0] = torch.linspace(x0 + 0.05, x1 - 0.05, 64)
+    z[:, 1] = 0.5 * (y0 + y1)
+    pf = ParticleFilter(slam.model, sigma_emission=0.05, weighting=weighting)
+    flat = torch.full((64,), -math.log(64))
+    x = slam.model.emission_mean(belief.loc, z[0]).detach()  # [B] a perfect match everywhere
+    p, _ = pf._weigh(z, belief, x, None, flat, step=0)
+    logw = p.logw.detach()
+    if weighting == "shared":
+        torch.testing.assert_close(logw, flat)
+    else:
+        assert logw[-1] - logw[0] > 1.0 and (logw.diff() >= -1e-6).all()
+
+
 def test_n_world_sets_the_emission_profile_resolution(traversal):
     from pyro_slam.cli import load_emission
 
