@@ -78,6 +78,7 @@ class SLAMConfig:
     learn_emission: bool = True
     svi_every: int = 1
     svi_steps: int = 1
+    newest_svi_steps: int = 0  # online: extra SVI steps on the newest chunk alone, per step
     offline_rounds: int = 2
     offline_svi_steps: int = 800
     offline_init: str = "online"
@@ -308,6 +309,8 @@ class SLAM:
             raise ValueError(f"revisit_radius must be > 0, got {self.cfg.revisit_radius}")
         if self.cfg.write_lag < 0:
             raise ValueError(f"write_lag must be >= 0, got {self.cfg.write_lag}")
+        if self.cfg.newest_svi_steps < 0:
+            raise ValueError(f"newest_svi_steps must be >= 0, got {self.cfg.newest_svi_steps}")
         self.tr = traversal = prepare_traversal(traversal, self.cfg)
         self.obs, self.ctl, self.mask, self.init_pose = _tensors(traversal)
         self.T = self.obs.shape[0]
@@ -444,6 +447,10 @@ class SLAM:
                 self.elbo.num_steps_seen = tw + 1
                 for _ in range(self.cfg.svi_steps):
                     st.losses.append(self._svi_step(0, tw - L + 1, tw - L + 1))
+                # the map at the agent's cells learns fast enough to inform the filter while it
+                # is still there, without larger steps on the older cells
+                for _ in range(self.cfg.newest_svi_steps):
+                    self.svi.step(ChunkBatch(torch.tensor([tw - L + 1]), L))
             st.t += 1
             bar.update(1)
             if self.checkpoint and st.t % self.cfg.checkpoint_every == 0:

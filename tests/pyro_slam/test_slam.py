@@ -195,6 +195,22 @@ def test_transition_scale_scales_a_copy_of_sigma_t(traversal):
             SLAM(traversal, config(transition_scale=bad))
 
 
+def test_newest_svi_steps_train_on_the_newest_chunk_only(traversal):
+    T, L = traversal.num_steps, CFG["chunk_length"]
+    slam = SLAM(traversal, config(newest_svi_steps=2))
+    batches = []
+    step = slam.svi.step
+    slam.svi.step = lambda batch: batches.append(batch.starts.tolist()) or step(batch)
+    res = slam.run("online", progress=False)
+    assert len(res["losses"]) == T - L + 1  # the regular steps are unchanged
+    assert len(batches) == 3 * (T - L + 1)
+    # each time step t: one regular batch (newest chunk first), then two of the newest alone
+    assert batches[1] == batches[2] == [0] and batches[-1] == [T - L]
+    assert len(batches[-3]) == CFG["chunks_per_batch"] and batches[-3][0] == T - L
+    with pytest.raises(ValueError, match="newest_svi_steps must be >= 0, got -1"):
+        SLAM(traversal, config(newest_svi_steps=-1))
+
+
 def test_write_lag_learns_the_map_only_from_old_enough_steps(traversal):
     T, L = traversal.num_steps, CFG["chunk_length"]
     slam = SLAM(traversal, config(write_lag=5))
