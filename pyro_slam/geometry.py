@@ -54,7 +54,9 @@ def reproject_scan(
     invalid where that picture does not hold: a max-range or masked reading (or a masked
     neighbour), a corner or depth jump (the two polyline segments at the hit turn by more than
     ``max_turn`` rad), a grazing ray (``|sin|`` of the incidence angle below ``min_incidence``),
-    or ``s`` outside ``(0, max_range)``.
+    or ``s`` outside ``(0, max_range)``. (``benchmarks/frontier_ceiling.py`` instead intersects
+    each beam with the whole polygon of a world-frame profile: exact for larger shifts, but with
+    no test of where that picture fails, so it suits a diagnostic bound, not training targets.)
 
     Args:
         ranges: ``[..., B]`` readings along the world angles ``angles [..., B]`` (heading plus
