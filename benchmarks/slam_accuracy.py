@@ -16,7 +16,8 @@ it (:meth:`pyro_slam.slam.SLAM.pin_cache`); the gap to the default ``filter`` is
 written into the map cost.
 
 Each run's result is written to ``OUT/runs/<mode>_m<maze>_t<traversal>.npz`` as it finishes, so
-an interrupted benchmark resumes where it stopped (finished runs are not recomputed).
+an interrupted benchmark resumes where it stopped (finished runs are not recomputed). Besides the
+errors over time it holds the trajectories ``estimate``, ``truth`` and ``pi_poses`` ``[T, 3]``.
 """
 
 from __future__ import annotations
@@ -65,6 +66,10 @@ def run_one(job) -> dict:
         "pi": metrics.localisation_error(pi, tr.poses),
         "distance": metrics.distance_travelled(tr.poses),
         "wall_s": wall,
+        # trajectories [T, 3] (x, y, heading): SLAM's pose means, the truth, path integration
+        "estimate": np.asarray(res["mean"], dtype=np.float32),
+        "truth": np.asarray(tr.poses, dtype=np.float32),
+        "pi_poses": np.asarray(pi, dtype=np.float32),
     }
     np.savez(path, **out)
     return {"mode": mode, "maze": maze_seed, "seed": seed, "final": float(out["slam"][-1]),
