@@ -17,7 +17,10 @@ written into the map cost.
 
 Each run's result is written to ``OUT/runs/<mode>_m<maze>_t<traversal>.npz`` as it finishes, so
 an interrupted benchmark resumes where it stopped (finished runs are not recomputed). Besides the
-errors over time it holds the trajectories ``estimate``, ``truth`` and ``pi_poses`` ``[T, 3]``.
+errors over time it holds the trajectories ``estimate``, ``truth`` and ``pi_poses`` ``[T, 3]``
+and the filter's posterior std ``std [T, 3]``; the summary adds the error averaged over time
+(less noisy than the final one) and ``std_over_error_median``, the filter's calibration (1: its
+position std matches its error).
 """
 
 from __future__ import annotations
@@ -70,6 +73,7 @@ def run_one(job) -> dict:
         "estimate": np.asarray(res["mean"], dtype=np.float32),
         "truth": np.asarray(tr.poses, dtype=np.float32),
         "pi_poses": np.asarray(pi, dtype=np.float32),
+        "std": np.asarray(res["std"], dtype=np.float32),  # [T, 3] the filter's posterior std
     }
     np.savez(path, **out)
     return {"mode": mode, "maze": maze_seed, "seed": seed, "final": float(out["slam"][-1]),
@@ -136,8 +140,16 @@ def main(argv=None) -> int:
             "final_mean": float(e[:, -1].mean()),
             "final_std": float(e[:, -1].std()),
             "relative_final_mean": float((e[:, -1] / dist[:, -1]).mean()),
+            # the error averaged over all steps: a less noisy figure than the final one
+            "time_avg_mean": float(e.mean()),
             "wall_s_mean": float(np.mean([d["wall_s"] for d in data])),
         }
+        if all("std" in d for d in data):  # runs from before the std was saved lack it
+            pos_std = np.stack([np.hypot(d["std"][:, 0], d["std"][:, 1]) for d in data])
+            # calibration: the filter's position std over its actual error (1: calibrated)
+            summary[mode]["std_over_error_median"] = float(
+                np.median(pos_std.mean(1) / np.maximum(e.mean(1), 1e-12))
+            )
     summary["path_integration"] = {
         "final_mean": float(pi[:, -1].mean()),
         "final_std": float(pi[:, -1].std()),

@@ -134,6 +134,27 @@ class ParticleFilter:
         self.sigma_emission = sigma_emission
         self.generator = generator
 
+    def trust(self, z: torch.Tensor, M: MapBelief) -> torch.Tensor:
+        """How far the weights trust the map belief at poses ``z [..., K, 3]``: ``[..., K, 1]``
+        in ``[0.01, 1]``, one minus the chart's variance under ``M`` relative to the prior's
+        (times ``uncertainty_gain``, ``M.usable`` and ``M.trust``)."""
+        # chart variance relative to the prior's: sum a_i^2 s_i^2 / sum a_i^2, in [0, 1]
+        g, xy = self.model.grid, z[..., :2]
+        var = g.attend(M.scale**2, xy, power=2).mean(-1, keepdim=True)
+        var = var / g.attend(torch.ones_like(M.scale[..., :1]), xy, power=2)
+        # prior variance is 1: charts of unmapped cells (var -> 1) give flat weights
+        trust = (1.0 - self.uncertainty_gain * var).clamp_min(1e-2)  # [..., K, 1]
+        if M.usable is not None:
+            usable = g.attend(M.usable.unsqueeze(-1), xy)  # [..., K, 1]
+            trust = (trust * usable).clamp_min(1e-2)
+        if M.trust != 1.0:
+            trust = (trust * M.trust).clamp_min(1e-2)
+        return trust
+
+    def cloud_trust(self, p: Particles, M: MapBelief) -> torch.Tensor:
+        """The weighted mean of :meth:`trust` over the particles ``p``: ``[...]``."""
+        return (p.logw.exp() * self.trust(p.z, M).squeeze(-1)).sum(-1)
+
     def _weigh(self, z, M, x, mask, logw, step):
         """Emission weights at ``z [..., K, 3]``.
 
@@ -142,17 +163,7 @@ class ParticleFilter:
         sigma, beta = self.sigma_emission, None
         if isinstance(M, MapBelief):
             s0 = self.model.sigma_emission if sigma is None else sigma
-            # chart variance relative to the prior's: sum a_i^2 s_i^2 / sum a_i^2, in [0, 1]
-            g, xy = self.model.grid, z[..., :2]
-            var = g.attend(M.scale**2, xy, power=2).mean(-1, keepdim=True)
-            var = var / g.attend(torch.ones_like(M.scale[..., :1]), xy, power=2)
-            # prior variance is 1: charts of unmapped cells (var -> 1) give flat weights
-            trust = (1.0 - self.uncertainty_gain * var).clamp_min(1e-2)  # [..., K, 1]
-            if M.usable is not None:
-                usable = g.attend(M.usable.unsqueeze(-1), xy)  # [..., K, 1]
-                trust = (trust * usable).clamp_min(1e-2)
-            if M.trust != 1.0:
-                trust = (trust * M.trust).clamp_min(1e-2)
+            trust = self.trust(z, M)  # [..., K, 1]
             if self.weighting == "shared":
                 # one trust for the cloud: the normaliser is then the same for every particle
                 trust = (logw.exp().unsqueeze(-1) * trust).sum(-2, keepdim=True)  # [..., 1, 1]
@@ -206,15 +217,19 @@ class ParticleFilter:
         logw = z0.new_full(z0.shape[:-1], -math.log(K))
         return self._weigh(z0.detach(), M, x, mask, logw, step)
 
-    def propagate(self, p: Particles, u: torch.Tensor) -> torch.Tensor:
-        """Sample ``z_{t+1} ~ p(. | z_t, u_t, mu_E(m_t))``: ``[..., K, 3]`` (no gradient)."""
+    def propagate(self, p: Particles, u: torch.Tensor, sigma=None) -> torch.Tensor:
+        """Sample ``z_{t+1} ~ p(. | z_t, u_t, mu_E(m_t))``: ``[..., K, 3]`` (no gradient).
+
+        ``sigma``: the transition std to use instead of the model's ``sigma_T`` (``[3]`` or
+        ``[..., 1, 3]``)."""
         with torch.no_grad():
             mean = self.model.transition.mean(p.z, u.unsqueeze(-2), p.scan)
             eps = torch.randn(mean.shape, generator=self.generator, dtype=mean.dtype)
-            return mean + eps * self.model.transition.sigma
+            return mean + eps * (self.model.transition.sigma if sigma is None else sigma)
 
-    def step(self, p: Particles, M, x, u, mask=None, step=None):
-        """One filtering step: resample if needed, propagate with ``u [..., D_u]``, weigh ``x``.
+    def step(self, p: Particles, M, x, u, mask=None, step=None, sigma=None):
+        """One filtering step: resample if needed, propagate with ``u [..., D_u]`` (transition
+        std ``sigma``, default the model's), weigh ``x``.
 
         Returns ``(particles, log_evidence_increment [...])``.
         """
@@ -229,7 +244,7 @@ class ParticleFilter:
                     None if p.scan is None else torch.where(m.unsqueeze(-1), r.scan, p.scan),
                 )
             p = r
-        z = self.propagate(p, u)
+        z = self.propagate(p, u, sigma)
         return self._weigh(z, M, x, mask, p.logw, step)
 
     @torch.no_grad()

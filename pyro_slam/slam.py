@@ -64,6 +64,9 @@ class SLAMConfig:
     # factors on sigma_T (x, y, heading) of the transition SLAM filters with (the paper lets
     # sigma_T -> 0); the transition passed in is copied, not changed
     transition_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    # the filter's scale of sigma_T where the map is trusted: interpolated from transition_scale
+    # (trust 0) by the cloud's trust in the map at the previous step (None: fixed)
+    transition_scale_trusted: tuple[float, float, float] | None = None
     uncertainty_gain: float = 1.0
     weighting: str = "marginal"  # filter weights under q(M): marginal|shared|tempered|predictive
     outlier_prob: float = 0.0  # per-beam outlier floor of the tempered weights
@@ -311,6 +314,11 @@ class SLAM:
             raise ValueError(f"write_lag must be >= 0, got {self.cfg.write_lag}")
         if self.cfg.newest_svi_steps < 0:
             raise ValueError(f"newest_svi_steps must be >= 0, got {self.cfg.newest_svi_steps}")
+        st = self.cfg.transition_scale_trusted
+        if st is not None and (len(st) != 3 or not all(f > 0 for f in st)):
+            raise ValueError(
+                f"transition_scale_trusted must be 3 positive factors (x, y, heading), got {st!r}"
+            )
         self.tr = traversal = prepare_traversal(traversal, self.cfg)
         self.obs, self.ctl, self.mask, self.init_pose = _tensors(traversal)
         self.T = self.obs.shape[0]
@@ -423,8 +431,27 @@ class SLAM:
             )
             self.particles, _ = self.pf.init(z0, M, x, m, step=0)
         else:
-            self.particles, _ = self.pf.step(self.particles, M, x, self.ctl[t - 1], m, step=t)
+            sigma = self._transition_sigma(M)
+            self.particles, _ = self.pf.step(
+                self.particles, M, x, self.ctl[t - 1], m, step=t, sigma=sigma
+            )
         self.cache.store(torch.tensor([t]), _batched(self.particles), self.gen)
+
+    def _transition_sigma(self, M):
+        """The filter's ``sigma_T`` for the next step (``None``: the model's). With
+        ``transition_scale_trusted``, it moves linearly from the model's (scaled by
+        ``transition_scale``) to the one scaled by ``transition_scale_trusted`` as the cloud's
+        trust in the map belief ``M`` goes from 0 to 1: firm odometry at the frontier of the
+        map, where a young chart copies the last scans and misleads the filter, and loose
+        odometry (up to the actual residual of the transition) where the map is established."""
+        hi = self.cfg.transition_scale_trusted
+        if hi is None or not isinstance(M, MapBelief):
+            return None
+        lo = self.model.transition.sigma  # [3], already scaled by transition_scale
+        ratio = torch.tensor(hi, dtype=lo.dtype) / torch.tensor(self.cfg.transition_scale)
+        hi = lo * ratio
+        trust = self.pf.cloud_trust(self.particles, M)  # []
+        return lo + trust * (hi - lo)
 
     # --------------------------------------------------------------------------- phases
     def _online(self, progress: bool):

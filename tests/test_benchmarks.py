@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -53,6 +54,13 @@ def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path
     assert (tmp_path / "error_bands.png").stat().st_size > 10_000
     runs = sorted((tmp_path / "runs").glob("*.npz"))
     assert len(runs) == 1
+    with np.load(runs[0]) as z:  # the trajectories and the filter's std are exported
+        assert all(z[k].shape == (40, 3) for k in ("estimate", "truth", "pi_poses", "std"))
+        err = np.hypot(*(z["estimate"][:, :2] - z["truth"][:, :2]).T)
+        np.testing.assert_allclose(err, z["slam"], atol=1e-5)
+        assert math.isclose(summary["online"]["time_avg_mean"], float(z["slam"].mean()))
+        assert (z["std"] >= 0).all()
+    assert summary["online"]["std_over_error_median"] > 0
     stamp = runs[0].stat().st_mtime_ns
     run("slam_accuracy.py", *args)  # finished runs are reused, not recomputed
     assert runs[0].stat().st_mtime_ns == stamp

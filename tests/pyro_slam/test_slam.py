@@ -441,3 +441,33 @@ def test_checkpoint_writes_are_atomic(traversal, tmp_path, monkeypatch):
     assert again.state.t == STEPS and again.state.phase == "done"
     slam.save(ckpt)  # and a working save replaces it
     assert torch.load(ckpt, weights_only=False)["state"]["t"] == 3
+
+
+def test_transition_scale_trusted_loosens_sigma_t_with_the_clouds_trust(traversal):
+    # sigma_T moves from the transition_scale one (unmapped map: trust 0.01) to the
+    # transition_scale_trusted one (map with scale 0: trust 1), and the filter spreads by it
+    from pyro_slam.filtering import MapBelief, Particles
+
+    lo_scale, hi_scale = (1.0, 1.0, 0.2), (1.0, 1.0, 1.0)
+    slam = SLAM(traversal, config(transition_scale=lo_scale, transition_scale_trusted=hi_scale))
+    base = SLAM(traversal, config(transition_scale=lo_scale))
+    assert base._transition_sigma(base.map_mean()) is None  # off by default
+    lo = slam.model.transition.sigma.clone()
+    w, h, D = slam.model.grid.shape
+    K = 4000
+    z = torch.tensor(traversal.poses[0], dtype=torch.float32).expand(K, 3).clone()
+    slam.particles = Particles(z, torch.full((K,), -math.log(K)))
+    unmapped = MapBelief(torch.zeros(w, h, D), torch.ones(w, h, D))
+    mapped = MapBelief(torch.zeros(w, h, D), torch.zeros(w, h, D))
+    hi = lo / torch.tensor(lo_scale) * torch.tensor(hi_scale)
+    torch.testing.assert_close(slam._transition_sigma(unmapped), lo + 0.01 * (hi - lo))
+    torch.testing.assert_close(slam._transition_sigma(mapped), hi)
+    assert hi[2] == pytest.approx(5 * lo[2]) and hi[0] == pytest.approx(lo[0])
+    u = slam.ctl[0]
+    for M, sigma in ((unmapped, lo), (mapped, hi)):
+        spread = slam.pf.propagate(slam.particles, u, slam._transition_sigma(M)).std(0)
+        torch.testing.assert_close(spread, sigma, rtol=0.08, atol=0)
+    res = slam.run("online", progress=False)  # runs end to end with it
+    assert np.isfinite(res["mean"]).all()
+    with pytest.raises(ValueError, match="transition_scale_trusted must be 3 positive"):
+        SLAM(traversal, config(transition_scale_trusted=(1.0, 0.0, 1.0)))
