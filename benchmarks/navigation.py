@@ -315,9 +315,10 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
 
 def _slam_poses(maze, tour, steps: int, seed: int = 1):
     """``--map-poses slam``: online DVBF-LM SLAM on the mapping traversal, with the settings of
-    ``benchmarks/slam_accuracy.py`` (shipped frozen emission, learned transition filtered with
-    ``TRANSITION_SCALE``). Returns ``(traversal, pose means [T, 3], error summary)``; the
-    traversal is the one :func:`~pyro_slam.planning.learned_env` would simulate (same seed)."""
+    ``benchmarks/slam_accuracy.py`` (shipped frozen emission, learned transition filtered as
+    ``pyro_slam.cli.SHIPPED_FILTER`` says). Returns ``(traversal, pose means [T, 3], error
+    summary)``; the traversal is the one :func:`~pyro_slam.planning.learned_env` would simulate
+    (same seed)."""
     from pyro_slam import metrics
     from pyro_slam.cli import shipped_slam
     from pyro_slam.slam import path_integration

@@ -31,6 +31,15 @@ TRANSITION_FILE = "transition_moderate_medium.pt"
 # these factors (x, y, heading). A stiffer heading keeps the map's frontier from tilting it, more
 # position noise lets revisits pull the position back (docs/benchmarks.md, session 10)
 TRANSITION_SCALE = (3.0, 3.0, 0.2)
+# ... and where the map is established (the cloud's trust in it near 1) the heading gets the
+# transition's calibrated noise back, with one trust for the whole cloud ("shared" weights): the
+# stiff heading is needed only at the frontier, where a young chart tilts it (session 13)
+TRANSITION_SCALE_TRUSTED = (3.0, 3.0, 1.0)
+SHIPPED_FILTER = dict(
+    transition_scale=TRANSITION_SCALE,
+    transition_scale_trusted=TRANSITION_SCALE_TRUSTED,
+    weighting="shared",
+)
 
 
 # ----------------------------------------------------------------------------------- helpers
@@ -102,8 +111,9 @@ def load_transition(path):
 
 def shipped_slam(traversal: Traversal, transition: str = "learned", **overrides):
     """A :class:`~pyro_slam.slam.SLAM` with the shipped (frozen) LiDAR emission and the shipped
-    learned transition filtered with :data:`TRANSITION_SCALE` (``transition="kinematic"``: the
-    simulator's kinematics, unscaled), as the LiDAR benchmarks run it. ``overrides`` are
+    learned transition filtered as :data:`SHIPPED_FILTER` says (``transition="kinematic"``: the
+    simulator's kinematics, unscaled, and the :class:`~pyro_slam.slam.SLAMConfig` defaults), as
+    the LiDAR benchmarks run it. ``overrides`` are
     :class:`~pyro_slam.slam.SLAMConfig` fields and win over these defaults."""
     from .slam import SLAM, SLAMConfig
 
@@ -112,7 +122,7 @@ def shipped_slam(traversal: Traversal, transition: str = "learned", **overrides)
     defaults = {"learn_emission": False}
     tran = None
     if transition == "learned":
-        defaults["transition_scale"] = TRANSITION_SCALE
+        defaults.update(SHIPPED_FILTER)
         tran = load_transition(PRETRAINED / TRANSITION_FILE)
     cfg = SLAMConfig(**{**defaults, **overrides})
     emission = load_emission(PRETRAINED / EMISSION_FILE, traversal, cfg)
@@ -265,7 +275,7 @@ def cmd_demo(args) -> int:
     tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
     tr.save(out / "traversal.npz")
     plot_traversal(tr, out / "traversal.png")
-    cfg = SLAMConfig(seed=args.seed, learn_emission=False, transition_scale=TRANSITION_SCALE)
+    cfg = SLAMConfig(seed=args.seed, learn_emission=False, **SHIPPED_FILTER)
     emission = load_emission(_default_emission(tr), tr, cfg)
     transition = load_transition(PRETRAINED / TRANSITION_FILE)
     report = run_slam(tr, out, args.mode, cfg, emission, transition, resume=args.resume)
@@ -295,7 +305,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--transition",
         help="pretrained LearnedTransition .pt (default: kinematic); the demo and benchmarks "
-        f"filter the shipped one with transition_scale {list(TRANSITION_SCALE)} (--config)",
+        f"filter the shipped one with {SHIPPED_FILTER} (--config)",
     )
     s.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     s.add_argument(

@@ -64,8 +64,8 @@ class SLAMConfig:
     # factors on sigma_T (x, y, heading) of the transition SLAM filters with (the paper lets
     # sigma_T -> 0); the transition passed in is copied, not changed
     transition_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    # the filter's scale of sigma_T where the map is trusted: interpolated from transition_scale
-    # (trust 0) by the cloud's trust in the map at the previous step (None: fixed)
+    # the online filter's scale of sigma_T where the map is trusted: interpolated from
+    # transition_scale (trust 0) by the cloud's trust in the map at the previous step (None: fixed)
     transition_scale_trusted: tuple[float, float, float] | None = None
     uncertainty_gain: float = 1.0
     weighting: str = "marginal"  # filter weights under q(M): marginal|shared|tempered|predictive
@@ -443,9 +443,12 @@ class SLAM:
         ``transition_scale``) to the one scaled by ``transition_scale_trusted`` as the cloud's
         trust in the map belief ``M`` goes from 0 to 1: firm odometry at the frontier of the
         map, where a young chart copies the last scans and misleads the filter, and loose
-        odometry (up to the actual residual of the transition) where the map is established."""
+        odometry (up to the actual residual of the transition) where the map is established.
+        Only in the online sweep (also the one offline SLAM starts from): the offline filter
+        passes run on a finished map that has no frontier, and keep the model's sigma_T."""
         hi = self.cfg.transition_scale_trusted
-        if hi is None or not isinstance(M, MapBelief):
+        online = self.state is None or self.state.phase in ("online", "online-init")
+        if hi is None or not isinstance(M, MapBelief) or not online:
             return None
         lo = self.model.transition.sigma  # [3], already scaled by transition_scale
         ratio = torch.tensor(hi, dtype=lo.dtype) / torch.tensor(self.cfg.transition_scale)

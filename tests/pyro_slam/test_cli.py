@@ -87,6 +87,8 @@ def test_shipped_slam_scales_the_learned_transition_and_freezes_the_emission():
     scale = torch.tensor(cli.TRANSITION_SCALE, dtype=fitted.dtype)
     torch.testing.assert_close(slam.model.transition.sigma, fitted * scale)
     assert slam.cfg.learn_emission is False and slam.cfg.seed == 2
+    assert slam.cfg.weighting == "shared"
+    assert tuple(slam.cfg.transition_scale_trusted) == cli.TRANSITION_SCALE_TRUSTED
     # overrides win over the defaults; the kinematic transition is not scaled
     same = cli.shipped_slam(tr, transition_scale=(1.0, 1.0, 1.0))
     torch.testing.assert_close(same.model.transition.sigma, fitted)

@@ -469,5 +469,12 @@ def test_transition_scale_trusted_loosens_sigma_t_with_the_clouds_trust(traversa
         torch.testing.assert_close(spread, sigma, rtol=0.08, atol=0)
     res = slam.run("online", progress=False)  # runs end to end with it
     assert np.isfinite(res["mean"]).all()
+    # the offline filter passes (a finished map, no frontier) keep the model's sigma_T
+    from pyro_slam.slam import SLAMState
+
+    slam.state = SLAMState("offline", phase="online-init")
+    torch.testing.assert_close(slam._transition_sigma(mapped), hi)
+    slam.state = SLAMState("offline", phase="offline-filter")
+    assert slam._transition_sigma(mapped) is None
     with pytest.raises(ValueError, match="transition_scale_trusted must be 3 positive"):
         SLAM(traversal, config(transition_scale_trusted=(1.0, 0.0, 1.0)))
