@@ -67,6 +67,9 @@ class SLAMConfig:
     # the online filter's scale of sigma_T where the map is trusted: interpolated from
     # transition_scale (trust 0) by the cloud's trust in the map at the previous step (None: fixed)
     transition_scale_trusted: tuple[float, float, float] | None = None
+    # where transition_scale_trusted acts: "online" (the online sweep, also the one offline SLAM
+    # starts from), "final" (also offline SLAM's final filter pass) or "all" (every filter pass)
+    trusted_passes: str = "online"
     uncertainty_gain: float = 1.0
     weighting: str = "marginal"  # filter weights under q(M): marginal|shared|tempered|predictive
     outlier_prob: float = 0.0  # per-beam outlier floor of the tempered weights
@@ -281,7 +284,7 @@ class SLAMState:
     """Everything a run needs to continue: written to and read from checkpoints."""
 
     mode: str
-    phase: str = "online"  # online | offline-svi | offline-filter | done
+    phase: str = "online"  # online(-init) | offline-svi | offline-filter | offline-final | done
     t: int = 0  # next time step (online) / next SVI step (offline)
     round: int = 0
     estimates: list = field(default_factory=list)  # per step [3]
@@ -318,6 +321,11 @@ class SLAM:
         if st is not None and (len(st) != 3 or not all(f > 0 for f in st)):
             raise ValueError(
                 f"transition_scale_trusted must be 3 positive factors (x, y, heading), got {st!r}"
+            )
+        if self.cfg.trusted_passes not in ("online", "final", "all"):
+            raise ValueError(
+                "trusted_passes must be 'online', 'final' or 'all', "
+                f"got {self.cfg.trusted_passes!r}"
             )
         self.tr = traversal = prepare_traversal(traversal, self.cfg)
         self.obs, self.ctl, self.mask, self.init_pose = _tensors(traversal)
@@ -444,11 +452,18 @@ class SLAM:
         trust in the map belief ``M`` goes from 0 to 1: firm odometry at the frontier of the
         map, where a young chart copies the last scans and misleads the filter, and loose
         odometry (up to the actual residual of the transition) where the map is established.
-        Only in the online sweep (also the one offline SLAM starts from): the offline filter
-        passes run on a finished map that has no frontier, and keep the model's sigma_T."""
+        By default (``trusted_passes="online"``) only in the online sweep (also the one offline
+        SLAM starts from): the offline filter passes run on a finished map that has no
+        frontier, where the cloud trusts every chart, and keep the model's sigma_T unless
+        ``trusted_passes`` is ``"final"`` (the last pass, which writes no map) or ``"all"``."""
         hi = self.cfg.transition_scale_trusted
-        online = self.state is None or self.state.phase in ("online", "online-init")
-        if hi is None or not isinstance(M, MapBelief) or not online:
+        phases = {
+            "online": ("online", "online-init"),
+            "final": ("online", "online-init", "offline-final"),
+            "all": ("online", "online-init", "offline-filter", "offline-final"),
+        }[self.cfg.trusted_passes]
+        active = self.state is None or self.state.phase in phases
+        if hi is None or not isinstance(M, MapBelief) or not active:
             return None
         lo = self.model.transition.sigma  # [3], already scaled by transition_scale
         ratio = torch.tensor(hi, dtype=lo.dtype) / torch.tensor(self.cfg.transition_scale)
@@ -528,6 +543,7 @@ class SLAM:
             st.phase, st.t = "offline-filter", 0
             if self.checkpoint:
                 self.save(self.checkpoint)
+        st.phase = "offline-final"
         st.estimates, st.stds = self._filter_pass(progress, "final filter pass")
 
     def run(self, mode: str = "online", progress: bool = True) -> dict:

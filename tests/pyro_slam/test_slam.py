@@ -476,5 +476,22 @@ def test_transition_scale_trusted_loosens_sigma_t_with_the_clouds_trust(traversa
     torch.testing.assert_close(slam._transition_sigma(mapped), hi)
     slam.state = SLAMState("offline", phase="offline-filter")
     assert slam._transition_sigma(mapped) is None
+    slam.state = SLAMState("offline", phase="offline-final")
+    assert slam._transition_sigma(mapped) is None
+    # ... unless trusted_passes widens it: "final" to the last pass, "all" to every pass
+    for passes, loose in (
+        ("final", ("offline-final",)),
+        ("all", ("offline-final", "offline-filter")),
+    ):
+        slam.cfg.trusted_passes = passes
+        for phase in ("offline-filter", "offline-final"):
+            slam.state = SLAMState("offline", phase=phase)
+            sigma = slam._transition_sigma(mapped)
+            if phase in loose:
+                torch.testing.assert_close(sigma, hi)
+            else:
+                assert sigma is None
     with pytest.raises(ValueError, match="transition_scale_trusted must be 3 positive"):
         SLAM(traversal, config(transition_scale_trusted=(1.0, 0.0, 1.0)))
+    with pytest.raises(ValueError, match="trusted_passes must be"):
+        SLAM(traversal, config(trusted_passes="sometimes"))
