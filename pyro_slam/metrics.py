@@ -21,6 +21,25 @@ def localisation_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
     return np.linalg.norm(est[:, :2] - true[:, :2], axis=1)
 
 
+def heading_only_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """The position error ``[T]`` that the heading error alone would cause.
+
+    The true trajectory's steps are rotated by the estimate's heading error at their start and
+    integrated from the true start: ``x'_t = x_0 + sum_{s<t} R(h^est_s - h^true_s) (x_{s+1} -
+    x_s)``. Where it matches :func:`localisation_error`, the position error is the heading's
+    error carried along the path (as in path integration); where it is larger, the estimate's
+    position has been corrected independently of its heading (e.g. by a map). ``est, true [T,
+    3]``."""
+    est, true = np.asarray(est, dtype=np.float64), np.asarray(true, dtype=np.float64)
+    if est.shape != true.shape or est.ndim != 2 or est.shape[1] != 3:
+        raise ValueError(f"need two [T, 3] trajectories, got {est.shape} and {true.shape}")
+    dh = np.angle(np.exp(1j * (est[:-1, 2] - true[:-1, 2])))  # [T-1], wrapped
+    step = np.diff(true[:, 0] + 1j * true[:, 1])  # [T-1] as complex numbers
+    drift = np.concatenate([[0.0], np.cumsum(step * np.exp(1j * dh))])  # [T]
+    start = true[0, 0] + 1j * true[0, 1]
+    return np.abs(start + drift - (true[:, 0] + 1j * true[:, 1]))
+
+
 def distance_travelled(true: np.ndarray) -> np.ndarray:
     """Cumulative path length ``[T]`` (0 at the start)."""
     steps = np.linalg.norm(np.diff(np.asarray(true)[:, :2], axis=0), axis=1)

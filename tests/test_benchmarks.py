@@ -74,6 +74,31 @@ def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path
     assert len(list((tmp_path / "runs").glob("online_map-true_*.npz"))) == 1
 
 
+def test_slam_error_sources_splits_position_error_into_heading_and_rest(tmp_path):
+    # two synthetic runs on a straight line of unit steps: path integration with a constant
+    # heading error (its position error is all heading), SLAM with the true heading and a
+    # constant position offset (none of it is heading)
+    (tmp_path / "runs").mkdir()
+    T = 11
+    truth = np.stack([np.arange(T, dtype=float), np.zeros(T), np.zeros(T)], 1)
+    pi = np.stack([np.arange(T) * math.cos(0.1), np.arange(T) * math.sin(0.1), np.full(T, 0.1)], 1)
+    for k in (1, 2):
+        np.savez(tmp_path / "runs" / f"online_m1001_t{k}_T{T}.npz", truth=truth, pi_poses=pi,
+                 estimate=truth + [0.0, 0.05 * k, 0.0])  # fmt: skip
+    out = json.loads(run("slam_error_sources.py", str(tmp_path), "--times", "0,5,-1"))
+    assert out["runs"] == 2 and out["t"] == [0, 5, 10]
+    np.testing.assert_allclose(out["slam_mean"], [0.075] * 3, atol=1e-4)
+    np.testing.assert_allclose(out["slam_heading_only_mean"], [0, 0, 0], atol=1e-4)
+    np.testing.assert_allclose(out["pi_heading_only_mean"], out["pi_mean"], atol=1e-4)
+    np.testing.assert_allclose(out["pi_mean"], [0, 5 * 2 * math.sin(0.05), 10 * 2 * math.sin(0.05)],
+                               atol=1e-4)  # fmt: skip
+    assert out["pi_heading_mean"] == [0.1] * 3 and out["slam_beats_pi_fraction"] == [0, 1, 1]
+    script = str(REPO / "benchmarks" / "slam_error_sources.py")
+    cmd = [sys.executable, script, str(tmp_path), "--mode", "offline"]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode != 0 and "no offline_m*_t*_T*.npz runs" in proc.stderr
+
+
 def test_slam_trace_prints_rows_and_summary():
     lines = run("slam_trace.py", "--steps", "40", "--every", "20").strip().splitlines()
     rows = [json.loads(line) for line in lines if line.startswith("{")]

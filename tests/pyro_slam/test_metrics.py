@@ -11,6 +11,7 @@ from pyro_slam.data import Traversal
 from pyro_slam.metrics import (
     ate,
     distance_travelled,
+    heading_only_error,
     localisation_error,
     odometry_poses,
     relative_error,
@@ -105,3 +106,18 @@ def test_tum_export_roundtrips_through_evo(tmp_path):
     q = traj.orientations_quat_wxyz  # yaw-only rotations
     yaw = 2 * np.arctan2(q[:, 3], q[:, 0])
     np.testing.assert_allclose(np.cos(yaw - SQUARE[:, 2]), 1, atol=1e-9)
+
+
+def test_heading_only_error_integrates_the_heading_error_along_the_true_path():
+    np.testing.assert_allclose(heading_only_error(SQUARE, SQUARE), 0, atol=1e-12)
+    # a straight path of unit steps walked with a constant heading error d drifts by
+    # 2 n sin(d / 2) after n steps, whatever the estimate's positions are
+    line = np.stack([np.arange(6.0), np.zeros(6), np.zeros(6)], 1)
+    d = 0.1
+    est = line + np.array([5.0, -3.0, d])
+    np.testing.assert_allclose(heading_only_error(est, line), 2 * np.arange(6) * math.sin(d / 2))
+    # headings are wrapped: an error of 2 pi + d is an error of d
+    est2 = line + np.array([0.0, 0.0, 2 * math.pi + d])
+    np.testing.assert_allclose(heading_only_error(est2, line), heading_only_error(est, line))
+    with pytest.raises(ValueError, match=r"\[T, 3\] trajectories"):
+        heading_only_error(line[:, :2], line)
