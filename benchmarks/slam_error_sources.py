@@ -20,7 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pyro_slam.metrics import heading_only_error, localisation_error  # noqa: E402
+from pyro_slam.metrics import heading_error, heading_only_error, localisation_error  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -43,9 +43,7 @@ def main(argv=None) -> int:
             for name, est in (("slam", z["estimate"]), ("pi", z["pi_poses"])):
                 rows[name].append(localisation_error(est, truth))
                 rows[f"{name}_heading_only"].append(heading_only_error(est, truth))
-                rows[f"{name}_heading"].append(
-                    np.abs(np.angle(np.exp(1j * (est[:, 2] - truth[:, 2]))))
-                )
+                rows[f"{name}_heading"].append(heading_error(est[:, 2], truth[:, 2]))
     arr = {k: np.stack(v) for k, v in rows.items()}  # [runs, T]
     T = arr["slam"].shape[1]
     times = [t if t >= 0 else T + t for t in map(int, args.times.split(","))]

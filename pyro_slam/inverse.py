@@ -54,6 +54,7 @@ from pyro.infer import SVI, Trace_ELBO
 from pyro.optim import Adam
 from torch import nn
 
+from .metrics import heading_error  # noqa: F401 (re-exported)
 from .model import DVBFLM
 from .networks import mlp, rotate_scan
 
@@ -375,12 +376,6 @@ class InversePose:
         pose[:, 1] = pose[:, 1].clamp(y0, y1)
         pose[:, 2] = torch.remainder(pose[:, 2] + math.pi, 2 * math.pi) - math.pi
         return (pose[0], ll[0]) if single else (pose, ll)
-
-
-def heading_error(a, b) -> np.ndarray:
-    """Absolute angular difference in ``[0, pi]`` (arrays of headings, rad)."""
-    d = np.remainder(np.asarray(a) - np.asarray(b) + np.pi, 2 * np.pi) - np.pi
-    return np.abs(d)
 
 
 def fit_inverse(env, traversal, steps: int = 2000, seed: int = 0, **kw) -> InversePose:

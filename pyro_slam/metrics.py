@@ -21,6 +21,12 @@ def localisation_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
     return np.linalg.norm(est[:, :2] - true[:, :2], axis=1)
 
 
+def heading_error(a, b) -> np.ndarray:
+    """Absolute angular difference in ``[0, pi]`` (arrays of headings, rad)."""
+    d = np.remainder(np.asarray(a) - np.asarray(b) + np.pi, 2 * np.pi) - np.pi
+    return np.abs(d)
+
+
 def heading_only_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
     """The position error ``[T]`` that the heading error alone would cause.
 

@@ -46,6 +46,13 @@ from .model import DVBFLM, MapGrid
 from .networks import Emission, EmissionMLP, ImageEmission, LidarEmission
 from .transitions import KinematicTransition, Transition
 
+# SLAMConfig.trusted_passes -> the SLAMState phases in which transition_scale_trusted acts
+TRUSTED_PASSES = {
+    "online": ("online", "online-init"),
+    "final": ("online", "online-init", "offline-final"),
+    "all": ("online", "online-init", "offline-filter", "offline-final"),
+}
+
 
 @dataclass
 class SLAMConfig:
@@ -322,9 +329,9 @@ class SLAM:
             raise ValueError(
                 f"transition_scale_trusted must be 3 positive factors (x, y, heading), got {st!r}"
             )
-        if self.cfg.trusted_passes not in ("online", "final", "all"):
+        if self.cfg.trusted_passes not in TRUSTED_PASSES:
             raise ValueError(
-                "trusted_passes must be 'online', 'final' or 'all', "
+                f"trusted_passes must be one of {sorted(TRUSTED_PASSES)}, "
                 f"got {self.cfg.trusted_passes!r}"
             )
         self.tr = traversal = prepare_traversal(traversal, self.cfg)
@@ -457,12 +464,7 @@ class SLAM:
         frontier, where the cloud trusts every chart, and keep the model's sigma_T unless
         ``trusted_passes`` is ``"final"`` (the last pass, which writes no map) or ``"all"``."""
         hi = self.cfg.transition_scale_trusted
-        phases = {
-            "online": ("online", "online-init"),
-            "final": ("online", "online-init", "offline-final"),
-            "all": ("online", "online-init", "offline-filter", "offline-final"),
-        }[self.cfg.trusted_passes]
-        active = self.state is None or self.state.phase in phases
+        active = self.state is None or self.state.phase in TRUSTED_PASSES[self.cfg.trusted_passes]
         if hi is None or not isinstance(M, MapBelief) or not active:
             return None
         lo = self.model.transition.sigma  # [3], already scaled by transition_scale
