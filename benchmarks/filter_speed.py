@@ -4,7 +4,10 @@ Both run the same DVBF-LM time step (paper emission MLP, 4 x 256 softsign, 20 be
 transition; a fixed map, as when filtering on a learned map) with K = 1000 particles on one
 simulated moderate-medium traversal, in one process, one after the other. Prints JSON with
 steps/s of each and their ratio, and the peak RSS of a long online run (our filter) after 10%
-and 100% of its steps -- flat memory means the run keeps no per-step history.
+and 100% of its steps -- flat memory means the run keeps no per-step history. It also times the
+emission MLP alone on the same K particles (``emission_only_steps_per_s``): both filters run it
+once per step, so no implementation of the step beats that figure, and ``ceiling_speedup`` is
+the most any filter could gain over SMCFilter at that precision.
 
     python benchmarks/filter_speed.py           # K = 1000, 500 timed steps, 100k-step run
     python benchmarks/filter_speed.py --long-steps 10000   # quicker memory check
@@ -63,6 +66,30 @@ def ours(model, M, obs, ctl, init, K, steps, checkpoints=(), autocast_dtype=None
     return rate, rss
 
 
+def emission_only(model, M, init, K, steps, autocast_dtype=None):
+    """The emission MLP alone on K particles' charts, per step: a ceiling for any filter.
+
+    Every filter step of either filter runs ``model.emission_mean`` on all K particles once;
+    this times that call by itself (fixed particles, no transition, weights or resampling), so
+    ``steps / s`` here bounds what any implementation of the same step can reach.
+    """
+    import contextlib
+
+    g = torch.Generator().manual_seed(0)
+    z = init + 1e-2 * torch.randn(K, 3, generator=g)  # [K, 3]
+    ctx = (
+        torch.autocast(z.device.type, dtype=autocast_dtype)
+        if autocast_dtype is not None
+        else contextlib.nullcontext()
+    )
+    with torch.no_grad(), ctx:
+        model.emission_mean(M, z)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            model.emission_mean(M, z)  # [K, B]
+        return steps / (time.perf_counter() - t0)
+
+
 def smcfilter(model, M, obs, ctl, init, K, steps):
     """pyro.infer.SMCFilter running the same model step (model.py: FilterModel)."""
     import pyro
@@ -100,6 +127,10 @@ def main(argv=None) -> dict:
     r_bf16, _ = ours(
         model, M, obs, ctl, init, args.particles, args.steps, autocast_dtype=torch.bfloat16
     )
+    r_mlp = emission_only(model, M, init, args.particles, args.steps)
+    r_mlp_bf16 = emission_only(
+        model, M, init, args.particles, args.steps, autocast_dtype=torch.bfloat16
+    )
     n = args.long_steps
     marks = (n // 10, n)
     t0 = time.perf_counter()
@@ -112,6 +143,10 @@ def main(argv=None) -> dict:
         "speedup": round(r_ours / r_smc, 2),
         "ours_bf16_emission_steps_per_s": round(r_bf16, 1),
         "speedup_bf16": round(r_bf16 / r_smc, 2),
+        # ceiling: the emission MLP alone, which both filters run once per step on K particles
+        "emission_only_steps_per_s": round(r_mlp, 1),
+        "emission_only_bf16_steps_per_s": round(r_mlp_bf16, 1),
+        "ceiling_speedup": round(r_mlp / r_smc, 2),
         "long_run_steps": n,
         "long_run_steps_per_s": round(r_long, 1),
         "long_run_wall_s": round(time.perf_counter() - t0, 1),

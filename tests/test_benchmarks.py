@@ -41,6 +41,11 @@ def test_filter_speed_benchmark_compares_with_smcfilter_and_reports_flat_memory(
     assert math.isclose(out["speedup"], out["ours_steps_per_s"] / out["smcfilter_steps_per_s"],
                         rel_tol=0.02)  # fmt: skip
     assert out["peak_rss_mib_at_100"] <= 1.1 * out["peak_rss_mib_at_10"]
+    # the emission MLP alone is a ceiling: no filter step that also runs it is faster
+    assert out["emission_only_steps_per_s"] > out["ours_steps_per_s"]
+    assert math.isclose(out["ceiling_speedup"],
+                        out["emission_only_steps_per_s"] / out["smcfilter_steps_per_s"],
+                        rel_tol=0.02)  # fmt: skip
 
 
 def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path):
