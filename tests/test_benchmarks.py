@@ -267,3 +267,62 @@ def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
     assert o["map_poses"] == "true" and s["map_poses"] == "filter" and o["mazes"] == [1001]
     assert 0 <= o["offline"]["per_maze"][0] < 1
     assert len(list((tmp_path / "runs").glob("m1001_map-true_*.npz"))) == 1
+
+
+def _square_loop(T: int, side: float = 0.5):
+    """A true path around a square (closing on itself) and odometry with a heading bias."""
+    s = np.linspace(0.0, 4 * side, T)  # arc length
+    leg = np.minimum(s // side, 3).astype(int)  # [T] which side
+    u = s - leg * side
+    corners = np.array([[0, 0], [side, 0], [side, side], [0, side]], dtype=float)
+    dirs = np.array([[1, 0], [0, 1], [-1, 0], [0, -1]], dtype=float)
+    xy = corners[leg] + u[:, None] * dirs[leg]
+    truth = np.concatenate([xy, (leg * np.pi / 2)[:, None]], 1)
+    # odometry: the true body-frame steps, integrated with a heading error of 5e-4 rad per step
+    d = np.diff(truth, axis=0)
+    c, si = np.cos(truth[:-1, 2]), np.sin(truth[:-1, 2])
+    body = np.stack([c * d[:, 0] + si * d[:, 1], -si * d[:, 0] + c * d[:, 1]], 1)
+    h = truth[0, 2] + np.concatenate([[0.0], np.cumsum(d[:, 2] + 5e-4)])
+    steps = np.stack([np.cos(h[:-1]) * body[:, 0] - np.sin(h[:-1]) * body[:, 1],
+                      np.sin(h[:-1]) * body[:, 0] + np.cos(h[:-1]) * body[:, 1]], 1)  # fmt: skip
+    odo = np.concatenate([truth[:1, :2] + np.concatenate([[[0, 0]], np.cumsum(steps, 0)]),
+                          h[:, None]], 1)  # fmt: skip
+    return truth, odo
+
+
+def test_slam_pose_graph_spreads_a_loop_closure_back_along_the_odometry(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))
+    from slam_pose_graph import loop_closures, pose_graph
+
+    from pyro_slam.metrics import localisation_error
+
+    truth, odo = _square_loop(400)
+    # a filter that follows odometry, then relocalises on the map at the start when the loop
+    # closes (its last 10 steps lie within 0.05 of the start): the estimate jumps there
+    est = odo.copy()
+    est[-20:] = truth[-20:]
+    pairs = loop_closures(est, radius=0.05, gap=300)
+    assert len(pairs) == 10 and (pairs[:, 1] >= 390).all() and (pairs[:, 0] == 0).all()
+    kw = dict(radius=0.05, gap=300, sigma_odometry=(1e-4, 1e-4, 5e-4), sigma_loop=(0.002, 0.01))
+    graph, n = pose_graph(est, odo, **kw)
+    assert n == len(pairs)
+    err = {k: localisation_error(x, truth) for k, x in (("est", est), ("graph", graph))}
+    # the closure bends the whole loop back: mid-way the graph is far closer than the odometry
+    assert err["est"][200] > 0.03 and err["graph"][200] < 0.25 * err["est"][200]
+    assert err["graph"].mean() < 0.25 * err["est"].mean() and err["graph"][-1] < 0.005
+    np.testing.assert_allclose(graph[0], est[0], atol=1e-9)  # the start pose is fixed
+    # no loop closures: the graph is the odometry
+    same, n0 = pose_graph(odo, odo, gap=1000)
+    assert n0 == 0 and np.allclose(same, odo, atol=1e-9)
+    with pytest.raises(ValueError, match=r"want \[T, 3\]"):
+        pose_graph(est[:, :2], odo[:, :2])
+    # the script summarises the runs it finds
+    (tmp_path / "runs").mkdir()
+    np.savez(
+        tmp_path / "runs" / "online_m1001_t1_T400.npz", truth=truth, estimate=est, pi_poses=odo
+    )
+    args = ("--radius", "0.05", "--sigma-odometry", "1e-4,1e-4,5e-4", "--sigma-loop", "0.002,0.01")
+    out = json.loads(run("slam_pose_graph.py", str(tmp_path), *args))
+    assert out["runs"] == 1 and out["loop_closures_mean"] == len(pairs)
+    assert out["pose_graph_time_avg_mean"] < 0.25 * out["slam_time_avg_mean"]
+    assert out["slam_final_mean"] < 1e-6 and out["pi_final_mean"] > 0.05
