@@ -16,7 +16,7 @@ The graph is solved for all poses at once (the start pose fixed) by L-BFGS over 
 corrections. Prints JSON: mean final and time-averaged position error of the SLAM estimate, of
 the pose graph and of path integration, and the number of loop closures per run.
 
-    python benchmarks/slam_pose_graph.py out/s13_shtt_24 --mode online   # 24 runs, ~4 min
+    python benchmarks/slam_pose_graph.py out/s13_shtt_24 --mode online   # 24 runs, ~8 min
 """
 
 from __future__ import annotations
