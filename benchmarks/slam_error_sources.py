@@ -23,34 +23,45 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pyro_slam.metrics import heading_error, heading_only_error, localisation_error  # noqa: E402
 
 
+def load_runs(parser: argparse.ArgumentParser, out: Path, mode: str) -> list[dict]:
+    """The trajectories ``estimate``, ``truth``, ``pi_poses`` (each ``[T, 3]``) of every
+    ``OUT/runs/<mode>_m*_t*_T*.npz`` run, in name order; a clear parser error if there are none
+    or a run lacks one."""
+    files = sorted((out / "runs").glob(f"{mode}_m*_t*_T*.npz"))
+    if not files:
+        parser.error(f"no {mode}_m*_t*_T*.npz runs under {out / 'runs'}")
+    runs = []
+    for f in files:
+        with np.load(f) as z:
+            missing = {"estimate", "truth", "pi_poses"} - set(z.files)
+            if missing:
+                parser.error(f"{f}: no {sorted(missing)} (re-run slam_accuracy.py to export them)")
+            runs.append({k: z[k] for k in ("estimate", "truth", "pi_poses")})
+    return runs
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("out", type=Path, help="a slam_accuracy.py --out directory")
     p.add_argument("--mode", default="online", help="online | offline (the runs' file prefix)")
     p.add_argument("--times", default="150,300,450,900,1200,1800,2400,-1")
     args = p.parse_args(argv)
-    files = sorted((args.out / "runs").glob(f"{args.mode}_m*_t*_T*.npz"))
-    if not files:
-        p.error(f"no {args.mode}_m*_t*_T*.npz runs under {args.out / 'runs'}")
+    runs = load_runs(p, args.out, args.mode)
     rows = {k: [] for k in ("slam", "slam_heading_only", "slam_heading", "pi", "pi_heading_only",
                             "pi_heading")}  # fmt: skip
-    for f in files:
-        with np.load(f) as z:
-            missing = {"estimate", "truth", "pi_poses"} - set(z.files)
-            if missing:
-                p.error(f"{f}: no {sorted(missing)} (re-run slam_accuracy.py to export them)")
-            truth = z["truth"]
-            for name, est in (("slam", z["estimate"]), ("pi", z["pi_poses"])):
-                rows[name].append(localisation_error(est, truth))
-                rows[f"{name}_heading_only"].append(heading_only_error(est, truth))
-                rows[f"{name}_heading"].append(heading_error(est[:, 2], truth[:, 2]))
+    for z in runs:
+        truth = z["truth"]
+        for name, est in (("slam", z["estimate"]), ("pi", z["pi_poses"])):
+            rows[name].append(localisation_error(est, truth))
+            rows[f"{name}_heading_only"].append(heading_only_error(est, truth))
+            rows[f"{name}_heading"].append(heading_error(est[:, 2], truth[:, 2]))
     arr = {k: np.stack(v) for k, v in rows.items()}  # [runs, T]
     T = arr["slam"].shape[1]
     times = [t if t >= 0 else T + t for t in map(int, args.times.split(","))]
     bad = [t for t in times if not 0 <= t < T]
     if bad:
         p.error(f"--times {bad} outside the runs' {T} steps")
-    out = {"runs": len(files), "mode": args.mode, "t": times}
+    out = {"runs": len(runs), "mode": args.mode, "t": times}
     out.update({f"{k}_mean": [round(float(arr[k][:, t].mean()), 4) for t in times] for k in arr})
     beats = arr["slam"][:, times] < arr["pi"][:, times]
     out["slam_beats_pi_fraction"] = [round(float(b), 3) for b in beats.mean(0)]

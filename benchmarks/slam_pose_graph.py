@@ -31,6 +31,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from slam_error_sources import load_runs  # noqa: E402  (a sibling script: the runs' loader)
+
 from pyro_slam.metrics import localisation_error  # noqa: E402
 
 
@@ -121,20 +123,17 @@ def main(argv=None) -> int:
     p.add_argument("--sigma-odometry", default="1.3e-4,1.3e-4,0.006")
     p.add_argument("--sigma-loop", default="0.01,0.03")
     args = p.parse_args(argv)
-    files = sorted((args.out / "runs").glob(f"{args.mode}_m*_t*_T*.npz"))
-    if not files:
-        p.error(f"no {args.mode}_m*_t*_T*.npz runs under {args.out / 'runs'}")
+    runs = load_runs(p, args.out, args.mode)
     so = tuple(map(float, args.sigma_odometry.split(",")))
     sl = tuple(map(float, args.sigma_loop.split(",")))
     rows = []
-    for f in files:
-        with np.load(f) as z:
-            truth, est, pi = z["truth"], z["estimate"], z["pi_poses"]
+    for z in runs:
+        truth, est, pi = z["truth"], z["estimate"], z["pi_poses"]
         graph, n = pose_graph(est, pi, args.radius, args.gap, so, sl)
         errs = [localisation_error(x, truth) for x in (est, graph, pi)]  # 3 x [T]
         rows.append([e[-1] for e in errs] + [e.mean() for e in errs] + [n])
     r = np.asarray(rows)  # [runs, 7]
-    out = {"runs": len(files), "mode": args.mode}
+    out = {"runs": len(runs), "mode": args.mode}
     for k, name in enumerate(("slam", "pose_graph", "pi")):
         out[f"{name}_final_mean"] = round(float(r[:, k].mean()), 4)
         out[f"{name}_final_std"] = round(float(r[:, k].std()), 4)

@@ -326,3 +326,8 @@ def test_slam_pose_graph_spreads_a_loop_closure_back_along_the_odometry(tmp_path
     assert out["runs"] == 1 and out["loop_closures_mean"] == len(pairs)
     assert out["pose_graph_time_avg_mean"] < 0.25 * out["slam_time_avg_mean"]
     assert out["slam_final_mean"] < 1e-6 and out["pi_final_mean"] > 0.05
+    # a run without its exported trajectories is named, not a KeyError
+    np.savez(tmp_path / "runs" / "online_m1002_t1_T400.npz", truth=truth, pi_poses=odo)
+    script = str(REPO / "benchmarks" / "slam_pose_graph.py")
+    proc = subprocess.run([sys.executable, script, str(tmp_path)], capture_output=True, text=True)
+    assert proc.returncode != 0 and "online_m1002_t1_T400.npz: no ['estimate']" in proc.stderr
