@@ -132,6 +132,12 @@ def run_one(
         "true_images": tr.images[idx],
         "rec_images": rec,
         "rec_images_true_pose": rec_true,
+        # trajectories [T, 3] (x, y, heading), as benchmarks/slam_accuracy.py exports them, and
+        # the online sweep offline SLAM starts from (empty with offline_init="odometry")
+        "estimate": np.asarray(res["mean"], dtype=np.float32),
+        "truth": np.asarray(tr.poses, dtype=np.float32),
+        "pi_poses": np.asarray(pi, dtype=np.float32),
+        "sweep": np.asarray(res["sweep_mean"], dtype=np.float32),
     }
     np.savez(path, **out)
     return {"maze": maze_seed, "final": float(out["slam"][-1]), "pi": float(out["pi"][-1]),
@@ -161,7 +167,10 @@ def plot_reconstructions(data: dict, path_png):
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=Path("out/visual_slam"))
-    p.add_argument("--mazes", type=int, default=6)
+    p.add_argument("--mazes", type=int, default=6, help="the first N of the 6 test mazes")
+    p.add_argument(
+        "--maze-seeds", default=None, help="comma-separated test-maze seeds (instead of --mazes)"
+    )
     p.add_argument("--steps", type=int, default=5000)
     p.add_argument("--pretrain-steps", type=int, default=1500, help="emission SGD steps")
     p.add_argument("--pretrain-traversal", type=int, default=3000, help="steps on maze 100")
@@ -175,6 +184,14 @@ def main(argv=None) -> int:
         help="diagnostic: learn the map at the true / path-integration poses (SLAM.pin_cache)",
     )
     args = p.parse_args(argv)
+    mazes = list(MAZE_SEEDS[: args.mazes])
+    if args.maze_seeds is not None:
+        try:
+            mazes = [int(m) for m in args.maze_seeds.split(",")]
+        except ValueError:
+            p.error(f"--maze-seeds: expected comma-separated integers, got {args.maze_seeds!r}")
+        if unknown := sorted(set(mazes) - set(MAZE_SEEDS)):
+            p.error(f"--maze-seeds {unknown}: not test mazes (these are {list(MAZE_SEEDS)})")
     import torch
 
     torch.set_num_threads(args.threads)
@@ -193,7 +210,7 @@ def main(argv=None) -> int:
     )
     pretrain_s = time.perf_counter() - t0
     files, jobs = [], []
-    for m in MAZE_SEEDS[: args.mazes]:
+    for m in mazes:
         tag = "" if args.map_poses == "filter" else f"_map-{args.map_poses}"
         f = runs / f"m{m}{tag}_T{args.steps}.npz"
         files.append(f)
@@ -219,7 +236,7 @@ def main(argv=None) -> int:
     dist = np.stack([d["distance"] for d in data])
     summary = {
         "steps": args.steps,
-        "mazes": list(MAZE_SEEDS[: args.mazes]),
+        "mazes": mazes,
         "config": {**BENCH_CONFIG, **over},
         "map_poses": args.map_poses,
         "emission_pretraining": {**em_meta, "wall_s_this_call": pretrain_s},

@@ -297,6 +297,8 @@ class SLAMState:
     estimates: list = field(default_factory=list)  # per step [3]
     stds: list = field(default_factory=list)
     losses: list = field(default_factory=list)
+    # offline SLAM started from an online sweep: that sweep's pose means, per step [3]
+    sweep_estimates: list = field(default_factory=list)
 
 
 class SLAM:
@@ -486,6 +488,8 @@ class SLAM:
             if st.phase == "online":
                 st.estimates.append(self.particles.mean().tolist())
                 st.stds.append(_std(self.particles).tolist())
+            else:  # offline SLAM's initial sweep: kept for diagnostics (result's "sweep_mean")
+                st.sweep_estimates.append(self.particles.mean().tolist())
             # the map is learned from the steps up to t - write_lag only: the filter then
             # matches a scan against what older steps wrote (a revisit), not against a copy of
             # its own latest scans written where it believes it is
@@ -573,6 +577,8 @@ class SLAM:
             "losses": np.asarray(st.losses),
             "map_loc": self.guide.params()[0].detach().numpy(),
             "map_scale": self.guide.params()[1].detach().numpy(),
+            # offline from an online sweep: the sweep's pose means [T, 3] ([0, 3] otherwise)
+            "sweep_mean": np.asarray(st.sweep_estimates, dtype=np.float64).reshape(-1, 3),
         }
 
     def pin_cache(self, poses, noise: float = 1e-3, seed: int = 0) -> None:

@@ -242,6 +242,8 @@ def test_frontier_ceiling_reprojection_is_exact_on_straight_walls_and_beats_copy
 
 
 def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
+    from pyro_slam.metrics import localisation_error
+
     args = ("--mazes", "2", "--steps", "60", "--pretrain-steps", "5", "--pretrain-traversal",
             "100", "--workers", "2", "--config", '{"offline_svi_steps": 10}', "--out",
             str(tmp_path))  # fmt: skip
@@ -257,16 +259,29 @@ def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
     runs = sorted((tmp_path / "runs").glob("*.npz"))
     stamps = [f.stat().st_mtime_ns for f in runs]
     assert len(runs) == 2
+    # each run exports its trajectories [T, 3]: the errors are recomputed from them, and the
+    # online sweep offline SLAM starts from is kept apart from the final pass
+    with np.load(runs[0]) as z:
+        assert z["estimate"].shape == z["truth"].shape == z["pi_poses"].shape == (60, 3)
+        assert z["sweep"].shape == (60, 3) and not np.allclose(z["sweep"], z["estimate"])
+        np.testing.assert_allclose(localisation_error(z["estimate"], z["truth"]), z["slam"],
+                                   atol=1e-5)  # fmt: skip
+        np.testing.assert_allclose(localisation_error(z["pi_poses"], z["truth"]), z["pi"],
+                                   atol=1e-5)  # fmt: skip
     run("visual_slam.py", *args)  # resumes: the finished runs are not recomputed
     assert [f.stat().st_mtime_ns for f in runs] == stamps
     assert json.loads((tmp_path / "summary.json").read_text())["offline"] == s["offline"]
-    # the diagnostic: the map learned at the true poses, stored apart; the emission is reused
-    run("visual_slam.py", *args[:-2], "--mazes", "1", "--map-poses", "true", "--workers", "1",
-        "--out", str(tmp_path))  # fmt: skip
+    # the diagnostic: the map learned at the true poses, stored apart; the emission is reused;
+    # --maze-seeds picks one maze
+    run("visual_slam.py", *args[:-2], "--maze-seeds", "1002", "--map-poses", "true",
+        "--workers", "1", "--out", str(tmp_path))  # fmt: skip
     o = json.loads((tmp_path / "summary.json").read_text())
-    assert o["map_poses"] == "true" and s["map_poses"] == "filter" and o["mazes"] == [1001]
+    assert o["map_poses"] == "true" and s["map_poses"] == "filter" and o["mazes"] == [1002]
     assert 0 <= o["offline"]["per_maze"][0] < 1
-    assert len(list((tmp_path / "runs").glob("m1001_map-true_*.npz"))) == 1
+    assert len(list((tmp_path / "runs").glob("m1002_map-true_*.npz"))) == 1
+    cmd = [sys.executable, str(REPO / "benchmarks" / "visual_slam.py"), "--maze-seeds", "1002,7"]
+    err = subprocess.run([*cmd, "--out", str(tmp_path)], capture_output=True, text=True)
+    assert err.returncode == 2 and "--maze-seeds [7]: not test mazes" in err.stderr
 
 
 def _square_loop(T: int, side: float = 0.5):

@@ -55,7 +55,7 @@ def emission_params(slam):
 
 
 def assert_same_run(a: SLAM, ra: dict, b: SLAM, rb: dict):
-    for key in ("mean", "std", "losses", "map_loc", "map_scale"):
+    for key in ("mean", "std", "losses", "map_loc", "map_scale", "sweep_mean"):
         np.testing.assert_array_equal(ra[key], rb[key], err_msg=key)
     pa, pb = emission_params(a), emission_params(b)
     for k in pa:
@@ -119,6 +119,11 @@ def test_offline_run(traversal):
     assert np.isfinite(res["losses"]).all()
     assert localisation_error(res["mean"], traversal.poses).max() < 0.03
     assert slam.state.phase == "done" and slam.state.round == 2
+    # the online sweep it started from is kept apart: its own estimates, not the final pass's
+    sweep = res["sweep_mean"]
+    assert sweep.shape == (T, 3) and not np.array_equal(sweep, res["mean"])
+    assert localisation_error(sweep, traversal.poses).max() < 0.03
+    assert SLAM(traversal, config()).run("online", False)["sweep_mean"].shape == (0, 3)
 
 
 def test_same_seed_same_result_other_seed_differs(traversal):
