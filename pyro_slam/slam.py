@@ -95,6 +95,10 @@ class SLAMConfig:
     offline_rounds: int = 2
     offline_svi_steps: int = 800
     offline_init: str = "online"
+    # offline SLAM's pose posterior: "forward" (one filter pass from t = 0 over the finished map)
+    # or "cache" (paper Appendix B-I: consecutive chunks of chunk_length steps, each started
+    # from the cached particles of its first step plus 1e-3 noise, filtered under that map)
+    offline_estimate: str = "forward"
     proposal: str = "gaussian"
     proposal_shrink: float = 1.0  # scale of the cache proposal's std for map training
     revisit_gap: int = 0  # online: cells first mapped < gap steps ago do not weigh particles
@@ -331,6 +335,10 @@ class SLAM:
             raise ValueError(
                 f"transition_scale_trusted must be 3 positive factors (x, y, heading), got {st!r}"
             )
+        if self.cfg.offline_estimate not in ("forward", "cache"):
+            raise ValueError(
+                f"offline_estimate must be 'forward' or 'cache', got {self.cfg.offline_estimate!r}"
+            )
         if self.cfg.trusted_passes not in TRUSTED_PASSES:
             raise ValueError(
                 f"trusted_passes must be one of {sorted(TRUSTED_PASSES)}, "
@@ -520,6 +528,31 @@ class SLAM:
                 stds.append(_std(self.particles).tolist())
         return means, stds
 
+    def _cache_pass(self, progress: bool, desc: str):
+        """Offline poses as the paper's Appendix B-I filters them: the traversal in consecutive
+        chunks of ``chunk_length`` steps, each started from its first step's cached particles
+        (categorical over the cache, plus 1e-3 noise) and filtered under the map mean; no
+        particles cross a chunk boundary and the cache is left as it is."""
+        M, L, K = self.map_mean(), self.cfg.chunk_length, self.cfg.filter_particles
+        means, stds = [], []
+        with torch.no_grad():
+            for s in tqdm(range(0, self.T, L), desc=desc, disable=not progress, leave=False):
+                for t in range(s, min(s + L, self.T)):
+                    m = None if self.mask is None else self.mask[t]
+                    if t == s:  # [K, 3] from the cache
+                        ts = torch.tensor([s])
+                        z0 = self.cache.propose(ts, K, "categorical", generator=self.gen)[0]
+                        z0 = z0.to(self.obs.dtype)
+                        self.particles, _ = self.pf.init(z0, M, self.obs[t], m, step=t)
+                    else:
+                        self.particles, _ = self.pf.step(
+                            self.particles, M, self.obs[t], self.ctl[t - 1], m, step=t,
+                            sigma=self._transition_sigma(M),
+                        )  # fmt: skip
+                    means.append(self.particles.mean().tolist())
+                    stds.append(_std(self.particles).tolist())
+        return means, stds
+
     def _offline(self, progress: bool):
         st, L = self.state, self.cfg.chunk_length
         if st.phase == "online-init":
@@ -550,7 +583,8 @@ class SLAM:
             if self.checkpoint:
                 self.save(self.checkpoint)
         st.phase = "offline-final"
-        st.estimates, st.stds = self._filter_pass(progress, "final filter pass")
+        final = self._cache_pass if self.cfg.offline_estimate == "cache" else self._filter_pass
+        st.estimates, st.stds = final(progress, "final filter pass")
 
     def run(self, mode: str = "online", progress: bool = True) -> dict:
         """Run (or, after :meth:`resume`, continue) SLAM. Returns :meth:`result`."""

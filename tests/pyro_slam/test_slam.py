@@ -126,6 +126,36 @@ def test_offline_run(traversal):
     assert SLAM(traversal, config()).run("online", False)["sweep_mean"].shape == (0, 3)
 
 
+def test_offline_estimate_cache_filters_chunks_from_the_cached_particles(traversal):
+    """``offline_estimate="cache"`` (paper B-I): each chunk restarts from the cache, so a pose
+    the cache holds far from the truth shows up at that chunk's steps and nowhere else."""
+    L = CFG["chunk_length"]
+    slam = SLAM(traversal, config(offline_rounds=0, offline_estimate="cache"))
+    run_ = slam._cache_pass
+    shift = torch.tensor([0.03, 0.0, 0.0])
+
+    def shifted_cache_pass(progress, desc):  # the cache at step 2L moved by 0.03 in x
+        slam.cache.z[2 * L] += shift
+        before.append(slam.cache.z.clone())
+        return run_(progress, desc)
+
+    before = []
+
+    slam._cache_pass = shifted_cache_pass
+    res = slam.run("offline", progress=False)
+    T = traversal.num_steps
+    assert res["mean"].shape == res["std"].shape == (T, 3)
+    err = localisation_error(res["mean"], traversal.poses)
+    chunk = slice(2 * L, 3 * L)
+    assert err[chunk].min() > 0.015 and np.delete(err, np.arange(2 * L, 3 * L)).max() < 0.01
+    # chunk starts sit on the cache's means, which the pass leaves as they were
+    starts = slam.cache.z[::L].mean(1).numpy()
+    np.testing.assert_allclose(res["mean"][::L, :2], starts[:, :2], atol=5e-3)
+    assert torch.equal(slam.cache.z, before[0])
+    with pytest.raises(ValueError, match="offline_estimate must be 'forward' or 'cache'"):
+        SLAM(traversal, config(offline_estimate="smooth"))
+
+
 def test_same_seed_same_result_other_seed_differs(traversal):
     # (runs share Pyro's global param store: a SLAM is built when the previous one is done)
     a = SLAM(traversal, config())
