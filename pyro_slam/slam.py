@@ -11,7 +11,9 @@ guide and the asynchronous particle cache.
   map mean, which refreshes the whole cache forward through the transition, and (b) SVI on random
   chunks from anywhere in the traversal; a final filtering pass gives the pose posterior. The
   first round starts from an online sweep (``offline_init="online"``) or from odometry alone
-  (``"odometry"``).
+  (``"odometry"``). With ``offline_estimate="cache"`` (the paper's procedure) there is no
+  whole-traversal pass: only the SVI chunks refresh the cache, and the final poses are filtered
+  in consecutive chunks, each started from the cache (paper Appendix B-I).
 
 Every long loop shows a tqdm bar and writes atomic checkpoints from which :meth:`SLAM.resume`
 continues with the same random stream.
@@ -95,9 +97,10 @@ class SLAMConfig:
     offline_rounds: int = 2
     offline_svi_steps: int = 800
     offline_init: str = "online"
-    # offline SLAM's pose posterior: "forward" (one filter pass from t = 0 over the finished map)
-    # or "cache" (paper Appendix B-I: consecutive chunks of chunk_length steps, each started
-    # from the cached particles of its first step plus 1e-3 noise, filtered under that map)
+    # offline SLAM's pose posterior: "forward" (a filter pass over the whole traversal after
+    # each round and at the end) or "cache" (the paper's: only the SVI chunks refresh the cache
+    # (eq. 3), and the final poses are filtered as in its Appendix B-I, in consecutive chunks of
+    # chunk_length steps, each started from its first step's cached particles plus 1e-3 noise)
     offline_estimate: str = "forward"
     proposal: str = "gaussian"
     proposal_shrink: float = 1.0  # scale of the cache proposal's std for map training
@@ -564,7 +567,8 @@ class SLAM:
             if self.checkpoint:
                 self.save(self.checkpoint)
         while st.round < self.cfg.offline_rounds:
-            if st.phase == "offline-filter":
+            if st.phase == "offline-filter" and self.cfg.offline_estimate == "forward":
+                # a whole filter pass refreshes the cache; with "cache" only the SVI chunks do
                 self._filter_pass(progress, f"filter pass {st.round + 1}")
                 st.phase, st.t = "offline-svi", 0
             n = self.cfg.offline_svi_steps

@@ -152,6 +152,11 @@ def test_offline_estimate_cache_filters_chunks_from_the_cached_particles(travers
     starts = slam.cache.z[::L].mean(1).numpy()
     np.testing.assert_allclose(res["mean"][::L, :2], starts[:, :2], atol=5e-3)
     assert torch.equal(slam.cache.z, before[0])
+    # with SVI rounds, only their chunks refresh the cache: no whole-traversal filter pass
+    slam = SLAM(traversal, config(offline_estimate="cache"))
+    slam._filter_pass = None  # would raise if called
+    res = slam.run("offline", progress=False)
+    assert slam.state.round == 2 and localisation_error(res["mean"], traversal.poses).max() < 0.03
     with pytest.raises(ValueError, match="offline_estimate must be 'forward' or 'cache'"):
         SLAM(traversal, config(offline_estimate="smooth"))
 
