@@ -284,6 +284,27 @@ def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
     assert err.returncode == 2 and "--maze-seeds [7]: not test mazes" in err.stderr
 
 
+def test_visual_slam_probe_scores_the_image_on_a_heading_grid(tmp_path):
+    args = ("--maze", "1002", "--steps", "60", "--every", "20", "--pretrain-steps", "5",
+            "--pretrain-traversal", "100", "--out", str(tmp_path))  # fmt: skip
+    run("visual_slam_probe.py", *args)
+    out = json.loads((tmp_path / "probe_m1002.json").read_text())
+    H = len(out["heading_offsets"])
+    assert H == 41 and out["heading_offsets"][20] == 0.0
+    assert [r["t"] for r in out["probes"]] == [20, 40] and len(out["trust"]) == 60
+    assert out["late_probes"] == 1 and 0 <= out["late_truth_preferred"] <= 1
+    for r in out["probes"]:
+        lt, le = np.array(r["loglik_true_position"]), np.array(r["loglik_estimated_position"])
+        assert lt.shape == le.shape == (H,) and np.isfinite(lt).all() and np.isfinite(le).all()
+        assert r["best_heading_offset_at_truth"] == out["heading_offsets"][int(lt.argmax())]
+        assert 0 <= r["error"] < 0.1 and 0 <= r["heading_error"] < 0.5
+        assert all(0 < s < 0.1 for s in r["cloud_std"])
+    assert all(0 <= q <= 1 for q in out["trust_mean_per_quarter"])
+    cmd = [sys.executable, str(REPO / "benchmarks" / "visual_slam_probe.py"), "--maze", "7"]
+    err = subprocess.run(cmd, capture_output=True, text=True)
+    assert err.returncode == 2 and "--maze 7: not a test maze" in err.stderr
+
+
 def _square_loop(T: int, side: float = 0.5):
     """A true path around a square (closing on itself) and odometry with a heading bias."""
     s = np.linspace(0.0, 4 * side, T)  # arc length
