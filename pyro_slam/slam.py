@@ -97,6 +97,9 @@ class SLAMConfig:
     offline_rounds: int = 2
     offline_svi_steps: int = 800
     offline_init: str = "online"
+    # (p, s): the filter's heading noise is s for a fraction p of the particles at each step
+    # (a heavy-tailed transition; None: off)
+    heading_jump: tuple[float, float] | None = None
     # offline SLAM's pose posterior: "forward" (a filter pass over the whole traversal after
     # each round and at the end) or "cache" (the paper's: only the SVI chunks refresh the cache
     # (eq. 3), and the final poses are filtered as in its Appendix B-I, in consecutive chunks of
@@ -333,6 +336,9 @@ class SLAM:
             raise ValueError(f"write_lag must be >= 0, got {self.cfg.write_lag}")
         if self.cfg.newest_svi_steps < 0:
             raise ValueError(f"newest_svi_steps must be >= 0, got {self.cfg.newest_svi_steps}")
+        hj = self.cfg.heading_jump
+        if hj is not None and (len(hj) != 2 or not 0 <= hj[0] <= 1 or not hj[1] > 0):
+            raise ValueError(f"heading_jump must be (probability in [0, 1], std > 0), got {hj!r}")
         st = self.cfg.transition_scale_trusted
         if st is not None and (len(st) != 3 or not all(f > 0 for f in st)):
             raise ValueError(
@@ -459,11 +465,26 @@ class SLAM:
             )
             self.particles, _ = self.pf.init(z0, M, x, m, step=0)
         else:
-            sigma = self._transition_sigma(M)
+            sigma = self._heading_jumps(self._transition_sigma(M))
             self.particles, _ = self.pf.step(
                 self.particles, M, x, self.ctl[t - 1], m, step=t, sigma=sigma
             )
         self.cache.store(torch.tensor([t]), _batched(self.particles), self.gen)
+
+    def _heading_jumps(self, sigma):
+        """With ``heading_jump = (p, s)``, a heavy-tailed transition: each particle's heading
+        noise is ``s`` with probability ``p`` (else ``sigma``'s), so a cloud that has become far
+        narrower than its heading error can still reach the heading the map supports. Returns
+        ``sigma`` unchanged, or a per-particle std ``[K, 3]``."""
+        if self.cfg.heading_jump is None:
+            return sigma
+        prob, std = self.cfg.heading_jump
+        base = self.model.transition.sigma if sigma is None else sigma
+        K = self.cfg.filter_particles
+        out = base.reshape(-1, 3)[-1:].expand(K, 3).clone()  # [K, 3]
+        jump = torch.rand(K, generator=self.gen) < prob  # [K]
+        out[jump, 2] = std
+        return out
 
     def _transition_sigma(self, M):
         """The filter's ``sigma_T`` for the next step (``None``: the model's). With

@@ -161,6 +161,21 @@ def test_offline_estimate_cache_filters_chunks_from_the_cached_particles(travers
         SLAM(traversal, config(offline_estimate="smooth"))
 
 
+def test_heading_jump_gives_a_fraction_of_the_particles_a_wide_heading_noise(traversal):
+    slam = SLAM(traversal, config(heading_jump=(0.25, 0.3), filter_particles=4000))
+    assert slam._heading_jumps(None) is not None
+    sigma = slam._heading_jumps(None)  # [K, 3]
+    base = slam.model.transition.sigma
+    jumped = sigma[:, 2] == 0.3
+    assert sigma.shape == (4000, 3) and abs(float(jumped.float().mean()) - 0.25) < 0.03
+    torch.testing.assert_close(sigma[~jumped], base.expand(int((~jumped).sum()), 3))
+    assert (sigma[jumped, :2] == base[:2]).all()
+    assert SLAM(traversal, config())._heading_jumps(None) is None  # off by default
+    for bad in ((1.5, 0.3), (0.1, 0.0), (0.1,)):
+        with pytest.raises(ValueError, match="heading_jump must be"):
+            SLAM(traversal, config(heading_jump=bad))
+
+
 def test_same_seed_same_result_other_seed_differs(traversal):
     # (runs share Pyro's global param store: a SLAM is built when the previous one is done)
     a = SLAM(traversal, config())
