@@ -39,6 +39,9 @@ SHIPPED_FILTER = dict(
     transition_scale=TRANSITION_SCALE,
     transition_scale_trusted=TRANSITION_SCALE_TRUSTED,
     weighting="shared",
+    # offline SLAM: the paper's cache-started chunk filter for the final poses, no
+    # whole-traversal passes (0.058 against 0.063 on the 24 LiDAR runs; session 16)
+    offline_estimate="cache",
 )
 
 
