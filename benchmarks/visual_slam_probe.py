@@ -117,7 +117,7 @@ def main(argv=None) -> int:
         print(json.dumps({k: round(r[k], 4) for k in ("t", "error", "heading_error",
               "loglik_truth_minus_estimate", "best_heading_offset_at_truth")}
               | {"cloud_heading_std": round(r["cloud_std"][2], 4)}))  # fmt: skip
-    print(json.dumps(summary, indent=1))
+    print(json.dumps({k: v for k, v in summary.items() if k != "heading_offsets"}, indent=1))
     return 0
 
 
