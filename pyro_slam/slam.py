@@ -588,9 +588,10 @@ class SLAM:
             if self.checkpoint:
                 self.save(self.checkpoint)
         while st.round < self.cfg.offline_rounds:
-            if st.phase == "offline-filter" and self.cfg.offline_estimate == "forward":
+            if st.phase == "offline-filter":
                 # a whole filter pass refreshes the cache; with "cache" only the SVI chunks do
-                self._filter_pass(progress, f"filter pass {st.round + 1}")
+                if self.cfg.offline_estimate == "forward":
+                    self._filter_pass(progress, f"filter pass {st.round + 1}")
                 st.phase, st.t = "offline-svi", 0
             n = self.cfg.offline_svi_steps
             bar = tqdm(

@@ -413,6 +413,7 @@ def test_path_integration_reproduces_noiseless_motion():
         ("offline", 7, {}),  # after the final checkpoint: nothing is redone
         ("online", 2, {"revisit_gap": 3, "revisit_radius": 0.01}),  # the track is restored
         ("offline", 5, {"transition_scale": (3.0, 3.0, 0.2)}),  # scaled once, not on resume
+        ("offline", 5, {"offline_estimate": "cache"}),  # between rounds without filter passes
     ],
 )
 def test_resume_reproduces_uninterrupted_run(traversal, tmp_path, mode, crash_at, over):
