@@ -71,18 +71,18 @@ def main(argv=None) -> int:
         if t == 0 or t % args.every:
             return
         est = slam.particles.mean()  # [3]
+
+        @torch.no_grad()
+        def loglik(z):  # [P, 3] -> log p(x_t | map mean, z) [P]
+            mean = slam.model.emission_mean(M.loc, z)  # [P, N]
+            return slam.model.emission_log_prob(slam.obs[t], mean, None, cfg.filter_sigma)
+
         row = {"t": t, "estimate": est.tolist(), "truth": truth[t].tolist()}
         for name, base in (("true_position", truth[t]), ("estimated_position", est)):
             z = base.repeat(len(dh), 1)  # [H, 3]
             z[:, 2] = truth[t, 2] + dh
-            with torch.no_grad():
-                mean = slam.model.emission_mean(M.loc, z)  # [H, N]
-                ll = slam.model.emission_log_prob(slam.obs[t], mean, None, cfg.filter_sigma)
-            row[f"loglik_{name}"] = ll.tolist()  # [H]
-        with torch.no_grad():
-            z = torch.stack([truth[t], est])  # [2, 3]
-            mean = slam.model.emission_mean(M.loc, z)
-            ll = slam.model.emission_log_prob(slam.obs[t], mean, None, cfg.filter_sigma)
+            row[f"loglik_{name}"] = loglik(z).tolist()  # [H]
+        ll = loglik(torch.stack([truth[t], est]))  # [2]
         row["loglik_truth_minus_estimate"] = float(ll[0] - ll[1])
         row["cloud_std"] = slam.particles.z.std(0).tolist()  # [3]
         probes.append(row)
