@@ -4,7 +4,9 @@ Runs the online sweep that ``benchmarks/visual_slam.py`` starts offline SLAM fro
 configuration, its pretrained emission, the same traversal) and, every ``--every`` steps,
 scores the newest image against the current map mean on a grid of headings (true heading
 ``+-0.5`` rad) at the true position and at the estimated one (``log p(x_t | M, z)`` with the
-filter's ``sigma_E``). It also records the particle cloud's std and its trust in the map. The
+filter's ``sigma_E``). It also records the particle cloud's std and its trust in the map,
+and (``revisit_stats``) whether the estimate's heading follows odometry and how well the
+places it revisits late were mapped on the first visit. The
 diagnosis in docs/visual_slam.md ("Session 16") reads it:
 
 * **cloud std vs error**: a cloud far narrower than its own error cannot move to the truth
@@ -30,6 +32,49 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
+def revisit_stats(est, truth, pi, window=100, turn=0.06, radius=0.02, gap=300, tail=1200):
+    """Does the estimate follow odometry, and were the places it revisits late mapped well?
+
+    ``est``, ``truth``, ``pi`` ``[T, 3]``. Returns
+
+    * ``odometry_windows``: the ``window``-step windows in which path integration's (signed,
+      unwrapped) heading error changed by more than ``turn`` rad, and
+      ``odometry_windows_max_gap``, the largest difference between the estimate's change and
+      path integration's over them (0: the estimate's heading follows odometry there);
+    * over the last ``tail`` steps, every ``window`` steps that revisit a place (true position
+      within ``radius`` of one at least ``gap`` steps earlier): the first-visit steps' range and
+      the estimate's position / absolute heading error there (``first_visit_*``), and the
+      estimate's absolute heading error at the revisits (``revisit_heading_error``).
+    """
+    T = len(truth)
+    h_est = np.unwrap(est[:, 2] - truth[:, 2])  # [T]
+    h_pi = np.unwrap(pi[:, 2] - truth[:, 2])
+    gaps = [
+        abs((h_est[t + window] - h_est[t]) - (h_pi[t + window] - h_pi[t]))
+        for t in range(0, T - window, window)
+        if abs(h_pi[t + window] - h_pi[t]) > turn
+    ]
+    err = np.linalg.norm(est[:, :2] - truth[:, :2], axis=1)  # [T]
+    habs = np.abs(np.angle(np.exp(1j * (est[:, 2] - truth[:, 2]))))  # [T]
+    first, later = [], []
+    for t in range(max(T - tail, gap), T, window):
+        d = np.linalg.norm(truth[: t - gap + 1, :2] - truth[t, :2], axis=1)
+        hits = np.flatnonzero(d < radius)
+        if len(hits):
+            first.append(int(hits[0]))
+            later.append(t)
+    out = {"odometry_windows": len(gaps), "odometry_windows_max_gap": float(max(gaps, default=0))}
+    if first:
+        out.update(
+            revisits=len(first),
+            first_visit_steps=[min(first), max(first)],
+            first_visit_error_max=float(err[first].max()),
+            first_visit_heading_error_max=float(habs[first].max()),
+            revisit_heading_error=[float(habs[later].min()), float(habs[later].max())],
+        )
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--maze", type=int, default=1005, help="a test-maze seed of visual_slam.py")
@@ -51,7 +96,7 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(args.threads)
     from pyro_slam.metrics import heading_error, localisation_error
-    from pyro_slam.slam import SLAM, SLAMConfig
+    from pyro_slam.slam import SLAM, SLAMConfig, path_integration
 
     args.out.mkdir(parents=True, exist_ok=True)
     cfg = SLAMConfig(**{**vs.BENCH_CONFIG, **json.loads(args.config)})
@@ -89,6 +134,7 @@ def main(argv=None) -> int:
 
     slam._filter_step = probed_step
     res = slam.run("online", progress=True)
+    pi = path_integration(tr, slam.model.transition)  # [T, 3]
     err = localisation_error(res["mean"], tr.poses)  # [T]
     herr = heading_error(res["mean"][:, 2], tr.poses[:, 2])  # [T]
     for row in probes:
@@ -109,6 +155,7 @@ def main(argv=None) -> int:
             np.median([abs(r["best_heading_offset_at_truth"]) for r in late])
         ),
         "trust_mean_per_quarter": [float(q.mean()) for q in np.array_split(np.array(trust), 4)],
+        **revisit_stats(res["mean"], tr.poses, pi),
     }
     (args.out / f"probe_m{args.maze}.json").write_text(
         json.dumps({**summary, "probes": probes, "trust": trust})

@@ -300,6 +300,30 @@ def test_visual_slam_probe_scores_the_image_on_a_heading_grid(tmp_path):
         assert 0 <= r["error"] < 0.1 and 0 <= r["heading_error"] < 0.5
         assert all(0 < s < 0.1 for s in r["cloud_std"])
     assert all(0 <= q <= 1 for q in out["trust_mean_per_quarter"])
+    assert out["odometry_windows"] >= 0 and out["odometry_windows_max_gap"] >= 0
+
+
+def test_revisit_stats_tells_a_heading_that_follows_odometry_and_the_first_visits():
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from visual_slam_probe import revisit_stats
+
+    T = 1000
+    s = np.linspace(0, 1, T)
+    truth = np.stack([0.5 + 0.3 * np.cos(4 * np.pi * s), 0.5 + 0.3 * np.sin(4 * np.pi * s),
+                      4 * np.pi * s + np.pi / 2], 1)  # fmt: skip  # two laps of one circle
+    pi = truth.copy()
+    pi[:, 2] += np.linspace(0, 0.5, T)  # odometry's heading drifts 0.05 rad per 100 steps
+    est = truth.copy()
+    est[:, 2] += np.linspace(0, 0.5, T)  # ... and the estimate's with it
+    est[:, 0] += np.where(np.arange(T) < 500, 0.01, 0.04)  # the first lap's error 0.01
+    out = revisit_stats(est, truth, pi, turn=0.04, tail=400)
+    assert out["odometry_windows"] == 9 and out["odometry_windows_max_gap"] < 1e-9
+    # the second lap's steps (600, 700, 800, 900) revisit the first lap's places at t < 500
+    assert out["revisits"] == 4 and out["first_visit_steps"][1] < 500
+    assert out["first_visit_error_max"] == pytest.approx(0.01)
+    assert out["revisit_heading_error"][1] == pytest.approx(0.5 * 900 / 999, abs=1e-3)
+    est[:, 2] = truth[:, 2]  # a heading that does not follow odometry
+    assert revisit_stats(est, truth, pi, turn=0.04)["odometry_windows_max_gap"] > 0.04
     cmd = [sys.executable, str(REPO / "benchmarks" / "visual_slam_probe.py"), "--maze", "7"]
     err = subprocess.run(cmd, capture_output=True, text=True)
     assert err.returncode == 2 and "--maze 7: not a test maze" in err.stderr
