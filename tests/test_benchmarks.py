@@ -329,6 +329,31 @@ def test_revisit_stats_tells_a_heading_that_follows_odometry_and_the_first_visit
     assert err.returncode == 2 and "--maze 7: not a test maze" in err.stderr
 
 
+def test_compare_runs_pairs_the_runs_both_outputs_share(tmp_path):
+    T = 50
+    for out, finals in (("a", [0.02, 0.04, 0.10]), ("b", [0.03, 0.06, 0.08, 0.5])):
+        (tmp_path / out / "runs").mkdir(parents=True)
+        for i, f in enumerate(finals):
+            slam = np.linspace(0, f, T)
+            np.savez(tmp_path / out / "runs" / f"offline_m{1001 + i}_t1_T{T}.npz", slam=slam,
+                     pi=np.full(T, 0.07))  # fmt: skip
+    out = json.loads(run("compare_runs.py", str(tmp_path / "a"), str(tmp_path / "b"),
+                         "--glob", "offline_*.npz"))  # fmt: skip
+    assert out["runs"] == 3 and out["a"]["all_runs"] == 3 and out["b"]["all_runs"] == 4
+    assert out["a"]["final_mean"] == pytest.approx(0.16 / 3)
+    assert out["a"]["runs_under_0.05"] == 2 and out["a"]["runs_beating_pi"] == 2
+    assert out["b"]["final_mean"] == pytest.approx(0.17 / 3)  # the shared runs only
+    d = np.array([-0.01, -0.02, 0.02])
+    assert out["paired_final"]["mean"] == pytest.approx(d.mean())
+    assert out["paired_final"]["se"] == pytest.approx(d.std(ddof=1) / np.sqrt(3))
+    assert out["paired_final"]["a_lower"] == 2
+    assert out["paired_time_avg"]["mean"] == pytest.approx(d.mean() / 2)
+    cmd = [sys.executable, str(REPO / "benchmarks" / "compare_runs.py"), str(tmp_path / "a")]
+    err = subprocess.run([*cmd, str(tmp_path / "b"), "--glob", "online_*.npz"],
+                         capture_output=True, text=True)  # fmt: skip
+    assert err.returncode == 2 and "no runs matching 'online_*.npz'" in err.stderr
+
+
 def _square_loop(T: int, side: float = 0.5):
     """A true path around a square (closing on itself) and odometry with a heading bias."""
     s = np.linspace(0.0, 4 * side, T)  # arc length
