@@ -254,6 +254,12 @@ def main(argv=None) -> int:
             "per_maze": [float(v) for v in pi[:, -1]],
         },
     }
+    # the online sweep offline SLAM starts from, where the runs exported it (offline_init online)
+    if all("sweep" in d.files and len(d["sweep"]) for d in data):
+        from pyro_slam.metrics import localisation_error
+
+        sw = np.array([localisation_error(d["sweep"], d["truth"])[-1] for d in data])  # [mazes]
+        summary["online_sweep"] = {"final_mean": float(sw.mean()), "per_maze": sw.tolist()}
     label = "" if args.map_poses == "filter" else f" (map at {args.map_poses} poses)"
     curves = {f"offline visual SLAM{label}": e, "path integration": pi}
     plot_error_bands(curves, args.out / "error_bands.png", distance=dist, title="visual DVBF-LM")

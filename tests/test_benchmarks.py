@@ -254,6 +254,7 @@ def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
         per = s[key]["per_maze"]
         assert len(per) == 2 and all(0 <= v < 1 for v in per)
         assert s[key]["final_mean"] == pytest.approx(sum(per) / 2)
+    assert len(s["online_sweep"]["per_maze"]) == 2 and s["online_sweep"]["final_mean"] < 1
     for png in ("error_bands.png", "reconstructions.png"):
         assert (tmp_path / png).stat().st_size > 10_000
     runs = sorted((tmp_path / "runs").glob("*.npz"))
