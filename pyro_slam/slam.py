@@ -100,6 +100,9 @@ class SLAMConfig:
     # (p, s): the filter's heading noise is s for a fraction p of the particles at each step
     # (a heavy-tailed transition; None: off)
     heading_jump: tuple[float, float] | None = None
+    # > 0: heading jumps only at revisits, i.e. where the cloud's mean is on a cell first mapped
+    # at least this many steps earlier (first mapping as the online sweep recorded it)
+    heading_jump_age: int = 0
     # offline SLAM's pose posterior: "forward" (a filter pass over the whole traversal after
     # each round and at the end) or "cache" (the paper's: only the SVI chunks refresh the cache
     # (eq. 3), and the final poses are filtered as in its Appendix B-I, in consecutive chunks of
@@ -339,6 +342,8 @@ class SLAM:
         hj = self.cfg.heading_jump
         if hj is not None and (len(hj) != 2 or not 0 <= hj[0] <= 1 or not hj[1] > 0):
             raise ValueError(f"heading_jump must be (probability in [0, 1], std > 0), got {hj!r}")
+        if self.cfg.heading_jump_age < 0:
+            raise ValueError(f"heading_jump_age must be >= 0, got {self.cfg.heading_jump_age}")
         st = self.cfg.transition_scale_trusted
         if st is not None and (len(st) != 3 or not all(f > 0 for f in st)):
             raise ValueError(
@@ -433,13 +438,17 @@ class SLAM:
             usable = (t - self.first_seen >= gap).to(loc.dtype)
         return MapBelief(loc.detach(), scale.detach(), usable, trust)
 
-    def _mark_seen(self, t: int) -> None:
-        """Record the first time each grid cell near the pose estimate was mapped."""
+    def _mean_cell(self) -> tuple[int, int]:
+        """Grid cell (lower-left corner) of the particle cloud's mean position."""
         g, z = self.model.grid, self.particles.mean()
         w, h, _ = g.shape
         gx = (z[0] - g.origin[0]) * ((w - 1) / g.size[0])
         gy = (z[1] - g.origin[1]) * ((h - 1) / g.size[1])
-        i0, j0 = int(gx.floor().clamp(0, w - 1)), int(gy.floor().clamp(0, h - 1))
+        return int(gx.floor().clamp(0, w - 1)), int(gy.floor().clamp(0, h - 1))
+
+    def _mark_seen(self, t: int) -> None:
+        """Record the first time each grid cell near the pose estimate was mapped."""
+        i0, j0 = self._mean_cell()
         block = self.first_seen[max(i0 - 1, 0) : i0 + 3, max(j0 - 1, 0) : j0 + 3]
         block.clamp_(max=t)
 
@@ -465,19 +474,25 @@ class SLAM:
             )
             self.particles, _ = self.pf.init(z0, M, x, m, step=0)
         else:
-            sigma = self._heading_jumps(self._transition_sigma(M))
+            sigma = self._heading_jumps(self._transition_sigma(M), t)
             self.particles, _ = self.pf.step(
                 self.particles, M, x, self.ctl[t - 1], m, step=t, sigma=sigma
             )
         self.cache.store(torch.tensor([t]), _batched(self.particles), self.gen)
 
-    def _heading_jumps(self, sigma):
+    def _heading_jumps(self, sigma, t: int):
         """With ``heading_jump = (p, s)``, a heavy-tailed transition: each particle's heading
         noise is ``s`` with probability ``p`` (else ``sigma``'s), so a cloud that has become far
-        narrower than its heading error can still reach the heading the map supports. Returns
-        ``sigma`` unchanged, or a per-particle std ``[K, 3]``."""
+        narrower than its heading error can still reach the heading the map supports. With
+        ``heading_jump_age = G > 0`` only at step ``t`` of a revisit (the cloud's mean on a cell
+        first mapped at least ``G`` steps before ``t``): not at the map's frontier, where a
+        young chart copies the last images and any heading matches it. Returns ``sigma``
+        unchanged, or a per-particle std ``[K, 3]``."""
         if self.cfg.heading_jump is None:
             return sigma
+        if self.cfg.heading_jump_age > 0:
+            if not t - self.first_seen[self._mean_cell()] >= self.cfg.heading_jump_age:
+                return sigma
         prob, std = self.cfg.heading_jump
         base = self.model.transition.sigma if sigma is None else sigma
         K = self.cfg.filter_particles

@@ -273,16 +273,17 @@ def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
     assert [f.stat().st_mtime_ns for f in runs] == stamps
     assert json.loads((tmp_path / "summary.json").read_text())["offline"] == s["offline"]
     # the diagnostic: the map learned at the true poses, stored apart; the emission is reused;
-    # --maze-seeds picks one maze
-    run("visual_slam.py", *args[:-2], "--maze-seeds", "1002", "--map-poses", "true",
+    # --maze-seeds picks one maze (here a held-out tuning maze)
+    run("visual_slam.py", *args[:-2], "--maze-seeds", "997", "--map-poses", "true",
         "--workers", "1", "--out", str(tmp_path))  # fmt: skip
     o = json.loads((tmp_path / "summary.json").read_text())
-    assert o["map_poses"] == "true" and s["map_poses"] == "filter" and o["mazes"] == [1002]
+    assert o["map_poses"] == "true" and s["map_poses"] == "filter" and o["mazes"] == [997]
     assert 0 <= o["offline"]["per_maze"][0] < 1
-    assert len(list((tmp_path / "runs").glob("m1002_map-true_*.npz"))) == 1
+    assert len(list((tmp_path / "runs").glob("m997_map-true_*.npz"))) == 1
     cmd = [sys.executable, str(REPO / "benchmarks" / "visual_slam.py"), "--maze-seeds", "1002,7"]
     err = subprocess.run([*cmd, "--out", str(tmp_path)], capture_output=True, text=True)
     assert err.returncode == 2 and "--maze-seeds [7]: not test mazes" in err.stderr
+    assert "or tuning mazes [997, 998]" in err.stderr
 
 
 def test_visual_slam_probe_scores_the_image_on_a_heading_grid(tmp_path):

@@ -163,17 +163,34 @@ def test_offline_estimate_cache_filters_chunks_from_the_cached_particles(travers
 
 def test_heading_jump_gives_a_fraction_of_the_particles_a_wide_heading_noise(traversal):
     slam = SLAM(traversal, config(heading_jump=(0.25, 0.3), filter_particles=4000))
-    assert slam._heading_jumps(None) is not None
-    sigma = slam._heading_jumps(None)  # [K, 3]
+    assert slam._heading_jumps(None, 0) is not None
+    sigma = slam._heading_jumps(None, 0)  # [K, 3]
     base = slam.model.transition.sigma
     jumped = sigma[:, 2] == 0.3
     assert sigma.shape == (4000, 3) and abs(float(jumped.float().mean()) - 0.25) < 0.03
     torch.testing.assert_close(sigma[~jumped], base.expand(int((~jumped).sum()), 3))
     assert (sigma[jumped, :2] == base[:2]).all()
-    assert SLAM(traversal, config())._heading_jumps(None) is None  # off by default
+    assert SLAM(traversal, config())._heading_jumps(None, 0) is None  # off by default
     for bad in ((1.5, 0.3), (0.1, 0.0), (0.1,)):
         with pytest.raises(ValueError, match="heading_jump must be"):
             SLAM(traversal, config(heading_jump=bad))
+
+
+def test_heading_jump_age_allows_jumps_only_on_cells_mapped_long_enough_ago(traversal):
+    slam = SLAM(traversal, config(heading_jump=(1.0, 0.3), heading_jump_age=100))
+    with torch.no_grad():
+        slam._filter_step(0, slam.map_mean(0))
+    cell = slam._mean_cell()
+    assert slam._heading_jumps(None, 10**6) is None  # an unmapped cell: no revisit
+    slam.first_seen[cell] = 50.0
+    assert slam._heading_jumps(None, 149) is None  # mapped 99 steps ago: still the frontier
+    sigma = slam._heading_jumps(None, 150)  # [K, 3], a revisit: every particle jumps (p = 1)
+    assert sigma.shape == (slam.cfg.filter_particles, 3) and (sigma[:, 2] == 0.3).all()
+    slam.first_seen.fill_(float("inf"))
+    slam.first_seen[cell[0] + 2 :, :] = 0.0  # old cells elsewhere do not count
+    assert slam._heading_jumps(None, 10**6) is None
+    with pytest.raises(ValueError, match="heading_jump_age must be >= 0"):
+        SLAM(traversal, config(heading_jump_age=-1))
 
 
 def test_same_seed_same_result_other_seed_differs(traversal):
