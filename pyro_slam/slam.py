@@ -486,8 +486,8 @@ class SLAM:
         narrower than its heading error can still reach the heading the map supports. With
         ``heading_jump_age = G > 0`` only at step ``t`` of a revisit (the cloud's mean on a cell
         first mapped at least ``G`` steps before ``t``): not at the map's frontier, where a
-        young chart copies the last images and any heading matches it. Returns ``sigma``
-        unchanged, or a per-particle std ``[K, 3]``."""
+        young chart only repeats the last images. Returns ``sigma`` unchanged, or a per-particle
+        std ``[K, 3]``."""
         if self.cfg.heading_jump is None:
             return sigma
         if self.cfg.heading_jump_age > 0:
