@@ -10,6 +10,10 @@ plot (median, 50% and 80% bands) of error and error relative to distance travell
     python benchmarks/slam_accuracy.py --mazes 2 --traversals 1 --steps 1000 --modes online
     python benchmarks/slam_accuracy.py --modes online --map-poses true --out out/slam_oracle
 
+``--per-maze-noise`` seeds each run's actuation noise with (traversal, maze seed). By default
+the noise follows the traversal seed alone, so the 6 mazes of a traversal share one noise
+sequence (the same heading drift, as the rotation noise is added whatever the controls).
+
 ``--map-poses true|pi`` is a diagnostic: the particle cache is pinned to the true (or the
 path-integration) poses, so the map is learned there while the filter still localises against
 it (:meth:`pyro_slam.slam.SLAM.pin_cache`); the gap to the default ``filter`` is what pose errors
@@ -39,16 +43,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
 
 
-def _traversal(maze_seed: int, seed: int, steps: int):
+def _traversal(maze_seed: int, seed: int, steps: int, per_maze_noise: bool = False):
     from simulators import simulate_traversal
     from simulators.maze import make_maze
 
-    return simulate_traversal(make_maze("moderate-medium", maze_seed), steps=steps, seed=seed)
+    maze = make_maze("moderate-medium", maze_seed)
+    noise_seed = (seed, maze_seed) if per_maze_noise else None  # None: the noise follows seed
+    return simulate_traversal(maze, steps=steps, seed=seed, noise_seed=noise_seed)
 
 
 def run_one(job) -> dict:
     """One SLAM run (in a worker process, 1 thread); returns errors over time."""
-    mode, maze_seed, seed, steps, over, transition_kind, map_poses, path = job
+    mode, maze_seed, seed, steps, over, transition_kind, map_poses, path, per_maze_noise = job
     import torch
 
     torch.set_num_threads(1)
@@ -56,7 +62,7 @@ def run_one(job) -> dict:
     from pyro_slam.cli import shipped_slam
     from pyro_slam.slam import path_integration
 
-    tr = _traversal(maze_seed, seed, steps)
+    tr = _traversal(maze_seed, seed, steps, per_maze_noise)
     t0 = time.perf_counter()
     slam = shipped_slam(tr, transition_kind, **{**BENCH_CONFIG, **over, "seed": seed})
     pi = path_integration(tr, slam.model.transition)
@@ -103,6 +109,12 @@ def main(argv=None) -> int:
         default="filter",
         help="diagnostic: learn the map at the true / path-integration poses (SLAM.pin_cache)",
     )
+    p.add_argument(
+        "--per-maze-noise",
+        action="store_true",
+        help="seed each run's actuation noise with (traversal, maze seed); by default it follows "
+        "the traversal seed alone, so the 6 mazes of one traversal share one noise sequence",
+    )
     args = p.parse_args(argv)
     from tqdm import tqdm
 
@@ -121,16 +133,19 @@ def main(argv=None) -> int:
         for m in MAZE_SEEDS[: args.mazes]:
             for s in range(1, args.traversals + 1):
                 tag = "" if args.map_poses == "filter" else f"_map-{args.map_poses}"
+                tag += "_pn" if args.per_maze_noise else ""
                 f = runs / f"{mode}{tag}_m{m}_t{s}_T{args.steps}.npz"
                 files.setdefault(mode, []).append(f)
                 if not f.is_file():
-                    jobs.append((mode, m, s, args.steps, over, args.transition, args.map_poses, f))
+                    jobs.append((mode, m, s, args.steps, over, args.transition, args.map_poses,
+                                 f, args.per_maze_noise))  # fmt: skip
     with mp.get_context("spawn").Pool(args.workers) as pool:
         for r in tqdm(pool.imap_unordered(run_one, jobs), total=len(jobs), desc="SLAM runs"):
             tqdm.write(json.dumps(r))
     summary = {"steps": args.steps, "runs_per_mode": args.mazes * args.traversals,
                "transition": args.transition, "config": {**BENCH_CONFIG, **over},
-               "map_poses": args.map_poses}  # fmt: skip
+               "map_poses": args.map_poses,
+               "per_maze_noise": args.per_maze_noise}  # fmt: skip
     curves = {}
     for mode in modes:
         data = [np.load(f) for f in files[mode]]

@@ -19,6 +19,16 @@ plus reconstructed vs true images at a few poses.
 ``--map-poses true|pi`` is the diagnostic of ``slam_accuracy.py``: the map is learned at the true
 (or path-integration) poses while the filter still localises against it.
 
+``--odometry-scale f`` multiplies the simulator's actuation noise (``OdometryNoise``: rotation and
+forward std) and the filter's kinematic ``sigma_T`` by ``f``. The default noise is calibrated to
+the LiDAR benchmark's 3000-step path integration (paper: 0.14); over 5000 steps it drifts about
+twice as far as the paper's VizDoom agent (0.11). ``--calibrate-odometry`` measures path
+integration at t = T on 60 held-out mazes (``CALIBRATION_SEEDS``, no images, no SLAM) and prints
+the scale that brings its mean to the paper's 0.11::
+
+    python benchmarks/visual_slam.py --calibrate-odometry
+    python benchmarks/visual_slam.py --odometry-scale F --out out/visual_slam_paper_odometry
+
 Finished runs are kept in ``OUT/runs`` and the pretrained emission in ``OUT/emission_image.pt``
 (``--pretrain-steps``), so an interrupted benchmark resumes.
 """
@@ -39,6 +49,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
 # held-out mazes for choosing settings at full length (never in the test figures)
 TUNING_SEEDS = (997, 998)
+# held-out mazes for --calibrate-odometry (path integration only)
+CALIBRATION_SEEDS = tuple(range(900, 960))
+PAPER_PI = 0.11  # the paper's VizDoom path integration at t = 5000 (Fig. 5b: 0.11 +- 0.05)
 PRETRAIN_MAZE = 100
 
 # reduced from the paper (25 x 25 x 32 x 24 map, 4 x 256 networks) for CPU: see --config
@@ -68,12 +81,59 @@ BENCH_CONFIG = dict(
 )
 
 
-def _traversal(maze_seed: int, seed: int, steps: int):
-    from simulators import simulate_traversal
+def _traversal(
+    maze_seed: int, seed: int, steps: int, odometry_scale=1.0, images=True, per_maze_noise=False
+):
+    from simulators import OdometryNoise, simulate_traversal
     from simulators.maze import make_maze
 
     maze = make_maze("moderate-medium", maze_seed)
-    return simulate_traversal(maze, steps=steps, seed=seed, images=True)
+    d = OdometryNoise()
+    noise = OdometryNoise(d.rotation_std * odometry_scale, d.forward_std * odometry_scale)
+    noise_seed = (seed, maze_seed) if per_maze_noise else None  # None: the noise follows seed
+    return simulate_traversal(
+        maze, steps=steps, seed=seed, images=images, noise=noise, noise_seed=noise_seed
+    )
+
+
+def scaled_config(cfg, odometry_scale: float):
+    """``cfg`` with the kinematic ``sigma_T`` scaled with the actuation noise."""
+    import dataclasses
+
+    sigma = tuple(float(v) * odometry_scale for v in cfg.transition_sigma)
+    return dataclasses.replace(cfg, transition_sigma=sigma)
+
+
+def calibrate_odometry(
+    steps: int, seeds=CALIBRATION_SEEDS, target=PAPER_PI, rounds=2, per_maze_noise=False
+) -> dict:
+    """The actuation-noise scale at which path integration's mean error at t = ``steps`` over
+    ``seeds`` is ``target``: measured at scale 1, then ``rounds`` times at
+    ``scale * target / measured`` (the error grows about in proportion to the noise).
+    ``scale_for_target`` is the measured scale whose mean is closest to ``target``."""
+    from pyro_slam.metrics import localisation_error
+    from pyro_slam.slam import SLAMConfig, path_integration
+    from pyro_slam.transitions import KinematicTransition
+
+    sigma = SLAMConfig().transition_sigma  # the mean is all path integration uses
+
+    def measure(f):
+        e = []
+        for m in seeds:
+            tr = _traversal(m, 1, steps, f, images=False, per_maze_noise=per_maze_noise)
+            trans = KinematicTransition(sigma, tr.metadata.get("control_model", "rotate_forward"))
+            e.append(float(localisation_error(path_integration(tr, trans), tr.poses)[-1]))
+        e = np.array(e)  # [mazes]
+        return {"scale": f, "mean": float(e.mean()), "std": float(e.std()),
+                "median": float(np.median(e))}  # fmt: skip
+
+    points = [measure(1.0)]
+    for _ in range(rounds):
+        points.append(measure(round(points[-1]["scale"] * target / points[-1]["mean"], 2)))
+    best = min(points, key=lambda q: abs(q["mean"] - target))
+    return {"steps": steps, "mazes": list(seeds), "target": target,
+            "per_maze_noise": per_maze_noise, "points": points,
+            "scale_for_target": best["scale"], "at_scale": best}  # fmt: skip
 
 
 def pretrained_emission(path: Path, cfg, steps: int, pretrain_steps: int):
@@ -99,7 +159,16 @@ def _run_job(job) -> dict:
 
 
 def run_one(
-    maze_seed, seed, steps, cfg, emission, path: Path, threads: int = 1, map_poses="filter"
+    maze_seed,
+    seed,
+    steps,
+    cfg,
+    emission,
+    path: Path,
+    threads: int = 1,
+    map_poses="filter",
+    odometry_scale: float = 1.0,
+    per_maze_noise: bool = False,
 ) -> dict:
     import torch
 
@@ -108,7 +177,7 @@ def run_one(
     from pyro_slam import metrics
     from pyro_slam.slam import SLAM, path_integration
 
-    tr = _traversal(maze_seed, seed, steps)
+    tr = _traversal(maze_seed, seed, steps, odometry_scale, per_maze_noise=per_maze_noise)
     emission = copy.deepcopy(emission)  # fine-tuning must not leak from one maze to the next
     t0 = time.perf_counter()
     slam = SLAM(tr, cfg, emission=emission)
@@ -187,7 +256,31 @@ def main(argv=None) -> int:
         default="filter",
         help="diagnostic: learn the map at the true / path-integration poses (SLAM.pin_cache)",
     )
+    p.add_argument(
+        "--odometry-scale",
+        type=float,
+        default=1.0,
+        help="factor on the actuation noise and the filter's sigma_T (see --calibrate-odometry)",
+    )
+    p.add_argument(
+        "--calibrate-odometry",
+        action="store_true",
+        help=f"print path integration's error at t = --steps on {len(CALIBRATION_SEEDS)} held-out "
+        f"mazes and the --odometry-scale for the paper's {PAPER_PI} (checked there), then exit",
+    )
+    p.add_argument(
+        "--per-maze-noise",
+        action="store_true",
+        help="seed each maze's actuation noise with (driver seed, maze seed); by default it "
+        "follows the driver seed alone, so all mazes share one noise sequence",
+    )
     args = p.parse_args(argv)
+    if not args.odometry_scale > 0:
+        p.error(f"--odometry-scale must be > 0, got {args.odometry_scale}")
+    if args.calibrate_odometry:
+        res = calibrate_odometry(args.steps, per_maze_noise=args.per_maze_noise)
+        print(json.dumps(res, indent=2))
+        return 0
     mazes = list(MAZE_SEEDS[: args.mazes])
     if args.maze_seeds is not None:
         try:
@@ -211,6 +304,8 @@ def main(argv=None) -> int:
     runs.mkdir(parents=True, exist_ok=True)
     over = json.loads(args.config)
     cfg = SLAMConfig(**{**BENCH_CONFIG, **over})
+    if args.odometry_scale != 1.0 and "transition_sigma" not in over:
+        cfg = scaled_config(cfg, args.odometry_scale)
     t0 = time.perf_counter()
     em, em_meta = pretrained_emission(
         args.out / "emission_image.pt", cfg, args.pretrain_traversal, args.pretrain_steps
@@ -219,10 +314,15 @@ def main(argv=None) -> int:
     files, jobs = [], []
     for m in mazes:
         tag = "" if args.map_poses == "filter" else f"_map-{args.map_poses}"
+        tag += "" if args.odometry_scale == 1.0 else f"_od{args.odometry_scale:g}"
+        tag += "_pn" if args.per_maze_noise else ""
         f = runs / f"m{m}{tag}_T{args.steps}.npz"
         files.append(f)
         if not f.is_file():
-            jobs.append((m, 1, args.steps, cfg, em, f, args.threads, args.map_poses))
+            jobs.append(
+                (m, 1, args.steps, cfg, em, f, args.threads, args.map_poses,
+                 args.odometry_scale, args.per_maze_noise)
+            )  # fmt: skip
     bar = tqdm(total=len(jobs), desc="visual SLAM runs")
     if args.workers > 1 and len(jobs) > 1:
         import multiprocessing as mp
@@ -246,6 +346,8 @@ def main(argv=None) -> int:
         "mazes": mazes,
         "config": {**BENCH_CONFIG, **over},
         "map_poses": args.map_poses,
+        "odometry_scale": args.odometry_scale,
+        "per_maze_noise": args.per_maze_noise,
         "emission_pretraining": {**em_meta, "wall_s_this_call": pretrain_s},
         "offline": {
             "final_mean": float(e[:, -1].mean()),

@@ -31,6 +31,7 @@ def simulate_traversal(
     images: bool = False,
     distractors: int = 0,
     noise: OdometryNoise | dict | None = None,
+    noise_seed: int | tuple[int, ...] | None = None,
     lidar: LidarConfig = LidarConfig(),  # noqa: B008 (frozen dataclass)
     camera: CameraConfig = CameraConfig(),  # noqa: B008
     driver: DriverConfig = DriverConfig(),  # noqa: B008
@@ -48,6 +49,8 @@ def simulate_traversal(
         distractors: number of boxes visible to the sensors but absent from ``walls``.
         noise: actuation noise, see :class:`OdometryNoise` (``None`` = calibrated defaults,
             ``0`` = noiseless).
+        noise_seed: seeds the actuation noise instead of ``seed`` (see :class:`World`); the
+            benchmarks pass ``(seed, maze seed)`` so that each maze gets its own noise.
         tour: positions ``[P, 2]`` to visit after the ``steps`` exploring steps (a
             :class:`TourDriver` drives there; the traversal then has more than ``steps``
             steps). Points the exploring steps passed within ``tour_skip`` are left out. Used to
@@ -59,7 +62,7 @@ def simulate_traversal(
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
     maze = make_maze(maze, seed) if isinstance(maze, str) else maze
-    world = World(maze, lidar, noise, distractors=distractors, seed=seed)
+    world = World(maze, lidar, noise, distractors=distractors, seed=seed, noise_seed=noise_seed)
     agent = ExploringDriver(
         maze, lidar.beam_angles, seed=np.random.SeedSequence([seed, 1]), config=driver
     )
@@ -107,6 +110,7 @@ def simulate_traversal(
         "simulator": "simulators (pymunk maze)",
         "simulator_version": SIMULATOR_VERSION,
         "seed": int(seed),
+        "noise_seed": None if noise_seed is None else np.atleast_1d(noise_seed).tolist(),
         "maze": {
             "name": maze.name,
             "seed": maze.seed,

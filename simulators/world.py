@@ -87,6 +87,9 @@ class World:
         distractors: number of small boxes placed in free space; seen by the sensors and
             blocking motion, but not part of ``maze.walls``.
         seed: seeds distractor layout, start pose and actuation noise.
+        noise_seed: seeds the actuation noise instead of ``seed`` (an int or a sequence of
+            ints, as ``numpy.random.SeedSequence`` takes), so that worlds which share ``seed``
+            (e.g. one traversal seed over several mazes) need not share their noise.
         pose: start pose ``[3]``; random free pose if ``None``.
         clearance: how far before a wall a blocked move stops.
     """
@@ -100,6 +103,7 @@ class World:
         seed: int = 0,
         pose=None,
         clearance: float = 1e-3,
+        noise_seed: int | tuple[int, ...] | None = None,
     ):
         self.maze = maze
         self.lidar_config = lidar
@@ -107,6 +111,8 @@ class World:
         self.clearance = float(clearance)
         self.seed = int(seed)
         layout_seq, pose_seq, noise_seq = np.random.SeedSequence(self.seed).spawn(3)
+        if noise_seed is not None:
+            noise_seq = np.random.SeedSequence(noise_seed)
         self._noise_rng = np.random.default_rng(noise_seq)
         self.distractor_segments = _place_distractors(maze, distractors, layout_seq)  # [D, 4]
         self.segments = np.concatenate([maze.walls, self.distractor_segments])  # [W + D, 4]

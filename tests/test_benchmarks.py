@@ -77,6 +77,14 @@ def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path
     assert 0 <= oracle["online"]["final_mean"] < 0.05
     assert oracle["online"]["final_mean"] != summary["online"]["final_mean"]
     assert len(list((tmp_path / "runs").glob("online_map-true_*.npz"))) == 1
+    # each maze's own actuation noise: another traversal of the same maze, kept apart
+    run("slam_accuracy.py", *args, "--per-maze-noise")
+    pn = json.loads((tmp_path / "summary.json").read_text())
+    assert pn["per_maze_noise"] and not summary["per_maze_noise"]
+    (f,) = (tmp_path / "runs").glob("online_pn_*.npz")
+    with np.load(f) as a, np.load(runs[0]) as b:
+        assert np.abs(a["truth"] - b["truth"]).max() > 1e-4
+        assert np.array_equal(a["truth"][0], b["truth"][0])  # same start pose
 
 
 def test_slam_error_sources_splits_position_error_into_heading_and_rest(tmp_path):
@@ -274,16 +282,58 @@ def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
     assert json.loads((tmp_path / "summary.json").read_text())["offline"] == s["offline"]
     # the diagnostic: the map learned at the true poses, stored apart; the emission is reused;
     # --maze-seeds picks one maze (here a held-out tuning maze)
+    # --odometry-scale: the traversal is driven with scaled actuation noise, stored apart
     run("visual_slam.py", *args[:-2], "--maze-seeds", "997", "--map-poses", "true",
-        "--workers", "1", "--out", str(tmp_path))  # fmt: skip
+        "--workers", "1", "--odometry-scale", "0.5", "--out", str(tmp_path))  # fmt: skip
     o = json.loads((tmp_path / "summary.json").read_text())
     assert o["map_poses"] == "true" and s["map_poses"] == "filter" and o["mazes"] == [997]
+    assert o["odometry_scale"] == 0.5 and s["odometry_scale"] == 1.0
     assert 0 <= o["offline"]["per_maze"][0] < 1
-    assert len(list((tmp_path / "runs").glob("m997_map-true_*.npz"))) == 1
+    (f,) = (tmp_path / "runs").glob("m997_map-true_*.npz")
+    assert f.name == "m997_map-true_od0.5_T60.npz"
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from visual_slam import _traversal
+
+    with np.load(f) as z:
+        np.testing.assert_allclose(z["truth"], _traversal(997, 1, 60, 0.5, images=False).poses,
+                                   atol=1e-6)  # fmt: skip
+        assert np.abs(z["truth"] - _traversal(997, 1, 60, images=False).poses).max() > 1e-4
     cmd = [sys.executable, str(REPO / "benchmarks" / "visual_slam.py"), "--maze-seeds", "1002,7"]
     err = subprocess.run([*cmd, "--out", str(tmp_path)], capture_output=True, text=True)
     assert err.returncode == 2 and "--maze-seeds [7]: not test mazes" in err.stderr
     assert "or tuning mazes [997, 998]" in err.stderr
+    err = subprocess.run([*cmd[:2], "--odometry-scale", "0"], capture_output=True, text=True)
+    assert err.returncode == 2 and "--odometry-scale must be > 0, got 0.0" in err.stderr
+
+
+def test_visual_slam_calibrates_the_odometry_noise_to_the_papers_path_integration():
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from visual_slam import PAPER_PI, _traversal, calibrate_odometry, scaled_config
+
+    from pyro_slam.slam import SLAMConfig
+
+    res = calibrate_odometry(400, seeds=(900, 901, 902), rounds=1, per_maze_noise=True)
+    assert res["target"] == PAPER_PI == 0.11 and res["mazes"] == [900, 901, 902]
+    base, refined = res["points"]
+    assert base["scale"] == 1.0 and refined["scale"] == round(PAPER_PI / base["mean"], 2)
+    best = min(res["points"], key=lambda q: abs(q["mean"] - PAPER_PI))
+    assert res["at_scale"] == best and res["scale_for_target"] == best["scale"]
+    # path integration drifts about in proportion to the noise
+    ratio = refined["mean"] / base["mean"]
+    assert 0.5 * refined["scale"] < ratio < 1.5 * refined["scale"]
+    cfg = scaled_config(SLAMConfig(transition_sigma=(1e-3, 2e-3, 8e-3)), 0.5)
+    assert cfg.transition_sigma == pytest.approx((5e-4, 1e-3, 4e-3))
+    # per-maze noise: the mazes' heading drifts differ; with the shared noise they do not
+    # (the rotation noise is added whatever the controls)
+
+    def drift(maze, per_maze):
+        tr = _traversal(maze, 1, 300, images=False, per_maze_noise=per_maze)
+        return tr.metadata["noise_seed"], np.diff(tr.poses[:, 2]) - tr.controls[:, 0]
+
+    (seed_a, a), (_, b) = drift(900, False), drift(901, False)
+    assert seed_a is None and np.allclose(np.angle(np.exp(1j * (a - b))), 0, atol=1e-6)
+    (seed_a, a), (_, b) = drift(900, True), drift(901, True)
+    assert seed_a == [1, 900] and not np.allclose(np.angle(np.exp(1j * (a - b))), 0, atol=1e-3)
 
 
 def test_visual_slam_probe_scores_the_image_on_a_heading_grid(tmp_path):

@@ -132,6 +132,23 @@ def test_actuation_noise_is_seeded_and_drifts(open_box):
         OdometryNoise.coerce("loud")
 
 
+def test_noise_seed_gives_worlds_with_one_seed_their_own_noise(open_box):
+    controls = [(0.05, 0.002)] * 50
+
+    def run(seed, noise_seed=None, start=None):
+        world = World(open_box, seed=seed, noise_seed=noise_seed, pose=start)
+        return world.pose.copy(), np.array([world.step(u) for u in controls])
+
+    start, base = run(3)
+    start_a, a = run(3, noise_seed=(3, 1001))
+    np.testing.assert_array_equal(start_a, start)  # the start pose still follows seed
+    assert np.abs(a - base).max() > 1e-3  # the noise does not
+    np.testing.assert_array_equal(run(3, noise_seed=(3, 1001))[1], a)
+    assert not np.array_equal(run(3, noise_seed=(3, 1002))[1], a)
+    # the noise follows noise_seed alone: another seed, same start, same noise_seed
+    np.testing.assert_array_equal(run(4, noise_seed=(3, 1001), start=start)[1], a)
+
+
 def test_distractors_seen_by_lidar_but_not_in_floor_map():
     maze = make_maze("moderate-medium", 5)
     world = World(maze, distractors=6, seed=5)
