@@ -7,6 +7,11 @@ the mean over the runs of the position error, of :func:`pyro_slam.metrics.headin
 for SLAM and for path integration, and the fraction of runs where SLAM beats path integration.
 
     python benchmarks/slam_error_sources.py out/s13_shtt_24 --mode online
+    python benchmarks/slam_error_sources.py out/s18_v_od057_pn --glob "m*.npz" --times 1000,-1 \
+        --per-run                                    # visual_slam.py runs, one row per run
+
+``--glob`` reads other run files that hold the same trajectories (``visual_slam.py`` writes
+``OUT/runs/m<maze>*.npz``); ``--per-run`` adds each run's values (runs in name order, ``files``).
 """
 
 from __future__ import annotations
@@ -23,20 +28,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pyro_slam.metrics import heading_error, heading_only_error, localisation_error  # noqa: E402
 
 
-def load_runs(parser: argparse.ArgumentParser, out: Path, mode: str) -> list[dict]:
-    """The trajectories ``estimate``, ``truth``, ``pi_poses`` (each ``[T, 3]``) of every
-    ``OUT/runs/<mode>_m*_t*_T*.npz`` run, in name order; a clear parser error if there are none
-    or a run lacks one."""
-    files = sorted((out / "runs").glob(f"{mode}_m*_t*_T*.npz"))
+def load_runs(
+    parser: argparse.ArgumentParser, out: Path, mode: str, pattern: str | None = None
+) -> list[dict]:
+    """The trajectories ``estimate``, ``truth``, ``pi_poses`` (each ``[T, 3]``) and the file
+    ``name`` of every ``OUT/runs/<mode>_m*_t*_T*.npz`` run (or of ``pattern``), in name order; a
+    clear parser error if there are none or a run lacks one."""
+    pattern = pattern or f"{mode}_m*_t*_T*.npz"
+    files = sorted((out / "runs").glob(pattern))
     if not files:
-        parser.error(f"no {mode}_m*_t*_T*.npz runs under {out / 'runs'}")
+        parser.error(f"no {pattern} runs under {out / 'runs'}")
     runs = []
     for f in files:
         with np.load(f) as z:
             missing = {"estimate", "truth", "pi_poses"} - set(z.files)
             if missing:
                 parser.error(f"{f}: no {sorted(missing)} (re-run slam_accuracy.py to export them)")
-            runs.append({k: z[k] for k in ("estimate", "truth", "pi_poses")})
+            runs.append({"name": f.name, **{k: z[k] for k in ("estimate", "truth", "pi_poses")}})
     return runs
 
 
@@ -45,8 +53,10 @@ def main(argv=None) -> int:
     p.add_argument("out", type=Path, help="a slam_accuracy.py --out directory")
     p.add_argument("--mode", default="online", help="online | offline (the runs' file prefix)")
     p.add_argument("--times", default="150,300,450,900,1200,1800,2400,-1")
+    p.add_argument("--glob", default=None, help="run files under OUT/runs (default: the mode's)")
+    p.add_argument("--per-run", action="store_true", help="also each run's values")
     args = p.parse_args(argv)
-    runs = load_runs(p, args.out, args.mode)
+    runs = load_runs(p, args.out, args.mode, args.glob)
     rows = {k: [] for k in ("slam", "slam_heading_only", "slam_heading", "pi", "pi_heading_only",
                             "pi_heading")}  # fmt: skip
     for z in runs:
@@ -65,6 +75,10 @@ def main(argv=None) -> int:
     out.update({f"{k}_mean": [round(float(arr[k][:, t].mean()), 4) for t in times] for k in arr})
     beats = arr["slam"][:, times] < arr["pi"][:, times]
     out["slam_beats_pi_fraction"] = [round(float(b), 3) for b in beats.mean(0)]
+    if args.per_run:
+        out["files"] = [z["name"] for z in runs]
+        out.update({f"{k}_per_run": [[round(float(v), 4) for v in r] for r in arr[k][:, times]]
+                    for k in arr})  # fmt: skip
     print(json.dumps(out, indent=1))
     return 0
 

@@ -110,6 +110,12 @@ def test_slam_error_sources_splits_position_error_into_heading_and_rest(tmp_path
     cmd = [sys.executable, script, str(tmp_path), "--mode", "offline"]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     assert proc.returncode != 0 and "no offline_m*_t*_T*.npz runs" in proc.stderr
+    # --glob reads visual_slam.py's run names; --per-run lists each run's values
+    np.savez(tmp_path / "runs" / f"m1001_T{T}.npz", truth=truth, pi_poses=pi, estimate=truth)
+    out = json.loads(run("slam_error_sources.py", str(tmp_path), "--glob", "m*.npz", "--times",
+                         "5,-1", "--per-run"))  # fmt: skip
+    assert out["runs"] == 1 and out["files"] == [f"m1001_T{T}.npz"]
+    assert out["slam_per_run"] == [[0.0, 0.0]] and out["pi_heading_per_run"] == [[0.1, 0.1]]
 
 
 def test_slam_trace_prints_rows_and_summary():
