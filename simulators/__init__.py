@@ -3,10 +3,10 @@
 Public API::
 
     make_maze(name, seed) -> Maze
-    World(maze, lidar=LidarConfig(), odometry_noise=None, distractors=0, seed=0)
+    World(maze, lidar=LidarConfig(), odometry_noise=None, distractors=0, seed=0, noise_seed=None)
     raycast(walls, origins, angles, max_range) -> ranges
     simulate_traversal(maze="moderate-medium", steps=3000, seed=1, images=False,
-                       distractors=0, noise=None) -> pyro_slam.data.Traversal
+                       distractors=0, noise=None, noise_seed=None) -> pyro_slam.data.Traversal
 """
 
 from simulators.camera import Camera, CameraConfig
