@@ -10,9 +10,10 @@ plot (median, 50% and 80% bands) of error and error relative to distance travell
     python benchmarks/slam_accuracy.py --mazes 2 --traversals 1 --steps 1000 --modes online
     python benchmarks/slam_accuracy.py --modes online --map-poses true --out out/slam_oracle
 
-``--per-maze-noise`` seeds each run's actuation noise with (traversal, maze seed). By default
-the noise follows the traversal seed alone, so the 6 mazes of a traversal share one noise
-sequence (the same heading drift, as the rotation noise is added whatever the controls).
+Each run's actuation noise is seeded with (traversal, maze seed) (``--per-maze-noise``, the
+default since session 19). ``--no-per-maze-noise`` reproduces the earlier figures: the noise
+follows the traversal seed alone, so the 6 mazes of a traversal share one noise sequence (the
+same heading drift, as the rotation noise is added whatever the controls): 24 runs, 4 draws.
 
 ``--map-poses true|pi`` is a diagnostic: the particle cache is pinned to the true (or the
 path-integration) poses, so the map is learned there while the filter still localises against
@@ -111,9 +112,11 @@ def main(argv=None) -> int:
     )
     p.add_argument(
         "--per-maze-noise",
-        action="store_true",
-        help="seed each run's actuation noise with (traversal, maze seed); by default it follows "
-        "the traversal seed alone, so the 6 mazes of one traversal share one noise sequence",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="seed each run's actuation noise with (traversal, maze seed) (default since "
+        "session 19); --no-per-maze-noise: the noise follows the traversal seed alone, so the 6 "
+        "mazes of one traversal share one noise sequence (the figures before session 18)",
     )
     args = p.parse_args(argv)
     from tqdm import tqdm

@@ -29,6 +29,11 @@ the scale that brings its mean to the paper's 0.11::
     python benchmarks/visual_slam.py --calibrate-odometry
     python benchmarks/visual_slam.py --odometry-scale F --out out/visual_slam_paper_odometry
 
+Each maze's actuation noise is seeded with (driver seed, maze seed) (``--per-maze-noise``, the
+default since session 19; runs tagged ``_pn``); ``--no-per-maze-noise`` gives the earlier
+figures, where the noise followed the driver seed alone and all 6 mazes shared one draw. Per maze,
+the calibration gives ``--odometry-scale 0.57``.
+
 Finished runs are kept in ``OUT/runs`` and the pretrained emission in ``OUT/emission_image.pt``
 (``--pretrain-steps``), so an interrupted benchmark resumes.
 """
@@ -270,9 +275,11 @@ def main(argv=None) -> int:
     )
     p.add_argument(
         "--per-maze-noise",
-        action="store_true",
-        help="seed each maze's actuation noise with (driver seed, maze seed); by default it "
-        "follows the driver seed alone, so all mazes share one noise sequence",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="seed each maze's actuation noise with (driver seed, maze seed) (default since "
+        "session 19); --no-per-maze-noise: it follows the driver seed alone, so all mazes share "
+        "one noise sequence (the figures before session 18)",
     )
     args = p.parse_args(argv)
     if not args.odometry_scale > 0:

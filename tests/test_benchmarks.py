@@ -77,11 +77,14 @@ def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path
     assert 0 <= oracle["online"]["final_mean"] < 0.05
     assert oracle["online"]["final_mean"] != summary["online"]["final_mean"]
     assert len(list((tmp_path / "runs").glob("online_map-true_*.npz"))) == 1
-    # each maze's own actuation noise: another traversal of the same maze, kept apart
-    run("slam_accuracy.py", *args, "--per-maze-noise")
-    pn = json.loads((tmp_path / "summary.json").read_text())
-    assert pn["per_maze_noise"] and not summary["per_maze_noise"]
-    (f,) = (tmp_path / "runs").glob("online_pn_*.npz")
+    # the default seeds each maze's own actuation noise; the shared draw of the earlier
+    # figures (--no-per-maze-noise) is another traversal of the same maze, kept apart
+    assert summary["per_maze_noise"] and runs[0].name.startswith("online_pn_")
+    run("slam_accuracy.py", *args, "--no-per-maze-noise")
+    shared = json.loads((tmp_path / "summary.json").read_text())
+    assert not shared["per_maze_noise"]
+    f = tmp_path / "runs" / "online_m1001_t1_T40.npz"
+    assert f.is_file() and runs[0].name == "online_pn_m1001_t1_T40.npz"
     with np.load(f) as a, np.load(runs[0]) as b:
         assert np.abs(a["truth"] - b["truth"]).max() > 1e-4
         assert np.array_equal(a["truth"][0], b["truth"][0])  # same start pose
@@ -273,7 +276,8 @@ def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
         assert (tmp_path / png).stat().st_size > 10_000
     runs = sorted((tmp_path / "runs").glob("*.npz"))
     stamps = [f.stat().st_mtime_ns for f in runs]
-    assert len(runs) == 2
+    assert len(runs) == 2 and s["per_maze_noise"]  # by default each maze draws its own noise
+    assert all("_pn" in f.name for f in runs)
     # each run exports its trajectories [T, 3]: the errors are recomputed from them, and the
     # online sweep offline SLAM starts from is kept apart from the final pass
     with np.load(runs[0]) as z:
@@ -296,14 +300,14 @@ def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
     assert o["odometry_scale"] == 0.5 and s["odometry_scale"] == 1.0
     assert 0 <= o["offline"]["per_maze"][0] < 1
     (f,) = (tmp_path / "runs").glob("m997_map-true_*.npz")
-    assert f.name == "m997_map-true_od0.5_T60.npz"
+    assert f.name == "m997_map-true_od0.5_pn_T60.npz"
     sys.path.insert(0, str(REPO / "benchmarks"))
     from visual_slam import _traversal
 
     with np.load(f) as z:
-        np.testing.assert_allclose(z["truth"], _traversal(997, 1, 60, 0.5, images=False).poses,
-                                   atol=1e-6)  # fmt: skip
-        assert np.abs(z["truth"] - _traversal(997, 1, 60, images=False).poses).max() > 1e-4
+        kw = {"images": False, "per_maze_noise": True}
+        np.testing.assert_allclose(z["truth"], _traversal(997, 1, 60, 0.5, **kw).poses, atol=1e-6)
+        assert np.abs(z["truth"] - _traversal(997, 1, 60, **kw).poses).max() > 1e-4
     cmd = [sys.executable, str(REPO / "benchmarks" / "visual_slam.py"), "--maze-seeds", "1002,7"]
     err = subprocess.run([*cmd, "--out", str(tmp_path)], capture_output=True, text=True)
     assert err.returncode == 2 and "--maze-seeds [7]: not test mazes" in err.stderr
