@@ -207,10 +207,37 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
                                                                "learned_obs"}  # fmt: skip
     assert (tmp_path / "navigation.png").stat().st_size > 10_000
     assert s["resumed_mazes"] == []
+    # observation runs judged in observation space too: reaching the target counts as reaching
+    # its observation, so that failure ratio can only be lower
+    for r in (r for r in runs if r["planner"] == "learned_obs"):
+        for nz in ("noiseless", "noisy"):
+            assert r[f"scan_diff_{nz}"] >= 0
+            assert r[f"scan_success_{nz}"] >= r[f"success_{nz}"]
+            if r[f"success_{nz}"]:
+                assert r[f"scan_diff_{nz}"] < 1e-6  # the target pose is within the radius
+    assert s["obs_failure_ratio_scan_noiseless"] <= s["obs_failure_ratio"]
     # a second run resumes from the finished maze: the same rows, timings included
     run("navigation.py", *args)
     assert json.loads((tmp_path / "runs.json").read_text()) == runs
     assert json.loads((tmp_path / "summary.json").read_text())["resumed_mazes"] == [1001]
+
+
+def test_navigation_scan_match_finds_the_target_view_near_it_and_not_elsewhere():
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from navigation import _scan_match
+
+    from pyro_slam.planning import GroundTruthEnv, free_grid
+    from simulators import make_maze
+
+    maze = make_maze("moderate-medium", 1001)
+    env, pts = GroundTruthEnv(maze), free_grid(maze)
+    scan = env.scan(np.array([*pts[3], 0.7]))[0].numpy()  # a target seen with heading 0.7
+    # at the target, or within the 0.05 success radius, some heading sees (almost) that scan
+    assert _scan_match(env, maze, pts[3], scan) < 0.01
+    assert _scan_match(env, maze, pts[3] + 0.03, scan) < 0.01
+    # the other grid points of this maze do not look like it
+    others = [_scan_match(env, maze, q, scan, headings=72) for i, q in enumerate(pts[:8]) if i != 3]
+    assert min(others) > 0.02
 
 
 def test_navigation_benchmark_maps_at_slam_poses(tmp_path):
