@@ -20,19 +20,21 @@ plus reconstructed vs true images at a few poses.
 (or path-integration) poses while the filter still localises against it.
 
 ``--odometry-scale f`` multiplies the simulator's actuation noise (``OdometryNoise``: rotation and
-forward std) and the filter's kinematic ``sigma_T`` by ``f``. The default noise is calibrated to
-the LiDAR benchmark's 3000-step path integration (paper: 0.14); over 5000 steps it drifts about
-twice as far as the paper's VizDoom agent (0.11). ``--calibrate-odometry`` measures path
-integration at t = T on 60 held-out mazes (``CALIBRATION_SEEDS``, no images, no SLAM) and prints
-the scale that brings its mean to the paper's 0.11::
+forward std) and the filter's kinematic ``sigma_T`` by ``f``. The simulator's noise is calibrated
+to the LiDAR benchmark's 3000-step path integration (paper: 0.14); over 5000 steps it drifts about
+twice as far as the paper's VizDoom agent (0.11), against which the paper's target is stated.
+``--calibrate-odometry`` measures path integration at t = T on 60 held-out mazes
+(``CALIBRATION_SEEDS``, no images, no SLAM) and prints the scale that brings its mean to the
+paper's 0.11; it gave ``PAPER_ODOMETRY_SCALE`` = 0.57 (0.101 +- 0.055 there,
+``docs/visual_odometry_calibration_pn.json``), the default since session 19
+(``--odometry-scale 1``: the simulator's own noise, the figures before session 18)::
 
     python benchmarks/visual_slam.py --calibrate-odometry
-    python benchmarks/visual_slam.py --odometry-scale F --out out/visual_slam_paper_odometry
+    python benchmarks/visual_slam.py --odometry-scale F --out out/visual_slam_odometry_F
 
 Each maze's actuation noise is seeded with (driver seed, maze seed) (``--per-maze-noise``, the
 default since session 19; runs tagged ``_pn``); ``--no-per-maze-noise`` gives the earlier
-figures, where the noise followed the driver seed alone and all 6 mazes shared one draw. Per maze,
-the calibration gives ``--odometry-scale 0.57``.
+figures, where the noise followed the driver seed alone and all 6 mazes shared one draw.
 
 Finished runs are kept in ``OUT/runs`` and the pretrained emission in ``OUT/emission_image.pt``
 (``--pretrain-steps``), so an interrupted benchmark resumes.
@@ -58,6 +60,9 @@ TUNING_SEEDS = (997, 998)
 CALIBRATION_SEEDS = tuple(range(900, 960))
 PAPER_PI = 0.11  # the paper's VizDoom path integration at t = 5000 (Fig. 5b: 0.11 +- 0.05)
 PRETRAIN_MAZE = 100
+# --calibrate-odometry with per-maze noise (session 18): path integration at t = 5000 on the
+# held-out mazes 0.101 +- 0.055 at this scale, the paper's VizDoom 0.11 +- 0.05
+PAPER_ODOMETRY_SCALE = 0.57
 
 # reduced from the paper (25 x 25 x 32 x 24 map, 4 x 256 networks) for CPU: see --config
 BENCH_CONFIG = dict(
@@ -264,8 +269,9 @@ def main(argv=None) -> int:
     p.add_argument(
         "--odometry-scale",
         type=float,
-        default=1.0,
-        help="factor on the actuation noise and the filter's sigma_T (see --calibrate-odometry)",
+        default=PAPER_ODOMETRY_SCALE,
+        help="factor on the actuation noise and the filter's sigma_T; the default brings path "
+        "integration to the paper's 0.11 (see --calibrate-odometry); 1: the simulator's noise",
     )
     p.add_argument(
         "--calibrate-odometry",

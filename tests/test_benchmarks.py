@@ -324,7 +324,9 @@ def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
         "--workers", "1", "--odometry-scale", "0.5", "--out", str(tmp_path))  # fmt: skip
     o = json.loads((tmp_path / "summary.json").read_text())
     assert o["map_poses"] == "true" and s["map_poses"] == "filter" and o["mazes"] == [997]
-    assert o["odometry_scale"] == 0.5 and s["odometry_scale"] == 1.0
+    # the default: the paper's path-integration level (the calibrated scale), in the names
+    assert o["odometry_scale"] == 0.5 and s["odometry_scale"] == 0.57
+    assert all("_od0.57_pn" in f.name for f in runs)
     assert 0 <= o["offline"]["per_maze"][0] < 1
     (f,) = (tmp_path / "runs").glob("m997_map-true_*.npz")
     assert f.name == "m997_map-true_od0.5_pn_T60.npz"
