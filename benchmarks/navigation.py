@@ -179,6 +179,18 @@ def main(argv=None) -> int:
         summary[f"obs_failure_ratio_scan_{nz}"] = float(
             np.mean([not r[f"scan_success_{nz}"] for r in obs])
         )
+    # how the verdict depends on the tolerance (the model's sigma_E is 0.1)
+    summary["obs_failure_ratio_scan_noiseless_by_tol"] = {
+        f"{tol:g}": float(
+            np.mean(
+                [
+                    not (r["success_noiseless"] or (r["found"] and r["scan_diff_noiseless"] < tol))
+                    for r in obs
+                ]
+            )
+        )
+        for tol in sorted({0.0025, 0.005, args.alias_tol})
+    }
     em = np.array([t["error_mode"] for t in targets])
     ee = np.array([t["error_encoder"] for t in targets])
     al = np.array([t["aliased"] for t in targets])

@@ -216,6 +216,10 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
             if r[f"success_{nz}"]:
                 assert r[f"scan_diff_{nz}"] < 1e-6  # the target pose is within the radius
     assert s["obs_failure_ratio_scan_noiseless"] <= s["obs_failure_ratio"]
+    by_tol = s["obs_failure_ratio_scan_noiseless_by_tol"]  # a looser tolerance forgives more
+    assert list(by_tol) == ["0.0025", "0.005", "0.01"]
+    assert by_tol["0.01"] == s["obs_failure_ratio_scan_noiseless"]
+    assert list(by_tol.values()) == sorted(by_tol.values(), reverse=True)
     # a second run resumes from the finished maze: the same rows, timings included
     run("navigation.py", *args)
     assert json.loads((tmp_path / "runs.json").read_text()) == runs
