@@ -179,6 +179,13 @@ def main(argv=None) -> int:
         summary[f"obs_failure_ratio_scan_{nz}"] = float(
             np.mean([not r[f"scan_success_{nz}"] for r in obs])
         )
+    # the search's own resolution: where the agent did reach the target, the smallest
+    # difference found near it is not 0 (grid 0.01, 1 deg), so a tolerance below its maximum
+    # would reject the target itself
+    reached = [r["scan_diff_noiseless"] for r in obs if r["success_noiseless"]]
+    summary["obs_scan_diff_at_reached_targets"] = (
+        {"median": float(np.median(reached)), "max": float(np.max(reached))} if reached else None
+    )
     # how the verdict depends on the tolerance (the model's sigma_E is 0.1)
     summary["obs_failure_ratio_scan_noiseless_by_tol"] = {
         f"{tol:g}": float(

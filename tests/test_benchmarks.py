@@ -213,8 +213,8 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
         for nz in ("noiseless", "noisy"):
             assert r[f"scan_diff_{nz}"] >= 0
             assert r[f"scan_success_{nz}"] >= r[f"success_{nz}"]
-            if r[f"success_{nz}"]:
-                assert r[f"scan_diff_{nz}"] < 1e-6  # the target pose is within the radius
+            if r[f"success_{nz}"]:  # the target is within the radius, up to the search's grid
+                assert r[f"scan_diff_{nz}"] < 0.01
     assert s["obs_failure_ratio_scan_noiseless"] <= s["obs_failure_ratio"]
     by_tol = s["obs_failure_ratio_scan_noiseless_by_tol"]  # a looser tolerance forgives more
     assert list(by_tol) == ["0.0025", "0.005", "0.01"]
