@@ -378,8 +378,7 @@ def _aliased(gt_env, maze, poses, scans, tol, spacing=0.02, headings=24) -> np.n
     xs = np.arange(spacing / 2, maze.side, spacing)
     xy = np.array([(x, y) for x in xs for y in xs])
     xy = xy[[point_segment_distance(p, maze.walls).min() > 0.02 for p in xy]]
-    hs = 2 * np.pi * np.arange(headings) / headings - np.pi
-    grid = np.concatenate([np.repeat(xy, headings, 0), np.tile(hs, len(xy))[:, None]], 1)
+    grid = _with_headings(xy, headings)  # [G, 3]
     gscans = gt_env.scan(grid).numpy()  # [G, B]
     out = np.zeros(len(poses), dtype=bool)
     for i in range(len(poses)):
@@ -400,9 +399,15 @@ def _scan_match(gt_env, maze, xy, scan, radius=0.05, spacing=0.01, headings=360)
     pts = np.array([(dx, dy) for dx in off for dy in off if np.hypot(dx, dy) <= radius])
     pts = np.concatenate([np.zeros((1, 2)), pts]) + np.asarray(xy)[None]  # [P, 2]
     pts = pts[[point_segment_distance(q, maze.walls).min() > 1e-3 for q in pts]]
-    hs = 2 * np.pi * np.arange(headings) / headings - np.pi
-    grid = np.concatenate([np.repeat(pts, headings, 0), np.tile(hs, len(pts))[:, None]], 1)
+    grid = _with_headings(pts, headings)  # [P * headings, 3]
     return float(np.abs(gt_env.scan(grid).numpy() - scan[None]).mean(1).min())
+
+
+def _with_headings(xy, headings: int) -> np.ndarray:
+    """Poses ``[P * headings, 3]``: each position of ``xy [P, 2]`` with ``headings`` evenly
+    spaced headings in ``[-pi, pi)``."""
+    hs = 2 * np.pi * np.arange(headings) / headings - np.pi
+    return np.concatenate([np.repeat(xy, headings, 0), np.tile(hs, len(xy))[:, None]], 1)
 
 
 def _plot(s, path):
