@@ -41,7 +41,11 @@ aliased target reached at its look-alike place counts as reached.
 
 Each maze's rows are saved to ``OUT/mazes/m<seed>.json`` when the maze is done; a re-run with the
 same settings resumes from them (``wall_s`` then counts only the mazes computed in that run,
-``resumed_mazes`` lists the others).
+``resumed_mazes`` lists the others). ``--maze-seeds`` runs a share of the mazes (the files of
+shares run into other ``--out`` folders can be copied into one, whose run then resumes them all):
+
+    python benchmarks/navigation.py --out out/nav_a --maze-seeds 1001,1002 &
+    python benchmarks/navigation.py --out out/nav_b --maze-seeds 1003,1004
 """
 
 from __future__ import annotations
@@ -62,7 +66,12 @@ MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=Path("out/navigation"))
-    p.add_argument("--mazes", type=int, default=6)
+    p.add_argument("--mazes", type=int, default=6, help="the first N of the 6 test mazes")
+    p.add_argument(
+        "--maze-seeds", default=None,
+        help="comma-separated test-maze seeds (instead of --mazes): a share of the protocol, e.g. "
+        "for two processes; the pairs drawn for a maze are the same whichever mazes run",
+    )  # fmt: skip
     p.add_argument("--pairs-limit", type=int, default=0, help="random pairs per maze (0: all)")
     p.add_argument("--max-expansions", type=int, default=1500)
     p.add_argument("--fit-steps", type=int, default=1500)
@@ -97,26 +106,30 @@ def main(argv=None) -> int:
         "with known poses) or the pose means of online DVBF-LM SLAM on it",
     )  # fmt: skip
     args = p.parse_args(argv)
+    mazes = MAZE_SEEDS[: args.mazes]
+    if args.maze_seeds is not None:
+        try:
+            mazes = tuple(int(m) for m in args.maze_seeds.split(","))
+        except ValueError:
+            p.error(f"--maze-seeds: expected comma-separated integers, got {args.maze_seeds!r}")
+        if unknown := sorted(set(mazes) - set(MAZE_SEEDS)):
+            p.error(f"--maze-seeds {unknown}: not test mazes (these are {list(MAZE_SEEDS)})")
 
     import torch
 
     torch.set_num_threads(1)
-    from pyro_slam.planning import free_grid
     from simulators import make_maze
 
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "mazes").mkdir(exist_ok=True)
-    rng = np.random.default_rng(args.seed)
     runs, targets, resumed = [], [], []
     t0 = time.perf_counter()
-    settings = {k: str(v) for k, v in vars(args).items() if k not in ("out", "mazes")}
+    settings = {k: str(v) for k, v in vars(args).items() if k not in ("out", "mazes", "maze_seeds")}
     settings["rows"] = "2"  # row format: 2 adds the observation-space success (session 19)
-    for ms in MAZE_SEEDS[: args.mazes]:
+    all_pairs = maze_pairs(args.pairs_limit, args.seed)
+    for ms in mazes:
         maze = make_maze("moderate-medium", ms)
-        n = len(free_grid(maze))
-        pairs = [(a, b) for a in range(n) for b in range(n) if a != b]
-        if args.pairs_limit:  # drawn for every maze, so a resumed run draws the same pairs
-            pairs = [pairs[i] for i in rng.choice(len(pairs), args.pairs_limit, replace=False)]
+        pairs = all_pairs[ms]
         done = args.out / "mazes" / f"m{ms}.json"
         if done.exists():
             saved = json.loads(done.read_text())
@@ -236,6 +249,24 @@ def main(argv=None) -> int:
     _plot(summary, args.out / "navigation.png")
     print(json.dumps({k: v for k, v in summary.items() if k != "args"}))
     return 0
+
+
+def maze_pairs(pairs_limit: int, seed: int) -> dict[int, list[tuple[int, int]]]:
+    """The (start, target) grid-point pairs of every test maze: all ordered pairs, or
+    ``pairs_limit`` of them drawn at random. Drawn for all mazes in turn from one ``seed``, so a
+    maze's pairs do not depend on which mazes a run computes (``--mazes``, ``--maze-seeds``)."""
+    from pyro_slam.planning import free_grid
+    from simulators import make_maze
+
+    rng = np.random.default_rng(seed)
+    out = {}
+    for ms in MAZE_SEEDS:
+        n = len(free_grid(make_maze("moderate-medium", ms)))
+        pairs = [(a, b) for a in range(n) for b in range(n) if a != b]
+        if pairs_limit:
+            pairs = [pairs[i] for i in rng.choice(len(pairs), pairs_limit, replace=False)]
+        out[ms] = pairs
+    return out
 
 
 def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:

@@ -224,6 +224,21 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     run("navigation.py", *args)
     assert json.loads((tmp_path / "runs.json").read_text()) == runs
     assert json.loads((tmp_path / "summary.json").read_text())["resumed_mazes"] == [1001]
+    # the pairs are those maze_pairs draws for this maze whichever mazes run; a share named by
+    # --maze-seeds has the same settings, so it resumes the maze as well
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from navigation import maze_pairs
+
+    drawn = maze_pairs(2, 0)
+    assert len(drawn[1001]) == 2 and len(maze_pairs(0, 0)[1002]) == 25 * 24  # 5 x 5 grid
+    assert maze_pairs(2, 0) == drawn and maze_pairs(2, 1) != drawn
+    assert {(r["start"], r["goal"]) for r in runs} == set(drawn[1001])
+    run("navigation.py", *args[2:], "--maze-seeds", "1001")
+    assert json.loads((tmp_path / "summary.json").read_text())["resumed_mazes"] == [1001]
+    assert json.loads((tmp_path / "runs.json").read_text()) == runs
+    cmd = [sys.executable, str(REPO / "benchmarks" / "navigation.py"), "--maze-seeds", "1002,7"]
+    err = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert err.returncode == 2 and "--maze-seeds [7]: not test mazes" in err.stderr
 
 
 def test_navigation_scan_match_finds_the_target_view_near_it_and_not_elsewhere():
