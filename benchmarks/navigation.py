@@ -211,6 +211,7 @@ def main(argv=None) -> int:
         )
         for tol in sorted({0.0025, 0.005, args.alias_tol})
     }
+    summary["per_maze"] = _counts(runs)
     em = np.array([t["error_mode"] for t in targets])
     ee = np.array([t["error_encoder"] for t in targets])
     al = np.array([t["aliased"] for t in targets])
@@ -249,6 +250,40 @@ def main(argv=None) -> int:
     _plot(summary, args.out / "navigation.png")
     print(json.dumps({k: v for k, v in summary.items() if k != "args"}))
     return 0
+
+
+def _counts(runs: list[dict]) -> dict[str, dict[str, int]]:
+    """Per maze and over all (``"all"``), the counts behind the summary's ratios (noise-free
+    runs): pairs, ground-truth-solved pairs and the learned planner's successes on them,
+    observation targets missed by position and in observation space (``scan_success``), and
+    the latter by cause: ``not_found`` (no plan), ``wrong_goal`` (a plan to an inferred goal
+    more than 0.05 from the target, ending where the target's view is not), ``execution`` (the
+    goal was within 0.05 of the target, the executed controls ended elsewhere)."""
+    out = {}
+    for ms in sorted({r["maze"] for r in runs}):
+        by = {
+            p: {(r["start"], r["goal"]): r for r in runs if r["maze"] == ms and r["planner"] == p}
+            for p in ("learned", "ground_truth", "learned_obs")
+        }
+        solved = [k for k, r in by["ground_truth"].items() if r["success_noiseless"]]
+        obs = by["learned_obs"].values()
+        missed = [r for r in obs if not r["scan_success_noiseless"]]
+        out[str(ms)] = {
+            "pairs": len(by["ground_truth"]),
+            "gt_solved": len(solved),
+            "learned_on_gt_solved": sum(by["learned"][k]["success_noiseless"] for k in solved),
+            "obs_missed": sum(not r["success_noiseless"] for r in obs),
+            "obs_missed_scan": len(missed),
+            "obs_missed_scan_not_found": sum(not r["found"] for r in missed),
+            "obs_missed_scan_wrong_goal": sum(
+                r["found"] and r["inference_error"] > 0.05 for r in missed
+            ),
+            "obs_missed_scan_execution": sum(
+                r["found"] and r["inference_error"] <= 0.05 for r in missed
+            ),
+        }
+    out["all"] = {k: sum(c[k] for c in out.values()) for k in next(iter(out.values()), {})}
+    return out
 
 
 def maze_pairs(pairs_limit: int, seed: int) -> dict[int, list[tuple[int, int]]]:

@@ -220,6 +220,16 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     assert list(by_tol) == ["0.0025", "0.005", "0.01"]
     assert by_tol["0.01"] == s["obs_failure_ratio_scan_noiseless"]
     assert list(by_tol.values()) == sorted(by_tol.values(), reverse=True)
+    # the counts behind the ratios
+    c = s["per_maze"]
+    assert set(c) == {"1001", "all"} and c["all"] == c["1001"] and c["all"]["pairs"] == 2
+    if c["all"]["gt_solved"]:
+        assert (
+            s["learned_success_on_gt_solved"]
+            == c["all"]["learned_on_gt_solved"] / c["all"]["gt_solved"]
+        )
+    assert s["obs_failure_ratio"] == c["all"]["obs_missed"] / 2
+    assert s["obs_failure_ratio_scan_noiseless"] == c["all"]["obs_missed_scan"] / 2
     # a second run resumes from the finished maze: the same rows, timings included
     run("navigation.py", *args)
     assert json.loads((tmp_path / "runs.json").read_text()) == runs
@@ -239,6 +249,41 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     cmd = [sys.executable, str(REPO / "benchmarks" / "navigation.py"), "--maze-seeds", "1002,7"]
     err = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=60)
     assert err.returncode == 2 and "--maze-seeds [7]: not test mazes" in err.stderr
+
+
+def test_navigation_counts_sort_the_missed_observation_targets_by_cause():
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from navigation import _counts
+
+    def row(maze, goal, planner, ok, **kw):
+        return {"maze": maze, "start": 0, "goal": goal, "planner": planner,
+                "success_noiseless": ok, "found": True, **kw}  # fmt: skip
+
+    def obs(maze, goal, ok, scan_ok, found=True, inference_error=0.01):
+        return row(maze, goal, "learned_obs", ok, scan_success_noiseless=scan_ok, found=found,
+                   inference_error=inference_error)  # fmt: skip
+
+    runs = [
+        *(row(1001, g, "ground_truth", g != 4) for g in range(1, 6)),  # 4 solved by the truth
+        *(row(1001, g, "learned", g not in (3, 4)) for g in range(1, 6)),  # misses 3 (and 4)
+        obs(1001, 1, True, True),
+        obs(1001, 2, False, True, inference_error=0.3),  # a look-alike place: reached
+        obs(1001, 3, False, False, found=False),
+        obs(1001, 4, False, False, inference_error=0.3),  # a wrong goal
+        obs(1001, 5, False, False),  # right goal, ended elsewhere
+        row(1002, 1, "ground_truth", True),
+        row(1002, 1, "learned", True),
+        obs(1002, 1, False, False, inference_error=0.2),
+    ]
+    c = _counts(runs)
+    assert c["1001"] == {
+        "pairs": 5, "gt_solved": 4, "learned_on_gt_solved": 3, "obs_missed": 4,
+        "obs_missed_scan": 3, "obs_missed_scan_not_found": 1, "obs_missed_scan_wrong_goal": 1,
+        "obs_missed_scan_execution": 1,
+    }  # fmt: skip
+    assert c["1002"]["obs_missed_scan_wrong_goal"] == 1 and c["1002"]["gt_solved"] == 1
+    assert c["all"]["pairs"] == 6 and c["all"]["obs_missed_scan"] == 4
+    assert c["all"]["learned_on_gt_solved"] == 4
 
 
 def test_navigation_scan_match_finds_the_target_view_near_it_and_not_elsewhere():
