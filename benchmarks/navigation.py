@@ -57,6 +57,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import parse_maze_seeds
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -108,12 +109,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     mazes = MAZE_SEEDS[: args.mazes]
     if args.maze_seeds is not None:
-        try:
-            mazes = tuple(int(m) for m in args.maze_seeds.split(","))
-        except ValueError:
-            p.error(f"--maze-seeds: expected comma-separated integers, got {args.maze_seeds!r}")
-        if unknown := sorted(set(mazes) - set(MAZE_SEEDS)):
-            p.error(f"--maze-seeds {unknown}: not test mazes (these are {list(MAZE_SEEDS)})")
+        mazes = tuple(parse_maze_seeds(p, args.maze_seeds, MAZE_SEEDS))
 
     import torch
 

@@ -9,6 +9,11 @@ plot (median, 50% and 80% bands) of error and error relative to distance travell
     python benchmarks/slam_accuracy.py --out out/slam_accuracy            # full: 24 runs x modes
     python benchmarks/slam_accuracy.py --mazes 2 --traversals 1 --steps 1000 --modes online
     python benchmarks/slam_accuracy.py --modes online --map-poses true --out out/slam_oracle
+    python benchmarks/slam_accuracy.py --traversals 1 --maze-seeds 991,992,993,994,995,996
+
+``--maze-seeds`` runs chosen mazes instead of the first ``--mazes``: test mazes, or the held-out
+tuning mazes ``TUNING_SEEDS`` (991-996, never in the test figures) on which options should be
+screened before they are run on the test mazes.
 
 Each run's actuation noise is seeded with (traversal, maze seed) (``--per-maze-noise``, the
 default since session 19). ``--no-per-maze-noise`` reproduces the earlier figures: the noise
@@ -38,10 +43,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import parse_maze_seeds
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
+# held-out moderate-medium mazes for screening options (never in the test figures)
+TUNING_SEEDS = (991, 992, 993, 994, 995, 996)
 
 
 def _traversal(maze_seed: int, seed: int, steps: int, per_maze_noise: bool = False):
@@ -98,6 +106,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=Path("out/slam_accuracy"))
     p.add_argument("--mazes", type=int, default=6)
+    p.add_argument(
+        "--maze-seeds",
+        default=None,
+        help=f"comma-separated maze seeds instead of --mazes: test mazes {list(MAZE_SEEDS)} or "
+        f"held-out tuning mazes {list(TUNING_SEEDS)} (for screening options)",
+    )
     p.add_argument("--traversals", type=int, default=4)
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--modes", default="online,offline")
@@ -130,10 +144,13 @@ def main(argv=None) -> int:
     if args.transition == "learned":
         shipped = {k: list(v) if isinstance(v, tuple) else v for k, v in SHIPPED_FILTER.items()}
         over = {**shipped, **over}
+    mazes = list(MAZE_SEEDS[: args.mazes])
+    if args.maze_seeds is not None:
+        mazes = parse_maze_seeds(p, args.maze_seeds, MAZE_SEEDS, TUNING_SEEDS)
     modes = args.modes.split(",")
     jobs, files = [], {}
     for mode in modes:
-        for m in MAZE_SEEDS[: args.mazes]:
+        for m in mazes:
             for s in range(1, args.traversals + 1):
                 tag = "" if args.map_poses == "filter" else f"_map-{args.map_poses}"
                 tag += "_pn" if args.per_maze_noise else ""
@@ -145,7 +162,8 @@ def main(argv=None) -> int:
     with mp.get_context("spawn").Pool(args.workers) as pool:
         for r in tqdm(pool.imap_unordered(run_one, jobs), total=len(jobs), desc="SLAM runs"):
             tqdm.write(json.dumps(r))
-    summary = {"steps": args.steps, "runs_per_mode": args.mazes * args.traversals,
+    summary = {"steps": args.steps, "runs_per_mode": len(mazes) * args.traversals,
+               "mazes": mazes,
                "transition": args.transition, "config": {**BENCH_CONFIG, **over},
                "map_poses": args.map_poses,
                "per_maze_noise": args.per_maze_noise}  # fmt: skip

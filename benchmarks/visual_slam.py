@@ -50,6 +50,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import parse_maze_seeds
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -296,15 +297,7 @@ def main(argv=None) -> int:
         return 0
     mazes = list(MAZE_SEEDS[: args.mazes])
     if args.maze_seeds is not None:
-        try:
-            mazes = [int(m) for m in args.maze_seeds.split(",")]
-        except ValueError:
-            p.error(f"--maze-seeds: expected comma-separated integers, got {args.maze_seeds!r}")
-        if unknown := sorted(set(mazes) - set(MAZE_SEEDS) - set(TUNING_SEEDS)):
-            p.error(
-                f"--maze-seeds {unknown}: not test mazes (these are {list(MAZE_SEEDS)}) "
-                f"or tuning mazes {list(TUNING_SEEDS)}"
-            )
+        mazes = parse_maze_seeds(p, args.maze_seeds, MAZE_SEEDS, TUNING_SEEDS)
     import torch
 
     torch.set_num_threads(args.threads)

@@ -88,6 +88,31 @@ def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path
     with np.load(f) as a, np.load(runs[0]) as b:
         assert np.abs(a["truth"] - b["truth"]).max() > 1e-4
         assert np.array_equal(a["truth"][0], b["truth"][0])  # same start pose
+    # a held-out tuning maze instead of the test mazes: its own run file and summary
+    run("slam_accuracy.py", *args, "--maze-seeds", "991")
+    tuned = json.loads((tmp_path / "summary.json").read_text())
+    assert tuned["mazes"] == [991] and tuned["runs_per_mode"] == 1
+    assert (tmp_path / "runs" / "online_pn_m991_t1_T40.npz").is_file()
+    assert 0 <= tuned["online"]["final_mean"] < 0.05
+
+
+def test_maze_seeds_accept_test_and_tuning_mazes_and_name_the_others(capsys):
+    import argparse
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from _common import parse_maze_seeds
+
+    p = argparse.ArgumentParser(prog="bench")
+    assert parse_maze_seeds(p, "1002,991", (1001, 1002), (991,)) == [1002, 991]
+    for text, test, tuning, msg in [
+        ("1002,7", (1002,), (991,), "--maze-seeds [7]: not test mazes (these are [1002]) or "
+         "tuning mazes [991]"),
+        ("991", (1002,), (), "--maze-seeds [991]: not test mazes (these are [1002])"),
+        ("1002,x", (1002,), (), "expected comma-separated integers, got '1002,x'"),
+    ]:  # fmt: skip
+        with pytest.raises(SystemExit) as exc:
+            parse_maze_seeds(p, text, test, tuning)
+        assert exc.value.code == 2 and msg in capsys.readouterr().err
 
 
 def test_slam_error_sources_splits_position_error_into_heading_and_rest(tmp_path):
