@@ -128,7 +128,9 @@ def shipped_slam(traversal: Traversal, transition: str = "learned", **overrides)
         defaults.update(SHIPPED_FILTER)
         tran = load_transition(PRETRAINED / TRANSITION_FILE)
     cfg = SLAMConfig(**{**defaults, **overrides})
-    emission = load_emission(PRETRAINED / EMISSION_FILE, traversal, cfg)
+    emission = None  # raycast: a RayEmission, which has no weights to load
+    if cfg.lidar_emission == "mlp":
+        emission = load_emission(PRETRAINED / EMISSION_FILE, traversal, cfg)
     return SLAM(traversal, cfg, transition=tran, emission=emission)
 
 
@@ -233,6 +235,12 @@ def cmd_slam(args) -> int:
     config = _config(args, tr)
     em_path = args.emission if args.emission else _default_emission(tr)
     if args.emission == "none":
+        em_path = None
+    if config.lidar_emission == "raycast":  # a RayEmission has no network to load
+        if args.emission not in (None, "none"):
+            raise DatasetError(
+                "--emission loads an emission MLP; lidar_emission 'raycast' has none"
+            )
         em_path = None
     if em_path is not None and "learn_emission" not in (args.config or ""):
         config.learn_emission = False  # a pretrained emission is kept frozen by default

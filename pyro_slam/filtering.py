@@ -105,6 +105,9 @@ class ParticleFilter:
             ``sqrt(sigma^2 + (1 - trust) * prior_predictive_std^2)``.
         autocast_dtype: e.g. ``torch.bfloat16``: run the emission MLP in reduced precision when
             no gradient is needed (filtering); ~2-3x faster on CPU, range error ~1e-3.
+        beam_trust: with an emission that has ``beam_variance``
+            (:class:`~pyro_slam.networks.RayEmission`), one trust per beam from the map's
+            variance where that beam stops, instead of one per particle from its own chart.
     """
 
     def __init__(
@@ -119,7 +122,14 @@ class ParticleFilter:
         outlier_prob: float = 0.0,
         autocast_dtype: torch.dtype | None = None,
         prior_predictive_std: float = 0.15,
+        beam_trust: bool = False,
     ):
+        if beam_trust and not hasattr(model.emission, "beam_variance"):
+            raise ValueError(
+                "beam_trust needs an emission with beam_variance (RayEmission), "
+                f"got {type(model.emission).__name__}"
+            )
+        self.beam_trust = beam_trust
         self.prior_predictive_std = prior_predictive_std
         self.outlier_prob = outlier_prob
         self.autocast_dtype = autocast_dtype
@@ -137,11 +147,17 @@ class ParticleFilter:
     def trust(self, z: torch.Tensor, M: MapBelief) -> torch.Tensor:
         """How far the weights trust the map belief at poses ``z [..., K, 3]``: ``[..., K, 1]``
         in ``[0.01, 1]``, one minus the chart's variance under ``M`` relative to the prior's
-        (times ``uncertainty_gain``, ``M.usable`` and ``M.trust``)."""
-        # chart variance relative to the prior's: sum a_i^2 s_i^2 / sum a_i^2, in [0, 1]
+        (times ``uncertainty_gain``, ``M.usable`` and ``M.trust``). With ``beam_trust`` and an
+        emission that reads the map along its beams (``beam_variance``,
+        :class:`~pyro_slam.networks.RayEmission`) one trust per beam, ``[..., K, B]``, from the
+        variance where each beam stops."""
         g, xy = self.model.grid, z[..., :2]
-        var = g.attend(M.scale**2, xy, power=2).mean(-1, keepdim=True)
-        var = var / g.attend(torch.ones_like(M.scale[..., :1]), xy, power=2)
+        if self.beam_trust:
+            var = self.model.emission.beam_variance(g, M.loc, M.scale, z)  # [..., K, B]
+        else:
+            # chart variance relative to the prior's: sum a_i^2 s_i^2 / sum a_i^2, in [0, 1]
+            var = g.attend(M.scale**2, xy, power=2).mean(-1, keepdim=True)
+            var = var / g.attend(torch.ones_like(M.scale[..., :1]), xy, power=2)
         # prior variance is 1: charts of unmapped cells (var -> 1) give flat weights
         trust = (1.0 - self.uncertainty_gain * var).clamp_min(1e-2)  # [..., K, 1]
         if M.usable is not None:
@@ -153,7 +169,7 @@ class ParticleFilter:
 
     def cloud_trust(self, p: Particles, M: MapBelief) -> torch.Tensor:
         """The weighted mean of :meth:`trust` over the particles ``p``: ``[...]``."""
-        return (p.logw.exp() * self.trust(p.z, M).squeeze(-1)).sum(-1)
+        return (p.logw.exp() * self.trust(p.z, M).mean(-1)).sum(-1)
 
     def _weigh(self, z, M, x, mask, logw, step):
         """Emission weights at ``z [..., K, 3]``.
@@ -179,7 +195,7 @@ class ParticleFilter:
                 # p(x | z, E[M])^beta with beta = trust^2: the same as inflating sigma_E by
                 # 1 / trust but without the normaliser, so charts of unmapped cells are neutral
                 # (beta -> 0) instead of being out-weighed by any mapped cell
-                beta = trust.squeeze(-1) ** 2  # [..., K]
+                beta = trust**2  # [..., K, 1] (or one per beam, [..., K, B])
             else:
                 sigma = s0 / trust
         if self.autocast_dtype is not None and not torch.is_grad_enabled():
@@ -200,7 +216,7 @@ class ParticleFilter:
                 # per-beam mixture with an outlier floor: one wrong beam cannot dominate
                 eps = self.outlier_prob
                 lb = torch.logaddexp(lb + math.log1p(-eps), lb.new_tensor(math.log(eps)))
-            loglik = beta * (lb if m is None else lb * m).sum(-1)  # [..., K]
+            loglik = (beta * (lb if m is None else lb * m)).sum(-1)  # [..., K]
         joint = logw + loglik
         resampling.check_weights(joint.detach(), step)
         inc = torch.logsumexp(joint, -1)  # [...]

@@ -157,11 +157,13 @@ class DVBFLM(nn.Module):
         return getattr(self.emission, "beam_angles", None)
 
     def emission_mean(self, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """Predicted observation ``mu_E(f_m(z_t, M), z_t)`` (LiDAR: body-frame scan).
+        """Predicted observation ``mu_E(f_m(z_t, M), z_t)`` (LiDAR: body-frame scan), or the
+        emission's own read-out of ``M`` (:meth:`~pyro_slam.networks.Emission.read`; a
+        :class:`~pyro_slam.networks.RayEmission` casts the beams through ``M``).
 
         ``z [..., 3]`` -> ``[..., N]``.
         """
-        return self.emission.mean(self.chart(M, z), z)
+        return self.emission.read(self.grid, M, z)
 
     def emission_dist(self, mean: torch.Tensor, mask: torch.Tensor | None = None, sigma=None):
         """``p(x_t | m_t)`` as a Pyro distribution with event shape ``[N]``."""

@@ -114,6 +114,14 @@ class Emission(nn.Module):
         """Chart ``m [..., D_m]``, pose ``z [..., 3]`` -> predicted observation ``[..., N]``."""
         raise NotImplementedError
 
+    def read(self, grid, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Predicted observation at poses ``z [..., 3]`` from the map ``M [w, h, D_m]`` on
+        ``grid`` (a :class:`~pyro_slam.model.MapGrid`): ``[..., N]``. The paper's read-out, the
+        default: the chart ``f_m(z_t, M)`` (bilinear attention at the position), then
+        :meth:`mean`. An emission that reads the map elsewhere (:class:`RayEmission`)
+        overrides this."""
+        return self.mean(grid.attend(M, z[..., :2]), z)
+
 
 class LidarEmission(Emission):
     """LiDAR read-out: world-frame range profile ``net(m)`` read at ``heading + beam_angles``.
@@ -143,6 +151,97 @@ class LidarEmission(Emission):
 
     def mean(self, m, z):
         return rotate_scan(self.net(m), z[..., 2], self.beam_angles)
+
+
+class RayEmission(Emission):
+    """Geometric LiDAR read-out: each beam's expected range through a density map.
+
+    Not the paper's emission, an alternative with the same interface: the map holds
+    ``D_m = 1`` feature per cell, an occupancy logit ``o = gain * M + offset`` (so that the prior
+    mean ``M = 0`` is nearly free space and ``M ~ 1-2`` a wall). Along each beam, ``samples``
+    points at ``d_s = (s + 1/2) * max_range / samples`` read ``o`` bilinearly; the density
+    ``density * softplus(o)`` (per unit length) gives the probability that the ray stops in each
+    segment (volume rendering), and the expected range is ``sum_s P(stop in s) d_s`` plus
+    ``max_range`` times the probability that it passes. Differentiable in ``M``; a scan then
+    constrains every cell its beams cross, not only the charts at the pose, so a new position is
+    localised against walls mapped from earlier ones.
+
+    Args:
+        beam_angles: ``[B]`` beam directions relative to the heading (rad).
+        max_range: the sensor's range (a ray that stops nowhere reads this).
+        samples: points per beam.
+        density, gain, offset: density per unit length ``density * softplus(gain * M + offset)``.
+    """
+
+    map_dim = 1
+
+    def __init__(
+        self,
+        beam_angles,
+        max_range: float,
+        samples: int = 48,
+        density: float = 100.0,
+        gain: float = 8.0,
+        offset: float = -8.0,
+    ):
+        super().__init__()
+        angles = torch.as_tensor(beam_angles, dtype=torch.get_default_dtype())
+        self.register_buffer("beam_angles", angles, persistent=False)
+        self.event_shape = (int(angles.shape[0]),)
+        self.max_range, self.samples = float(max_range), int(samples)
+        self.density, self.gain, self.offset = float(density), float(gain), float(offset)
+        step = self.max_range / self.samples
+        self.register_buffer("dist", (torch.arange(self.samples) + 0.5) * step, persistent=False)
+
+    def mean(self, m, z):
+        raise TypeError("RayEmission reads the map along its beams: use read(grid, M, z)")
+
+    @staticmethod
+    def wall_map(grid, walls, wall: float = 2.0, free: float = -1.0, width: float = 0.5):
+        """A map ``[w, h, 1]`` of known walls (an oracle map, for tests and diagnostics): ``wall``
+        at grid points within ``width`` grid spacings of a segment of ``walls [W, 4]`` (x0, y0,
+        x1, y1), ``free`` elsewhere."""
+        w, h = grid.cells
+        xs = grid.origin[0] + torch.arange(w, dtype=torch.float64) * (grid.size[0] / (w - 1))
+        ys = grid.origin[1] + torch.arange(h, dtype=torch.float64) * (grid.size[1] / (h - 1))
+        p = torch.stack(torch.meshgrid(xs, ys, indexing="ij"), -1)  # [w, h, 2]
+        seg = torch.as_tensor(walls, dtype=torch.float64).reshape(-1, 1, 1, 4)  # [W, 1, 1, 4]
+        a, ab = seg[..., :2], seg[..., 2:] - seg[..., :2]
+        t = (((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-12)).clamp(0, 1)
+        d = (p - a - t.unsqueeze(-1) * ab).norm(dim=-1).amin(0)  # [w, h] distance to a wall
+        near = d < width * grid.size[0] / (w - 1)
+        out = torch.where(near, torch.tensor(wall), torch.tensor(free))
+        return out.to(torch.get_default_dtype()).unsqueeze(-1)
+
+    def _stops(self, grid, M: torch.Tensor, z: torch.Tensor):
+        """Points ``[..., B, S, 2]`` along the beams at poses ``z [..., 3]``, the probability
+        that each beam stops in each segment ``[..., B, S]`` and that it passes ``[..., B]``."""
+        d = self.dist.to(z.dtype)  # [S]
+        ang = z[..., 2:3] + self.beam_angles.to(z.dtype)  # [..., B]
+        u = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # [..., B, 2]
+        pts = z[..., None, None, :2] + d[:, None] * u.unsqueeze(-2)  # [..., B, S, 2]
+        o = grid.attend(M, pts)[..., 0]  # [..., B, S] occupancy logit
+        step = self.max_range / self.samples
+        tau = (self.density * step) * nn.functional.softplus(self.gain * o + self.offset)
+        cum = tau.cumsum(-1)  # optical depth up to the end of each segment
+        stop = torch.exp(tau - cum) * -torch.expm1(-tau)  # transmittance before s x absorbed in s
+        return pts, stop, torch.exp(-cum[..., -1])
+
+    def read(self, grid, M, z):
+        _, stop, passes = self._stops(grid, M, z)
+        return (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range
+
+    def beam_variance(self, grid, loc: torch.Tensor, scale: torch.Tensor, z: torch.Tensor):
+        """How unknown each beam's reading is under a mean-field ``q(M) = N(loc, scale^2)``:
+        ``[..., B]`` in ``[0, 1]``, the map variance relative to the prior's (as
+        :meth:`~pyro_slam.filtering.ParticleFilter.trust` measures it at a chart) where the ray
+        stops under ``loc``, averaged over the stopping point (passing rays: the last point).
+        A beam that ends on a mapped wall is trusted even where the pose is new; one that runs
+        into unmapped space is not."""
+        pts, stop, passes = self._stops(grid, loc, z)
+        var = grid.attend(scale**2, pts, power=2)[..., 0]  # [..., B, S]
+        var = var / grid.attend(torch.ones_like(scale[..., :1]), pts, power=2)[..., 0]
+        return (stop * var).sum(-1) + passes * var[..., -1]
 
 
 class ImageEmission(Emission):

@@ -31,8 +31,13 @@ def _walls(ax, walls):
 
 
 def map_image(loc: np.ndarray) -> np.ndarray:
-    """Map mean ``[w, h, D]`` -> RGB ``[h, w, 3]`` in [0, 1] via its 3 principal components."""
+    """Map mean ``[w, h, D]`` -> RGB ``[h, w, 3]`` in [0, 1] via its 3 principal components
+    (``D = 1``, a ray-cast occupancy map: gray levels, walls dark)."""
     w, h, d = loc.shape
+    if d == 1:
+        lo, hi = np.percentile(loc, 2), np.percentile(loc, 98)
+        gray = 1 - np.clip((loc[..., 0] - lo) / max(hi - lo, 1e-9), 0, 1)  # [w, h]
+        return np.repeat(gray.T[..., None], 3, -1)
     flat = loc.reshape(-1, d) - loc.reshape(-1, d).mean(0)
     _, _, vt = np.linalg.svd(flat, full_matrices=False)
     pcs = flat @ vt[: min(3, d)].T
@@ -62,7 +67,8 @@ def plot_slam(traversal, result: dict, grid, path_png, title: str = "") -> Path:
     loc, scale = result["map_loc"], result["map_scale"]
     axes[1].imshow(map_image(loc), origin="lower", extent=ext, interpolation="nearest")
     _walls(axes[1], traversal.walls)
-    axes[1].set_title("map belief: mean (3 principal components)")
+    kind = "occupancy, walls dark" if loc.shape[-1] == 1 else "3 principal components"
+    axes[1].set_title(f"map belief: mean ({kind})")
     im = axes[2].imshow(scale.mean(-1).T, origin="lower", extent=ext, cmap="magma", vmin=0, vmax=1)
     _walls(axes[2], traversal.walls)
     fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.04)

@@ -45,7 +45,7 @@ from .filtering import (
 )
 from .guide import MapGuide
 from .model import DVBFLM, MapGrid
-from .networks import Emission, EmissionMLP, ImageEmission, LidarEmission
+from .networks import Emission, EmissionMLP, ImageEmission, LidarEmission, RayEmission
 from .transitions import KinematicTransition, Transition
 
 # SLAMConfig.trusted_passes -> the SLAMState phases in which transition_scale_trusted acts
@@ -123,6 +123,13 @@ class SLAMConfig:
     beam_stride: int = 1  # SLAM uses every k-th beam (see prepare_traversal)
     range_clip: float | None = None  # readings clipped here; emission scale + map margin
     observation: str = "lidar"  # lidar | image (traversal.images, see prepare_traversal)
+    # LiDAR read-out: "mlp" (the paper's chart + mu_E MLP) or "raycast" (RayEmission: expected
+    # ranges marched through a one-feature density map; map_dim and the emission MLP unused)
+    lidar_emission: str = "mlp"
+    ray_samples: int = 48  # raycast: points per beam
+    # raycast: the weights' trust in q(M) per beam (variance where each beam stops) instead of
+    # per particle (variance of its own chart); per beam screened worse (docs/benchmarks.md)
+    beam_trust: bool = False
     image_bins: int = 32  # image emission: angular bins k of the map (D_m = k * image rows)
 
     def to_dict(self):
@@ -165,6 +172,12 @@ def build_model(
             )  # fmt: skip
     elif config.observation != "lidar":
         raise ValueError(f"observation must be 'lidar' or 'image', got {config.observation!r}")
+    elif config.lidar_emission not in ("mlp", "raycast"):
+        raise ValueError(
+            f"lidar_emission must be 'mlp' or 'raycast', got {config.lidar_emission!r}"
+        )
+    elif emission is None and config.lidar_emission == "raycast":
+        emission = RayEmission(traversal.beam_angles, reach, config.ray_samples)
     elif emission is None:
         n_world = max(traversal.num_beams, config.n_world)
         emission = EmissionMLP(
@@ -371,6 +384,7 @@ class SLAM:
             weighting=self.cfg.weighting,
             outlier_prob=self.cfg.outlier_prob,
             prior_predictive_std=_scan_spread(traversal),
+            beam_trust=self.cfg.beam_trust,
         )
         # the filter weighs with a sharper sigma_E than the model's (paper B-I); the ELBO's chunk
         # filter uses the same one unless train_sigma is set (train_sigma=0.1, the model's own

@@ -98,3 +98,19 @@ def test_shipped_slam_scales_the_learned_transition_and_freezes_the_emission():
     )
     with pytest.raises(ValueError, match="transition must be 'learned' or 'kinematic'"):
         cli.shipped_slam(tr, "linear")
+
+
+def test_slam_with_the_ray_emission_writes_an_occupancy_map(traversal, tmp_path, capsys):
+    """``--config '{"lidar_emission": "raycast"}'``: no emission network is loaded, the map
+    has one feature per cell, and asking for an emission network as well is an input error."""
+    out = tmp_path / "run"
+    cfg = json.dumps({**json.loads(TINY), "lidar_emission": "raycast"})
+    assert cli.main(["slam", str(traversal), "--out", str(out), "--config", cfg]) == 0
+    post = np.load(out / "posterior.npz")
+    assert post["map_loc"].shape[-1] == 1 and (out / "slam.png").is_file()
+    report = json.loads((out / "metrics.json").read_text())
+    assert 0 <= report["slam"]["final_error"] < 0.2
+    capsys.readouterr()
+    args = ["slam", str(traversal), "--out", str(tmp_path / "r2"), "--config", cfg]
+    assert cli.main(args + ["--emission", "pyro_slam/pretrained/emission_lidar20.pt"]) == 2
+    assert "raycast" in capsys.readouterr().err
