@@ -155,9 +155,7 @@ class ParticleFilter:
         if self.beam_trust:
             var = self.model.emission.beam_variance(g, M.loc, M.scale, z)  # [..., K, B]
         else:
-            # chart variance relative to the prior's: sum a_i^2 s_i^2 / sum a_i^2, in [0, 1]
-            var = g.attend(M.scale**2, xy, power=2).mean(-1, keepdim=True)
-            var = var / g.attend(torch.ones_like(M.scale[..., :1]), xy, power=2)
+            var = g.relative_variance(M.scale, xy)  # [..., K, 1]
         # prior variance is 1: charts of unmapped cells (var -> 1) give flat weights
         trust = (1.0 - self.uncertainty_gain * var).clamp_min(1e-2)  # [..., K, 1]
         if M.usable is not None:

@@ -107,6 +107,14 @@ class MapGrid:
             + wa[1] * wb[1] * cell(h + 1)
         )
 
+    def relative_variance(self, scale: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+        """Variance of the chart at ``xy [..., 2]`` under a mean-field ``q(M)`` with std
+        ``scale [w, h, D]``, relative to the prior's (``scale = 1``) and averaged over the ``D``
+        features: ``[..., 1]`` in ``[0, 1]``, i.e. ``sum a_i^2 s_i^2 / sum a_i^2`` over the
+        four attended cells (weights ``a_i``)."""
+        var = self.attend(scale**2, xy, power=2).mean(-1, keepdim=True)  # [..., 1]
+        return var / self.attend(torch.ones_like(scale[..., :1]), xy, power=2)
+
 
 class DVBFLM(nn.Module):
     """DVBF-LM.

@@ -239,8 +239,7 @@ class RayEmission(Emission):
         A beam that ends on a mapped wall is trusted even where the pose is new; one that runs
         into unmapped space is not."""
         pts, stop, passes = self._stops(grid, loc, z)
-        var = grid.attend(scale**2, pts, power=2)[..., 0]  # [..., B, S]
-        var = var / grid.attend(torch.ones_like(scale[..., :1]), pts, power=2)[..., 0]
+        var = grid.relative_variance(scale, pts)[..., 0]  # [..., B, S]
         return (stop * var).sum(-1) + passes * var[..., -1]
 
 
