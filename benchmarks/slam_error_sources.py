@@ -4,7 +4,9 @@ Reads the runs a ``slam_accuracy.py`` call exported (``OUT/runs/<mode>_m*_t*_T*.
 trajectories ``estimate``, ``truth`` and ``pi_poses``) and prints JSON: at each of ``--times``,
 the mean over the runs of the position error, of :func:`pyro_slam.metrics.heading_only_error`
 (the error the heading error alone causes along the true path) and of the absolute heading error,
-for SLAM and for path integration, and the fraction of runs where SLAM beats path integration.
+for SLAM and for path integration, of :func:`pyro_slam.metrics.along_track_error` (signed: < 0
+where the estimate has fallen behind the truth along the path), and the fraction of runs where SLAM
+beats path integration.
 
     python benchmarks/slam_error_sources.py out/s13_shtt_24 --mode online
     python benchmarks/slam_error_sources.py out/s18_v_od057_pn --glob "m*.npz" --times 1000,-1 \
@@ -25,7 +27,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pyro_slam.metrics import heading_error, heading_only_error, localisation_error  # noqa: E402
+from pyro_slam.metrics import (  # noqa: E402
+    along_track_error,
+    heading_error,
+    heading_only_error,
+    localisation_error,
+)
 
 
 def load_runs(
@@ -58,13 +65,14 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     runs = load_runs(p, args.out, args.mode, args.glob)
     rows = {k: [] for k in ("slam", "slam_heading_only", "slam_heading", "pi", "pi_heading_only",
-                            "pi_heading")}  # fmt: skip
+                            "pi_heading", "slam_along_track", "pi_along_track")}  # fmt: skip
     for z in runs:
         truth = z["truth"]
         for name, est in (("slam", z["estimate"]), ("pi", z["pi_poses"])):
             rows[name].append(localisation_error(est, truth))
             rows[f"{name}_heading_only"].append(heading_only_error(est, truth))
             rows[f"{name}_heading"].append(heading_error(est[:, 2], truth[:, 2]))
+            rows[f"{name}_along_track"].append(along_track_error(est, truth))
     arr = {k: np.stack(v) for k, v in rows.items()}  # [runs, T]
     T = arr["slam"].shape[1]
     times = [t if t >= 0 else T + t for t in map(int, args.times.split(","))]

@@ -1,10 +1,14 @@
 """Trace one online SLAM run: position and heading error of SLAM and path integration, and the
-particle cloud's std, every ``--every`` steps (the diagnosis in docs/benchmarks.md).
+particle cloud's std and its trust in the map (the weights' mean of
+``ParticleFilter.trust``, 0.01: flat weights, 1: the map's full weight), every ``--every`` steps
+(the diagnosis in docs/benchmarks.md).
 
     python benchmarks/slam_trace.py --seed 11 --steps 1300
     python benchmarks/slam_trace.py --seed 11 --steps 1300 --set revisit_gap=200 weighting=tempered
     python benchmarks/slam_trace.py --map-poses true --set svi_steps=4   # map trained at true poses
     python benchmarks/slam_trace.py --seed 12 --steps 220 --map-poses pi --frontier
+    python benchmarks/slam_trace.py --steps 200 --every 20 --set lidar_emission=raycast \
+        map_resolution=0.015873015873015872                 # ray-cast emission (no MLP loaded)
 
 Diagnostics (they change what the map is trained from, never the filter):
 
@@ -87,6 +91,20 @@ def record_frontier(slam, true_poses, rows):
     slam._filter_step = step
 
 
+def record_trust(slam, rows):
+    """After each filter step, the cloud's trust in the map belief it was weighed with."""
+    import torch
+
+    filter_step = slam._filter_step
+
+    def step(t, M):
+        filter_step(t, M)
+        with torch.no_grad():
+            rows.append(float(slam.pf.cloud_trust(slam.particles, M)))
+
+    slam._filter_step = step
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=11)
@@ -111,14 +129,17 @@ def main(argv=None) -> int:
     over = parse_overrides(args.set)
     tr = simulate_traversal("moderate-medium", steps=args.steps, seed=args.seed)
     cfg = SLAMConfig(**{"learn_emission": False, **over, "seed": args.seed})
-    em = load_emission(args.emission or PRETRAINED / "emission_lidar20.pt", tr, cfg)
+    em = None  # the ray-cast emission has no pretrained network
+    if cfg.observation == "lidar" and cfg.lidar_emission != "raycast":
+        em = load_emission(args.emission or PRETRAINED / "emission_lidar20.pt", tr, cfg)
     slam = SLAM(tr, cfg, emission=em)
     pi = path_integration(tr, slam.model.transition)  # [T, 3]
     if map_poses != "filter":
         slam.pin_cache(tr.poses if map_poses == "true" else pi, seed=args.seed)
     if args.frozen_cache:
         freeze_cache(slam)
-    frontier = []
+    frontier, trust = [], []
+    record_trust(slam, trust)
     if args.frontier:
         record_frontier(slam, tr.poses, frontier)
     res = slam.run("online", progress=True)
@@ -140,6 +161,7 @@ def main(argv=None) -> int:
             heading_err_pi=round(float(head_pi[t]), 3),
             dev_pi=round(float(dev_pi[t]), 3),
             std=[round(float(s), 3) for s in res["std"][t]],
+            trust=round(float(np.mean(trust[max(t - args.every + 1, 0) : t + 1])), 3),
         )
         if frontier:
             win = np.asarray(frontier[max(t - args.every + 1, 0) : t + 1])

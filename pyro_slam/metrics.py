@@ -46,6 +46,24 @@ def heading_only_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
     return np.abs(start + drift - (true[:, 0] + 1j * true[:, 1]))
 
 
+def along_track_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """The position error's component along the direction of travel, accumulated ``[T]``.
+
+    ``a_t = sum_{s<t} (e_{s+1} - e_s) . u_s`` with ``e = est - true`` in ``xy`` and ``u_s`` the
+    unit direction of the true step ``s -> s+1`` (steps that do not move count 0): negative where
+    the estimate falls behind the truth (it travels less far), positive where it runs ahead.
+    Unlike a projection of ``e_t`` itself, an offset that was made in one corridor keeps its sign
+    after the path turns. ``est, true [T, 2 or 3]``."""
+    est, true = np.asarray(est, dtype=np.float64), np.asarray(true, dtype=np.float64)
+    if est.shape[:1] != true.shape[:1] or est.ndim != 2 or min(est.shape[1], true.shape[1]) < 2:
+        raise ValueError(f"need two [T, 2+] trajectories, got {est.shape} and {true.shape}")
+    step = np.diff(true[:, :2], axis=0)  # [T-1, 2]
+    n = np.linalg.norm(step, axis=1, keepdims=True)
+    u = np.divide(step, n, out=np.zeros_like(step), where=n > 0)  # [T-1, 2]
+    de = np.diff(est[:, :2] - true[:, :2], axis=0)  # [T-1, 2]
+    return np.concatenate([[0.0], np.cumsum((de * u).sum(1))])
+
+
 def distance_travelled(true: np.ndarray) -> np.ndarray:
     """Cumulative path length ``[T]`` (0 at the start)."""
     steps = np.linalg.norm(np.diff(np.asarray(true)[:, :2], axis=0), axis=1)

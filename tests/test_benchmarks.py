@@ -134,6 +134,10 @@ def test_slam_error_sources_splits_position_error_into_heading_and_rest(tmp_path
     np.testing.assert_allclose(out["pi_mean"], [0, 5 * 2 * math.sin(0.05), 10 * 2 * math.sin(0.05)],
                                atol=1e-4)  # fmt: skip
     assert out["pi_heading_mean"] == [0.1] * 3 and out["slam_beats_pi_fraction"] == [0, 1, 1]
+    # SLAM's offset is sideways (none along the path); path integration's shorter x steps lag
+    np.testing.assert_allclose(out["slam_along_track_mean"], [0, 0, 0], atol=1e-4)
+    np.testing.assert_allclose(out["pi_along_track_mean"], [0, -5 * (1 - math.cos(0.1)),
+                               -10 * (1 - math.cos(0.1))], atol=1e-4)  # fmt: skip
     script = str(REPO / "benchmarks" / "slam_error_sources.py")
     cmd = [sys.executable, script, str(tmp_path), "--mode", "offline"]
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -154,6 +158,16 @@ def test_slam_trace_prints_rows_and_summary():
     final = rows[-1]
     assert final["seed"] == 11 and 0 <= final["final_err"] < 0.05
     assert final["max_heading_err"] >= 0 and final["median_heading_std"] > 0
+    # the cloud's trust in the map: flat weights at the start, when nothing is mapped
+    assert rows[0]["trust"] == 0.01 and all(0.01 <= r["trust"] <= 1 for r in rows[:-1])
+
+
+def test_slam_trace_runs_the_ray_cast_emission_without_loading_the_mlp():
+    lines = run("slam_trace.py", "--steps", "30", "--every", "10", "--set",
+                "lidar_emission=raycast", "map_resolution=0.03").strip().splitlines()  # fmt: skip
+    rows = [json.loads(line) for line in lines if line.startswith("{")]
+    assert rows[-1]["config"]["lidar_emission"] == "raycast" and rows[-1]["final_err"] < 0.05
+    assert rows[0]["trust"] == 0.01 and all(0.01 <= r["trust"] <= 1 for r in rows[:-1])
 
 
 def test_slam_trace_diagnostics_pin_or_freeze_the_cache_and_score_the_frontier():

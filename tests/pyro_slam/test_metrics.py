@@ -9,6 +9,7 @@ import pytest
 
 from pyro_slam.data import Traversal
 from pyro_slam.metrics import (
+    along_track_error,
     ate,
     distance_travelled,
     heading_only_error,
@@ -121,3 +122,17 @@ def test_heading_only_error_integrates_the_heading_error_along_the_true_path():
     np.testing.assert_allclose(heading_only_error(est2, line), heading_only_error(est, line))
     with pytest.raises(ValueError, match=r"\[T, 3\] trajectories"):
         heading_only_error(line[:, :2], line)
+
+
+def test_along_track_error_is_signed_and_keeps_its_sign_around_corners():
+    line = np.stack([np.arange(6.0), np.zeros(6), np.zeros(6)], 1)
+    # an estimate that covers 0.9 of each unit step lags 0.1 per step; a sideways offset is 0
+    lag = line * [0.9, 1, 1] + [0.0, 0.3, 0.0]
+    np.testing.assert_allclose(along_track_error(lag, line), -0.1 * np.arange(6), atol=1e-12)
+    np.testing.assert_allclose(along_track_error(line * [1.1, 1, 1], line), 0.1 * np.arange(6))
+    # around the square's corners the lag keeps accumulating with its sign
+    sq = np.concatenate([SQUARE, SQUARE[:1]])  # [5, 3] closed loop
+    short = sq[:1] + np.cumsum(np.concatenate([[[0, 0, 0]], 0.9 * np.diff(sq, axis=0)]), 0)
+    np.testing.assert_allclose(along_track_error(short, sq), -0.1 * np.arange(5), atol=1e-12)
+    with pytest.raises(ValueError, match=r"\[T, 2\+\] trajectories"):
+        along_track_error(line[:3], line)
