@@ -55,7 +55,12 @@ def along_track_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
     Unlike a projection of ``e_t`` itself, an offset that was made in one corridor keeps its sign
     after the path turns. ``est, true [T, 2 or 3]``."""
     est, true = np.asarray(est, dtype=np.float64), np.asarray(true, dtype=np.float64)
-    if est.shape[:1] != true.shape[:1] or est.ndim != 2 or min(est.shape[1], true.shape[1]) < 2:
+    if (
+        est.ndim != 2
+        or true.ndim != 2
+        or est.shape[0] != true.shape[0]
+        or min(est.shape[1], true.shape[1]) < 2
+    ):
         raise ValueError(f"need two [T, 2+] trajectories, got {est.shape} and {true.shape}")
     step = np.diff(true[:, :2], axis=0)  # [T-1, 2]
     n = np.linalg.norm(step, axis=1, keepdims=True)

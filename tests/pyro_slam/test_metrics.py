@@ -136,3 +136,5 @@ def test_along_track_error_is_signed_and_keeps_its_sign_around_corners():
     np.testing.assert_allclose(along_track_error(short, sq), -0.1 * np.arange(5), atol=1e-12)
     with pytest.raises(ValueError, match=r"\[T, 2\+\] trajectories"):
         along_track_error(line[:3], line)
+    with pytest.raises(ValueError, match=r"\[T, 2\+\] trajectories"):
+        along_track_error(line, line[:, 0])
