@@ -16,6 +16,11 @@ plus reconstructed vs true images at a few poses.
     python benchmarks/visual_slam.py --out out/visual_slam                       # full
     python benchmarks/visual_slam.py --mazes 2 --steps 1000 --out out/visual_slam_small
 
+``--config '{"image_emission": "raycast", "map_resolution": 0.015873015873015872}'`` swaps the
+paper's emission for the geometric camera :class:`~pyro_slam.networks.RayImageEmission` (one
+ray per column through an occupancy-and-albedo map on a 64 x 64 grid; its scene constants are
+pretrained on maze 100 in the same way), the image counterpart of LiDAR's ``RayEmission``.
+
 ``--map-poses true|pi`` is the diagnostic of ``slam_accuracy.py``: the map is learned at the true
 (or path-integration) poses while the filter still localises against it.
 
@@ -37,7 +42,9 @@ default since session 19; runs tagged ``_pn``); ``--no-per-maze-noise`` gives th
 figures, where the noise followed the driver seed alone and all 6 mazes shared one draw.
 
 Finished runs are kept in ``OUT/runs`` and the pretrained emission in ``OUT/emission_image.pt``
-(``--pretrain-steps``), so an interrupted benchmark resumes.
+(``--pretrain-steps``), so an interrupted benchmark resumes; ``OUT/config.json`` records the
+configuration they were made with, and a run with another configuration into the same ``OUT``
+stops with an error instead of mixing the two.
 """
 
 from __future__ import annotations
@@ -145,6 +152,24 @@ def calibrate_odometry(
     return {"steps": steps, "mazes": list(seeds), "target": target,
             "per_maze_noise": per_maze_noise, "points": points,
             "scale_for_target": best["scale"], "at_scale": best}  # fmt: skip
+
+
+def check_out_config(path: Path, record: dict) -> None:
+    """Write ``record`` to ``path``, or stop if ``path`` holds a different one (the cached
+    emission and runs next to it were made with that configuration)."""
+    record = json.loads(json.dumps(record))  # tuples -> lists, as read back
+    if path.is_file():
+        old = json.loads(path.read_text())
+        if old != record:
+            diff = sorted(k for k in {**old.get("config", {}), **record["config"]}
+                          if old.get("config", {}).get(k) != record["config"].get(k))  # fmt: skip
+            diff += [k for k in record if k != "config" and old.get(k) != record[k]]
+            raise SystemExit(
+                f"{path}: this output folder holds runs made with another configuration "
+                f"(differs in {', '.join(diff)}); choose another --out"
+            )
+        return
+    path.write_text(json.dumps(record, indent=1))
 
 
 def pretrained_emission(path: Path, cfg, steps: int, pretrain_steps: int):
@@ -310,6 +335,11 @@ def main(argv=None) -> int:
     runs.mkdir(parents=True, exist_ok=True)
     over = json.loads(args.config)
     cfg = SLAMConfig(**{**BENCH_CONFIG, **over})
+    # the run names carry maze, odometry scale, noise and steps; the rest must match the folder
+    check_out_config(args.out / "config.json", {
+        "config": cfg.to_dict(), "pretrain_traversal": args.pretrain_traversal,
+        "pretrain_steps": args.pretrain_steps,
+    })  # fmt: skip
     if args.odometry_scale != 1.0 and "transition_sigma" not in over:
         cfg = scaled_config(cfg, args.odometry_scale)
     t0 = time.perf_counter()

@@ -147,15 +147,18 @@ class ParticleFilter:
     def trust(self, z: torch.Tensor, M: MapBelief) -> torch.Tensor:
         """How far the weights trust the map belief at poses ``z [..., K, 3]``: ``[..., K, 1]``
         in ``[0.01, 1]``, one minus the chart's variance under ``M`` relative to the prior's
-        (times ``uncertainty_gain``, ``M.usable`` and ``M.trust``). With ``beam_trust`` and an
-        emission that reads the map along its beams (``beam_variance``,
+        (of its first ``emission.trust_features`` features where the emission says so; times
+        ``uncertainty_gain``, ``M.usable`` and ``M.trust``). With ``beam_trust`` and an emission
+        that reads the map along its beams (``beam_variance``,
         :class:`~pyro_slam.networks.RayEmission`) one trust per beam, ``[..., K, B]``, from the
         variance where each beam stops."""
         g, xy = self.model.grid, z[..., :2]
         if self.beam_trust:
             var = self.model.emission.beam_variance(g, M.loc, M.scale, z)  # [..., K, B]
         else:
-            var = g.relative_variance(M.scale, xy)  # [..., K, 1]
+            n = getattr(self.model.emission, "trust_features", None)  # None: every feature
+            scale = M.scale if n is None else M.scale[..., :n]
+            var = g.relative_variance(scale, xy)  # [..., K, 1]
         # prior variance is 1: charts of unmapped cells (var -> 1) give flat weights
         trust = (1.0 - self.uncertainty_gain * var).clamp_min(1e-2)  # [..., K, 1]
         if M.usable is not None:

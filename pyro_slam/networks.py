@@ -15,6 +15,10 @@ The sensor-specific part of the emission is an :class:`Emission`: chart ``m_t`` 
 * :class:`ImageEmission` -- chart ``[k angular bins x l rows]`` rotated with the heading and
   cropped to the camera's field of view, then row-wise MLPs (paper Appendix B-D, VizDoom).
 
+Geometric alternatives (not the paper's; opt-in) read the map along rays instead of at the pose:
+:class:`RayEmission` (LiDAR ranges volume-rendered through an occupancy map) and
+:class:`RayImageEmission` (a pinhole camera drawing the walls those rays hit).
+
 Networks know nothing of Pyro; the model (:mod:`pyro_slam.model`) wires them into distributions.
 """
 
@@ -105,6 +109,9 @@ class Emission(nn.Module):
 
     map_dim: int
     event_shape: tuple[int, ...]
+    # the particle filter's trust in the map (ParticleFilter.trust) reads the variance of the
+    # first trust_features features of the chart at the pose (None: all of them)
+    trust_features: int | None = None
 
     @property
     def event_size(self) -> int:
@@ -213,23 +220,35 @@ class RayEmission(Emission):
         out = torch.where(near, torch.tensor(wall), torch.tensor(free))
         return out.to(torch.get_default_dtype()).unsqueeze(-1)
 
-    def _stops(self, grid, M: torch.Tensor, z: torch.Tensor):
-        """Points ``[..., B, S, 2]`` along the beams at poses ``z [..., 3]``, the probability
-        that each beam stops in each segment ``[..., B, S]`` and that it passes ``[..., B]``."""
+    def _march(self, grid, M: torch.Tensor, z: torch.Tensor):
+        """Points ``[..., B, S, 2]`` along the beams at poses ``z [..., 3]``, the map features
+        there ``[..., B, S, D_m]`` (feature 0: the occupancy logit), the probability that each
+        beam stops in each segment ``[..., B, S]`` and that it passes ``[..., B]``."""
         d = self.dist.to(z.dtype)  # [S]
         ang = z[..., 2:3] + self.beam_angles.to(z.dtype)  # [..., B]
         u = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # [..., B, 2]
         pts = z[..., None, None, :2] + d[:, None] * u.unsqueeze(-2)  # [..., B, S, 2]
-        o = grid.attend(M, pts)[..., 0]  # [..., B, S] occupancy logit
+        feats = grid.attend(M, pts)  # [..., B, S, D_m]
         step = self.max_range / self.samples
-        tau = (self.density * step) * nn.functional.softplus(self.gain * o + self.offset)
+        tau = (self.density * step) * nn.functional.softplus(
+            self.gain * feats[..., 0] + self.offset
+        )
         cum = tau.cumsum(-1)  # optical depth up to the end of each segment
         stop = torch.exp(tau - cum) * -torch.expm1(-tau)  # transmittance before s x absorbed in s
-        return pts, stop, torch.exp(-cum[..., -1])
+        return pts, feats, stop, torch.exp(-cum[..., -1])
 
-    def read(self, grid, M, z):
+    def _stops(self, grid, M: torch.Tensor, z: torch.Tensor):
+        """:meth:`_march` without the features: points, stop and pass probabilities."""
+        pts, _, stop, passes = self._march(grid, M, z)
+        return pts, stop, passes
+
+    def expected_range(self, grid, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Each beam's expected range ``[..., B]`` (the LiDAR reading)."""
         _, stop, passes = self._stops(grid, M, z)
         return (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range
+
+    def read(self, grid, M, z):
+        return self.expected_range(grid, M, z)
 
     def beam_variance(self, grid, loc: torch.Tensor, scale: torch.Tensor, z: torch.Tensor):
         """How unknown each beam's reading is under a mean-field ``q(M) = N(loc, scale^2)``:
@@ -316,6 +335,87 @@ class ImageEmission(Emission):
 
     def mean(self, m, z):
         return self(m, z[..., 2]).flatten(-2)
+
+
+class RayImageEmission(RayEmission):
+    """Geometric first-person camera: one ray per image column through an occupancy map.
+
+    Not the paper's image emission (:class:`ImageEmission`), an alternative with the same
+    interface, as :class:`RayEmission` is for LiDAR: the map holds ``D_m = 1 + bins`` features
+    per cell, an occupancy logit (feature 0, read as by :class:`RayEmission`) and an albedo
+    logit at ``bins`` world directions ``2 pi j / bins`` (features ``1..bins``; the albedo a ray
+    sees is ``sigmoid`` of them, circularly interpolated at the ray's world direction, so a wall's
+    faces can differ). Column ``c`` casts a ray at ``heading + column_angles[c]``; its expected
+    range ``r_c`` gives the perpendicular depth ``d_c = r_c cos(column_angles[c])`` and the
+    albedo ``a_c`` is read at the point ``r_c`` along the ray (rays that stop nowhere see a
+    learned far albedo); a pinhole camera (focal length from the field of view) draws the wall
+    between rows ``rows/2 - f h_up / d_c`` and ``rows/2 + f h_down / d_c`` with brightness
+    ``a_c / (1 + d_c / fog)``; rows not covered show a per-row background
+    (floor or ceiling). Pixels blend by fractional row coverage.
+
+    The scene constants ``h_up, h_down, fog`` (world units), the ``[rows]`` background and the
+    albedo of rays that stop nowhere are this emission's parameters, pretrained like the other
+    emissions (:func:`~pyro_slam.slam.pretrain_emission`); everything about the maze is in ``M``.
+    A view then constrains every cell its rays cross, so a new pose is localised against walls
+    mapped from earlier poses (the chart emission copies the view of the cell it stands on).
+
+    Args:
+        column_angles: ``[cols]`` ray angle of each image column relative to the heading, left
+            to right (the simulator camera's ``fov/2 - (j + 1/2) fov/cols``).
+        rows: image rows.
+        max_range: rays are marched this far (world units).
+        samples, density, gain, offset: as :class:`RayEmission`.
+        bins: albedo directions per cell.
+    """
+
+    def __init__(
+        self,
+        column_angles,
+        rows: int,
+        max_range: float = 1.0,
+        samples: int = 48,
+        bins: int = 8,
+        density: float = 100.0,
+        gain: float = 8.0,
+        offset: float = -8.0,
+    ):
+        super().__init__(column_angles, max_range, samples, density, gain, offset)
+        cols = int(self.beam_angles.shape[0])
+        self.rows, self.cols, self.bins = int(rows), cols, int(bins)
+        self.map_dim = 1 + self.bins
+        self.event_shape = (self.rows, cols)
+        # trust: the occupancy where the agent stands (the albedo features are only learned
+        # where rays stop, i.e. on walls, so at a free pose they keep the prior's variance)
+        self.trust_features = 1
+        a = self.beam_angles.double()
+        spacing = float((a[0] - a[-1]).abs()) / max(cols - 1, 1) if cols > 1 else 1.0
+        self.focal = (cols / 2) / math.tan(cols * spacing / 2)  # pixels
+        self.log_height = nn.Parameter(torch.full((2,), math.log(0.05)))  # up, down
+        self.log_fog = nn.Parameter(torch.tensor(math.log(0.25)))
+        self.background = nn.Parameter(torch.full((self.rows,), 0.5))
+        self.far_albedo = nn.Parameter(torch.tensor(0.0))
+
+    def read(self, grid, M, z):
+        """Predicted image at poses ``z [..., 3]``, flattened row-major: ``[..., rows * cols]``."""
+        dt = z.dtype
+        _, stop, passes = self._stops(grid, M[..., :1], z)  # [..., C, S], [..., C]
+        rng = (stop * self.dist.to(dt)).sum(-1) + passes * self.max_range  # [..., C]
+        ang = z[..., 2:3] + self.beam_angles.to(dt)  # [..., C] world direction of each ray
+        # albedo where the ray is expected to stop (one read per ray, not per sample)
+        u = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # [..., C, 2]
+        hit = z[..., None, :2] + rng.unsqueeze(-1) * u  # [..., C, 2]
+        albedo = rotate_scan(grid.attend(M[..., 1:], hit), ang, torch.zeros(1, dtype=dt))
+        a = (1 - passes) * torch.sigmoid(albedo[..., 0]) + passes * torch.sigmoid(self.far_albedo)
+        depth = (rng * torch.cos(self.beam_angles.to(dt))).clamp_min(1e-3)  # [..., C]
+        up, down = self.log_height.exp()
+        h0 = self.rows / 2
+        top = (h0 - self.focal * up / depth).unsqueeze(-2)  # [..., 1, C]
+        bottom = (h0 + self.focal * down / depth).unsqueeze(-2)
+        r = torch.arange(self.rows, dtype=dt).unsqueeze(-1)  # [rows, 1]
+        cover = (torch.minimum(r + 1, bottom) - torch.maximum(r, top)).clamp(0.0, 1.0)
+        wall = (a / (1.0 + depth / self.log_fog.exp())).unsqueeze(-2)  # [..., 1, C]
+        img = cover * wall + (1.0 - cover) * self.background.unsqueeze(-1)  # [..., rows, C]
+        return img.flatten(-2)
 
 
 class TransitionMLP(nn.Module):

@@ -45,7 +45,14 @@ from .filtering import (
 )
 from .guide import MapGuide
 from .model import DVBFLM, MapGrid
-from .networks import Emission, EmissionMLP, ImageEmission, LidarEmission, RayEmission
+from .networks import (
+    Emission,
+    EmissionMLP,
+    ImageEmission,
+    LidarEmission,
+    RayEmission,
+    RayImageEmission,
+)
 from .transitions import KinematicTransition, Transition
 
 # SLAMConfig.trusted_passes -> the SLAMState phases in which transition_scale_trusted acts
@@ -131,6 +138,11 @@ class SLAMConfig:
     # per particle (variance of its own chart); per beam screened worse (docs/benchmarks.md)
     beam_trust: bool = False
     image_bins: int = 32  # image emission: angular bins k of the map (D_m = k * image rows)
+    # camera read-out: "mlp" (the paper's rotated chart + row-wise MLPs) or "raycast"
+    # (RayImageEmission: one ray per column through an occupancy map, a pinhole camera draws the
+    # wall it hits; D_m = 1 + ray_albedo_bins, image_bins and the emission MLP unused)
+    image_emission: str = "mlp"
+    ray_albedo_bins: int = 8  # raycast camera: albedo directions per cell
 
     def to_dict(self):
         return asdict(self)
@@ -164,12 +176,22 @@ def build_model(
         lo = path.min(0) - reach
         hi = path.max(0) + reach
     if config.observation == "image":
+        if config.image_emission not in ("mlp", "raycast"):
+            raise ValueError(
+                f"image_emission must be 'mlp' or 'raycast', got {config.image_emission!r}"
+            )
         if emission is None:
             rows, cols = traversal.metadata["image_shape"]
-            emission = ImageEmission(
-                config.image_bins, rows, cols, hidden=config.emission_hidden,
-                layers=config.emission_layers, column_angles=traversal.beam_angles[:cols],
-            )  # fmt: skip
+            if config.image_emission == "raycast":
+                emission = RayImageEmission(
+                    traversal.beam_angles[:cols], rows, reach, config.ray_samples,
+                    config.ray_albedo_bins,
+                )  # fmt: skip
+            else:
+                emission = ImageEmission(
+                    config.image_bins, rows, cols, hidden=config.emission_hidden,
+                    layers=config.emission_layers, column_angles=traversal.beam_angles[:cols],
+                )  # fmt: skip
     elif config.observation != "lidar":
         raise ValueError(f"observation must be 'lidar' or 'image', got {config.observation!r}")
     elif config.lidar_emission not in ("mlp", "raycast"):

@@ -170,6 +170,22 @@ def test_slam_trace_runs_the_ray_cast_emission_without_loading_the_mlp():
     assert rows[0]["trust"] == 0.01 and all(0.01 <= r["trust"] <= 1 for r in rows[:-1])
 
 
+def test_ray_map_fit_scores_learned_and_oracle_maps_at_the_true_poses():
+    lines = run("ray_map_fit.py", "--maze-seeds", "991", "--steps", "30", "--map-poses", "true",
+                "--set", "lr_map=0.1").strip().splitlines()  # fmt: skip
+    row, summary = json.loads(lines[0]), json.loads(lines[-1])
+    assert row["maze"] == 991 and row["map_poses"] == "true" and row["set"] == {"lr_map": 0.1}
+    for key in ("at_true", "at_estimate"):
+        r = row[key]
+        assert 0 < r["median_abs"] <= r["rms"] < 0.53 and abs(r["mean"]) < 0.53
+    assert 0 <= row["final_err"] < 0.05 and row["pi_final_err"] >= 0
+    assert summary["rms_at_true_mean"] == row["at_true"]["rms"]
+    # the wall map reproduces the scans (median residual below the 0.016 grid spacing)
+    oracle = json.loads(run("ray_map_fit.py", "--oracle", "--maze-seeds", "991", "--steps", "50")
+                        .strip().splitlines()[0])  # fmt: skip
+    assert oracle["at_true"]["median_abs"] < 0.01 and oracle["at_true"]["rms"] < 0.05
+
+
 def test_slam_trace_diagnostics_pin_or_freeze_the_cache_and_score_the_frontier():
     lines = run("slam_trace.py", "--steps", "30", "--every", "10", "--map-poses", "pi",
                 "--frozen-cache", "--frontier").strip().splitlines()  # fmt: skip
@@ -440,6 +456,14 @@ def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
         kw = {"images": False, "per_maze_noise": True}
         np.testing.assert_allclose(z["truth"], _traversal(997, 1, 60, 0.5, **kw).poses, atol=1e-6)
         assert np.abs(z["truth"] - _traversal(997, 1, 60, **kw).poses).max() > 1e-4
+    # another configuration into the same folder stops before anything is recomputed or lost
+    cmd = [sys.executable, str(REPO / "benchmarks" / "visual_slam.py"), *args[:-4]]
+    other = '{"offline_svi_steps": 11}'
+    err = subprocess.run([*cmd, "--config", other, "--out", str(tmp_path)], capture_output=True,
+                         text=True)  # fmt: skip
+    assert err.returncode == 1 and "config.json: this output folder holds runs" in err.stderr
+    assert "differs in offline_svi_steps" in err.stderr
+    assert [f.stat().st_mtime_ns for f in runs] == stamps
     cmd = [sys.executable, str(REPO / "benchmarks" / "visual_slam.py"), "--maze-seeds", "1002,7"]
     err = subprocess.run([*cmd, "--out", str(tmp_path)], capture_output=True, text=True)
     assert err.returncode == 2 and "--maze-seeds [7]: not test mazes" in err.stderr
