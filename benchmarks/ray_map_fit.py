@@ -100,8 +100,10 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(1)
     over = parse_overrides(args.set)
+    from tqdm import tqdm
+
     rows = []
-    for m in mazes:
+    for m in tqdm(mazes, desc="mazes"):  # the bar on stderr, one JSON line per maze on stdout
         rows.append(run_maze(m, args.steps, over, args.map_poses, args.oracle))
         print(json.dumps(rows[-1]), flush=True)
     summary = {"summary": True, "mazes": mazes, "map_poses": args.map_poses, "set": over,

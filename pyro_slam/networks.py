@@ -220,32 +220,29 @@ class RayEmission(Emission):
         out = torch.where(near, torch.tensor(wall), torch.tensor(free))
         return out.to(torch.get_default_dtype()).unsqueeze(-1)
 
-    def _march(self, grid, M: torch.Tensor, z: torch.Tensor):
-        """Points ``[..., B, S, 2]`` along the beams at poses ``z [..., 3]``, the map features
-        there ``[..., B, S, D_m]`` (feature 0: the occupancy logit), the probability that each
-        beam stops in each segment ``[..., B, S]`` and that it passes ``[..., B]``."""
+    def _stops(self, grid, M: torch.Tensor, z: torch.Tensor):
+        """Points ``[..., B, S, 2]`` along the beams at poses ``z [..., 3]``, the probability
+        that each beam stops in each segment ``[..., B, S]`` and that it passes ``[..., B]``.
+        Only feature 0 of ``M`` (the occupancy logit) is read."""
         d = self.dist.to(z.dtype)  # [S]
         ang = z[..., 2:3] + self.beam_angles.to(z.dtype)  # [..., B]
         u = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # [..., B, 2]
         pts = z[..., None, None, :2] + d[:, None] * u.unsqueeze(-2)  # [..., B, S, 2]
-        feats = grid.attend(M, pts)  # [..., B, S, D_m]
+        o = grid.attend(M[..., :1], pts)[..., 0]  # [..., B, S] occupancy logit
         step = self.max_range / self.samples
-        tau = (self.density * step) * nn.functional.softplus(
-            self.gain * feats[..., 0] + self.offset
-        )
+        tau = (self.density * step) * nn.functional.softplus(self.gain * o + self.offset)
         cum = tau.cumsum(-1)  # optical depth up to the end of each segment
         stop = torch.exp(tau - cum) * -torch.expm1(-tau)  # transmittance before s x absorbed in s
-        return pts, feats, stop, torch.exp(-cum[..., -1])
+        return pts, stop, torch.exp(-cum[..., -1])
 
-    def _stops(self, grid, M: torch.Tensor, z: torch.Tensor):
-        """:meth:`_march` without the features: points, stop and pass probabilities."""
-        pts, _, stop, passes = self._march(grid, M, z)
-        return pts, stop, passes
+    def _range(self, grid, M: torch.Tensor, z: torch.Tensor):
+        """Each beam's expected range and the probability that it passes, both ``[..., B]``."""
+        _, stop, passes = self._stops(grid, M, z)
+        return (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range, passes
 
     def expected_range(self, grid, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """Each beam's expected range ``[..., B]`` (the LiDAR reading)."""
-        _, stop, passes = self._stops(grid, M, z)
-        return (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range
+        return self._range(grid, M, z)[0]
 
     def read(self, grid, M, z):
         return self.expected_range(grid, M, z)
@@ -258,7 +255,7 @@ class RayEmission(Emission):
         A beam that ends on a mapped wall is trusted even where the pose is new; one that runs
         into unmapped space is not."""
         pts, stop, passes = self._stops(grid, loc, z)
-        var = grid.relative_variance(scale, pts)[..., 0]  # [..., B, S]
+        var = grid.relative_variance(scale[..., :1], pts)[..., 0]  # [..., B, S] occupancy's
         return (stop * var).sum(-1) + passes * var[..., -1]
 
 
@@ -398,8 +395,7 @@ class RayImageEmission(RayEmission):
     def read(self, grid, M, z):
         """Predicted image at poses ``z [..., 3]``, flattened row-major: ``[..., rows * cols]``."""
         dt = z.dtype
-        _, stop, passes = self._stops(grid, M[..., :1], z)  # [..., C, S], [..., C]
-        rng = (stop * self.dist.to(dt)).sum(-1) + passes * self.max_range  # [..., C]
+        rng, passes = self._range(grid, M, z)  # [..., C] each
         ang = z[..., 2:3] + self.beam_angles.to(dt)  # [..., C] world direction of each ray
         # albedo where the ray is expected to stop (one read per ray, not per sample)
         u = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # [..., C, 2]

@@ -149,3 +149,7 @@ def test_trust_reads_the_occupancy_at_the_pose_not_the_wall_albedo(image_travers
     # an emission that reads every feature of the chart (the default) would see var 0.89
     model.emission.trust_features = None
     assert float(ParticleFilter(model).trust(z, belief).max()) < 0.12
+    # per-ray trust (beam_trust=True) likewise reads the occupancy where each ray stops
+    var = model.emission.beam_variance(model.grid, belief.loc, belief.scale, z)  # [5, 32]
+    assert var.shape == (5, 32)
+    torch.testing.assert_close(var, torch.full((5, 32), 0.01))
