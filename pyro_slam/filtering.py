@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import pyro.distributions as dist
 import torch
 from pyro import poutine
 from pyro.infer import ELBO
@@ -31,6 +32,7 @@ from .geometry import reproject_scan, wrap_angle
 from .model import DVBFLM
 
 WEIGHTINGS = ("marginal", "shared", "tempered", "predictive")
+PROPOSALS = ("bootstrap", "linearised")
 
 
 @dataclass
@@ -99,7 +101,22 @@ class ParticleFilter:
             normaliser ``-B log sigma`` cancels and cannot favour particles in cells written more
             often) or ``"tempered"`` (likelihood raised to ``trust^2`` without the normaliser,
             so unmapped charts are neutral).
-        outlier_prob: per-beam outlier floor of the tempered weights.
+        outlier_prob: per-beam outlier probability ``eps``. Tempered weights: a floor
+            ``log eps`` under each beam's term. Other weightings: the classic beam mixture
+            (Thrun et al., *Probabilistic Robotics* 6.3), ``(1 - eps) N(x; mu, sigma) + eps /
+            outlier_range`` per beam, so that a few beams the map cannot explain (a wall not
+            yet written, a ray grazing a corner) cannot dominate a sharp ``sigma``.
+        outlier_range: width of the uniform outlier density (the sensor's range).
+        proposal: ``"bootstrap"`` (sample the transition) or ``"linearised"``: the Gaussian
+            optimal proposal of the emission linearised at each particle's transition mean
+            (Doucet et al. 2000), ``q(z) = N(mu, S)`` with ``S^-1 = Sigma_T^-1 + J^T J /
+            sigma^2`` and ``mu`` the transition mean moved by ``S J^T (x - h) / sigma^2``
+            (``J``: finite-difference Jacobian of the predicted scan ``h`` in the pose; beams
+            more than ``proposal_gate`` sigma off are left out of it), weighted by
+            ``p(x | z) p(z | z_prev) / q(z)``, so the particles go where the scan puts them even
+            when the transition's noise is much wider than the likelihood (a scan-matching
+            proposal, as in GMapping).
+        proposal_gate: see ``proposal``.
         prior_predictive_std: ``"predictive"`` weighting: per-beam std of scans under the map
             prior (SLAM sets it to the std of the observed ranges); the predictive std is
             ``sqrt(sigma^2 + (1 - trust) * prior_predictive_std^2)``.
@@ -123,7 +140,21 @@ class ParticleFilter:
         autocast_dtype: torch.dtype | None = None,
         prior_predictive_std: float = 0.15,
         beam_trust: bool = False,
+        outlier_range: float = 1.0,
+        proposal: str = "bootstrap",
+        proposal_gate: float = 3.0,
     ):
+        self.proposal_gate = proposal_gate
+        if proposal not in PROPOSALS:
+            raise ValueError(f"proposal must be one of {PROPOSALS}, got {proposal!r}")
+        if proposal == "linearised" and weighting == "tempered":
+            raise ValueError("the linearised proposal needs Gaussian weights, not 'tempered'")
+        self.proposal = proposal
+        if not 0.0 <= outlier_prob < 1.0:
+            raise ValueError(f"outlier_prob must be in [0, 1), got {outlier_prob!r}")
+        if outlier_range <= 0:
+            raise ValueError(f"outlier_range must be positive, got {outlier_range!r}")
+        self.outlier_range = outlier_range
         if beam_trust and not hasattr(model.emission, "beam_variance"):
             raise ValueError(
                 "beam_trust needs an emission with beam_variance (RayEmission), "
@@ -172,14 +203,13 @@ class ParticleFilter:
         """The weighted mean of :meth:`trust` over the particles ``p``: ``[...]``."""
         return (p.logw.exp() * self.trust(p.z, M).mean(-1)).sum(-1)
 
-    def _weigh(self, z, M, x, mask, logw, step):
-        """Emission weights at ``z [..., K, 3]``.
-
-        Returns new particles and the log-evidence ``[...]``.
-        """
+    def _likelihood_params(self, z, M, logw):
+        """The map mean and the weights' emission std ``sigma`` (or tempering ``beta``) at
+        ``z [..., K, 3]`` under ``M`` (a tensor or a :class:`MapBelief`, see the class doc):
+        ``(M, sigma, beta, s0)`` with ``s0`` the base std."""
         sigma, beta = self.sigma_emission, None
+        s0 = self.model.sigma_emission if sigma is None else sigma
         if isinstance(M, MapBelief):
-            s0 = self.model.sigma_emission if sigma is None else sigma
             trust = self.trust(z, M)  # [..., K, 1]
             if self.weighting == "shared":
                 # one trust for the cloud: the normaliser is then the same for every particle
@@ -199,6 +229,15 @@ class ParticleFilter:
                 beta = trust**2  # [..., K, 1] (or one per beam, [..., K, B])
             else:
                 sigma = s0 / trust
+        return M, sigma, beta, s0
+
+    def _weigh(self, z, M, x, mask, logw, step, correction=None):
+        """Emission weights at ``z [..., K, 3]`` (plus ``correction [..., K]``, a proposal's
+        log transition-over-proposal density ratio).
+
+        Returns new particles and the log-evidence ``[...]``.
+        """
+        M, sigma, beta, s0 = self._likelihood_params(z, M, logw)
         if self.autocast_dtype is not None and not torch.is_grad_enabled():
             # reduced-precision emission MLP for filtering only (training keeps full precision)
             with torch.autocast(z.device.type, dtype=self.autocast_dtype):
@@ -206,7 +245,10 @@ class ParticleFilter:
         else:
             scan = self.model.emission_mean(M, z)  # [..., K, B]
         m = None if mask is None else mask.unsqueeze(-2)
-        if beta is None:
+        if beta is None and self.outlier_prob > 0:
+            s = s0 if sigma is None else sigma
+            loglik = self._mixture_log_prob(x.unsqueeze(-2), scan, m, s)  # [..., K]
+        elif beta is None:
             loglik = self.model.emission_log_prob(x.unsqueeze(-2), scan, m, sigma)  # [..., K]
         else:
             # log-likelihood relative to a perfect match (no normaliser), so an unmapped chart
@@ -218,12 +260,22 @@ class ParticleFilter:
                 eps = self.outlier_prob
                 lb = torch.logaddexp(lb + math.log1p(-eps), lb.new_tensor(math.log(eps)))
             loglik = (beta * (lb if m is None else lb * m)).sum(-1)  # [..., K]
-        joint = logw + loglik
+        joint = logw + loglik if correction is None else logw + loglik + correction
         resampling.check_weights(joint.detach(), step)
         inc = torch.logsumexp(joint, -1)  # [...]
         # normalised weights keep their graph: without resampling, the next step's evidence
         # depends on the map through them too (resampling resets them to constants)
         return Particles(z, joint - inc.unsqueeze(-1), scan.detach()), inc
+
+    def _mixture_log_prob(self, x, scan, mask, sigma) -> torch.Tensor:
+        """Per-beam ``log((1 - eps) N(x; scan, sigma) + eps / outlier_range)`` summed over the
+        (unmasked) beams: ``x [..., 1, B]``, ``scan [..., K, B]`` -> ``[..., K]``."""
+        eps = self.outlier_prob
+        s = torch.as_tensor(sigma, dtype=scan.dtype)
+        r = (x - scan) / s
+        lg = -0.5 * r * r - (torch.log(s) + 0.9189385332046727) + math.log1p(-eps)  # [..., K, B]
+        lb = torch.logaddexp(lg, lg.new_tensor(math.log(eps / self.outlier_range)))
+        return (lb if mask is None else lb * mask).sum(-1)
 
     def init(self, z0, M, x, mask=None, step=0):
         """Weigh initial particles ``z0 [..., K, 3]`` by ``x [..., B]``.
@@ -261,8 +313,41 @@ class ParticleFilter:
                     None if p.scan is None else torch.where(m.unsqueeze(-1), r.scan, p.scan),
                 )
             p = r
+        if self.proposal == "linearised":
+            z, correction = self._linearised_proposal(p, M, x, u, mask, sigma)
+            return self._weigh(z, M, x, mask, p.logw, step, correction)
         z = self.propagate(p, u, sigma)
         return self._weigh(z, M, x, mask, p.logw, step)
+
+    @torch.no_grad()
+    def _linearised_proposal(self, p: Particles, M, x, u, mask=None, sigma=None, fd=2e-3):
+        """Sample ``z [..., K, 3]`` from the linearised optimal proposal (class doc) and return
+        it with ``log p(z | z_prev, u) - log q(z)`` ``[..., K]``."""
+        mean = self.model.transition.mean(p.z, u.unsqueeze(-2), p.scan)  # [..., K, 3]
+        st = self.model.transition.sigma if sigma is None else sigma
+        st = torch.as_tensor(st, dtype=mean.dtype).expand_as(mean)  # [..., K, 3]
+        Mloc, s_lik, _, s0 = self._likelihood_params(mean, M, p.logw)
+        s_lik = torch.as_tensor(s0 if s_lik is None else s_lik, dtype=mean.dtype)
+        if s_lik.dim() < 2:
+            s_lik = s_lik.reshape(1, 1)  # else [..., K | 1, 1 | B]
+        steps = fd * torch.eye(3, dtype=mean.dtype)  # [3, 3]
+        pts = torch.cat([mean.unsqueeze(-2), mean.unsqueeze(-2) + steps], -2)  # [..., K, 4, 3]
+        h = self.model.emission_mean(Mloc, pts)  # [..., K, 4, B]
+        h0 = h[..., 0, :]  # [..., K, B]
+        jt = (h[..., 1:, :] - h0.unsqueeze(-2)) / fd  # [..., K, 3, B] J^T
+        r = x.unsqueeze(-2) - h0  # [..., K, B]
+        use = (r.abs() < self.proposal_gate * s_lik).to(mean.dtype)  # [..., K, B]
+        if mask is not None:
+            use = use * mask.unsqueeze(-2).to(mean.dtype)
+        jt = jt * use.unsqueeze(-2) / s_lik.unsqueeze(-2)  # [..., K, 3, B] J^T / sigma
+        prec = torch.diag_embed(st.pow(-2)) + jt @ jt.transpose(-1, -2)  # [..., K, 3, 3]
+        cov = torch.linalg.inv(prec)
+        shift = cov @ (jt @ (r * use / s_lik).unsqueeze(-1))  # [..., K, 3, 1]
+        q = dist.MultivariateNormal(mean + shift.squeeze(-1), covariance_matrix=cov)
+        eps = torch.randn(mean.shape, generator=self.generator, dtype=mean.dtype)
+        z = q.loc + (q.scale_tril @ eps.unsqueeze(-1)).squeeze(-1)  # [..., K, 3]
+        log_t = dist.Normal(mean, st).log_prob(z).sum(-1)  # [..., K]
+        return z, log_t - q.log_prob(z)
 
     @torch.no_grad()
     def run(self, M, observations, controls, init_pose, num_particles, mask=None, init_scale=None):

@@ -36,6 +36,7 @@ from tqdm.auto import tqdm
 
 from .data import Traversal, atomic_write
 from .filtering import (
+    PROPOSALS,
     ChunkBatch,
     MapBelief,
     ParticleCache,
@@ -88,7 +89,10 @@ class SLAMConfig:
     trusted_passes: str = "online"
     uncertainty_gain: float = 1.0
     weighting: str = "marginal"  # filter weights under q(M): marginal|shared|tempered|predictive
-    outlier_prob: float = 0.0  # per-beam outlier floor of the tempered weights
+    # per-beam outlier probability of the filter's weights: a floor under the tempered weights,
+    # a uniform-outlier beam mixture under the others (ParticleFilter)
+    outlier_prob: float = 0.0
+    train_outlier_prob: float | None = None  # the ELBO's chunk filter's (None: outlier_prob)
     filter_particles: int = 128
     train_particles: int = 16
     cache_particles: int = 50
@@ -116,6 +120,9 @@ class SLAMConfig:
     # chunk_length steps, each started from its first step's cached particles plus 1e-3 noise)
     offline_estimate: str = "forward"
     proposal: str = "gaussian"
+    # the SLAM filter's particle proposal: "bootstrap" or "linearised" (ParticleFilter; the
+    # ELBO's chunk filter stays bootstrap)
+    filter_proposal: str = "bootstrap"
     proposal_shrink: float = 1.0  # scale of the cache proposal's std for map training
     revisit_gap: int = 0  # online: cells first mapped < gap steps ago do not weigh particles
     revisit_radius: float | None = None  # online: trust by distance to poses >= gap steps old
@@ -134,6 +141,12 @@ class SLAMConfig:
     # ranges marched through a one-feature density map; map_dim and the emission MLP unused)
     lidar_emission: str = "mlp"
     ray_samples: int = 48  # raycast: points per beam
+    # raycast, online sweep: each scan's hits, placed from the cloud's mean pose, set the map mean
+    # at grid points no scan has hit before to this occupancy (an occupancy-grid warm start of
+    # q(M) that SVI then refines; None: off)
+    ray_insert: float | None = None
+    ray_insert_gap: float = 0.05  # hits of neighbouring beams closer than this form one wall
+    ray_insert_scale: float | None = None  # and q(M)'s scale there (None: left as it is)
     # raycast: the weights' trust in q(M) per beam (variance where each beam stops) instead of
     # per particle (variance of its own chart); per beam screened worse (docs/benchmarks.md)
     beam_trust: bool = False
@@ -384,6 +397,22 @@ class SLAM:
             raise ValueError(
                 f"transition_scale_trusted must be 3 positive factors (x, y, heading), got {st!r}"
             )
+        if self.cfg.ray_insert is not None and (
+            self.cfg.observation != "lidar" or self.cfg.lidar_emission != "raycast"
+        ):
+            raise ValueError(
+                "ray_insert writes LiDAR hits into an occupancy map: it needs "
+                "observation='lidar' and lidar_emission='raycast'"
+            )
+        ris = self.cfg.ray_insert_scale
+        if ris is not None and not ris > 0:
+            raise ValueError(f"ray_insert_scale must be positive, got {ris!r}")
+        if not self.cfg.ray_insert_gap > 0:
+            raise ValueError(f"ray_insert_gap must be positive, got {self.cfg.ray_insert_gap!r}")
+        if self.cfg.filter_proposal not in PROPOSALS:
+            raise ValueError(
+                f"filter_proposal must be one of {PROPOSALS}, got {self.cfg.filter_proposal!r}"
+            )
         if self.cfg.offline_estimate not in ("forward", "cache"):
             raise ValueError(
                 f"offline_estimate must be 'forward' or 'cache', got {self.cfg.offline_estimate!r}"
@@ -407,16 +436,25 @@ class SLAM:
             outlier_prob=self.cfg.outlier_prob,
             prior_predictive_std=_scan_spread(traversal),
             beam_trust=self.cfg.beam_trust,
+            outlier_range=_scan_range(traversal),
         )
         # the filter weighs with a sharper sigma_E than the model's (paper B-I); the ELBO's chunk
         # filter uses the same one unless train_sigma is set (train_sigma=0.1, the model's own
         # sigma_E, measured worse on the benchmark: docs/benchmarks.md)
-        self.pf = ParticleFilter(self.model, sigma_emission=self.cfg.filter_sigma, **pf_args)
+        self.pf = ParticleFilter(
+            self.model,
+            sigma_emission=self.cfg.filter_sigma,
+            proposal=self.cfg.filter_proposal,
+            **pf_args,
+        )
         ts = self.cfg.filter_sigma if self.cfg.train_sigma is None else self.cfg.train_sigma
-        train_pf = ParticleFilter(self.model, sigma_emission=ts, **pf_args)
+        to = self.cfg.train_outlier_prob
+        to = self.cfg.outlier_prob if to is None else to
+        train_pf = ParticleFilter(self.model, sigma_emission=ts, **{**pf_args, "outlier_prob": to})
         self.cache = ParticleCache(self.T, self.cfg.cache_particles)
         w, h, _ = self.model.grid.shape
         self.first_seen = torch.full((w, h), float("inf"))  # [w, h] step of first mapping
+        self.inserted = torch.zeros((w, h), dtype=torch.bool)  # [w, h] hit by a ray_insert scan
         self.track = torch.full((self.T, 2), float("nan"))  # [T, 2] online position estimates
         self.elbo = ParticleChunkELBO(
             train_pf,
@@ -500,6 +538,45 @@ class SLAM:
             raise FloatingPointError(f"SVI loss became {loss} (step t={self.state.t})")
         return loss
 
+    def _insert_scan(self, t: int) -> None:
+        """``ray_insert``: write the hits of scan ``t`` into q(M)'s mean, placed from the
+        cloud's mean pose, as a polyline: hits of neighbouring beams closer than
+        ``ray_insert_gap`` are joined (one wall seen by both), and every grid point nearest to
+        the polyline (sampled at half a grid spacing) that no earlier scan wrote gets the
+        occupancy ``ray_insert``. Readings at the sensor's range are misses and write nothing."""
+        em, g = self.model.emission, self.model.grid
+        x = self.obs[t]  # [B]
+        hit = x < em.max_range * (1 - 1e-3)  # [B]
+        if self.mask is not None:
+            hit = hit & self.mask[t].bool()
+        if not bool(hit.any()):
+            return
+        z = self.particles.mean()  # [3]
+        ang = z[2] + em.beam_angles.to(x.dtype)  # [B]
+        pts = z[:2] + x[:, None] * torch.stack([ang.cos(), ang.sin()], -1)  # [B, 2]
+        w, h, _ = g.shape
+        spacing = min(g.size[0] / (w - 1), g.size[1] / (h - 1))
+        nxt = torch.roll(torch.arange(x.shape[0]), -1)  # [B] the neighbouring beam
+        seg = hit & hit[nxt] & ((pts[nxt] - pts).norm(dim=-1) < self.cfg.ray_insert_gap)  # [B]
+        n = int(math.ceil(self.cfg.ray_insert_gap / (0.5 * spacing))) + 1
+        f = torch.linspace(0, 1, n, dtype=x.dtype)[:, None, None]  # [n, 1, 1]
+        on = pts[seg] + f * (pts[nxt][seg] - pts[seg])  # [n, S, 2] along joined pairs
+        pts = torch.cat([pts[hit], on.reshape(-1, 2)])  # [P, 2]
+        ij = []
+        for k, m in enumerate((w, h)):
+            c = (pts[:, k] - g.origin[k]) * ((m - 1) / g.size[k])
+            ij.append(c.round().long().clamp(0, m - 1))  # [P]
+        new = ~self.inserted[ij[0], ij[1]]  # [P]
+        i, j = ij[0][new], ij[1][new]
+        loc, _ = self.guide.params()
+        with torch.no_grad():
+            loc[i, j, 0] = self.cfg.ray_insert
+            if self.cfg.ray_insert_scale is not None:
+                # the store keeps the scale unconstrained (its log)
+                raw = dict(pyro.get_param_store().named_parameters())[f"{self.guide.prefix}_scale"]
+                raw[i, j, 0] = math.log(self.cfg.ray_insert_scale)
+        self.inserted[i, j] = True
+
     def _filter_step(self, t: int, M):
         x = self.obs[t]
         m = None if self.mask is None else self.mask[t]
@@ -567,6 +644,8 @@ class SLAM:
             with torch.no_grad():
                 self._filter_step(t, self.map_mean(t))
                 self._mark_seen(t)
+                if self.cfg.ray_insert is not None:
+                    self._insert_scan(t)
                 self.track[t] = self.particles.mean()[:2]
             if st.phase == "online":
                 st.estimates.append(self.particles.mean().tolist())
@@ -731,6 +810,7 @@ class SLAM:
             "torch_rng": torch.get_rng_state(),
             "elbo_seen": self.elbo.num_steps_seen,
             "first_seen": self.first_seen.clone(),
+            "inserted": self.inserted.clone(),
             "track": self.track.clone(),
         }
 
@@ -758,6 +838,8 @@ class SLAM:
         torch.set_rng_state(d["torch_rng"])
         self.elbo.num_steps_seen = d["elbo_seen"]
         self.first_seen.copy_(d["first_seen"])
+        if "inserted" in d:  # (checkpoints before ray_insert have none)
+            self.inserted.copy_(d["inserted"])
         if "track" in d:  # (checkpoints before revisit_radius have none)
             self.track.copy_(d["track"])
         self.state = SLAMState(**d["state"])
@@ -769,6 +851,14 @@ def _scan_spread(tr: Traversal) -> float:
     obs = np.asarray(tr.observations, dtype=np.float64)
     valid = obs if tr.obs_mask is None else obs[np.asarray(tr.obs_mask, dtype=bool)]
     return float(np.std(valid)) if valid.size > 1 else 1.0
+
+
+def _scan_range(tr: Traversal) -> float:
+    """Largest valid observed reading: the width of the filter's uniform outlier density."""
+    obs = np.asarray(tr.observations, dtype=np.float64)
+    valid = obs if tr.obs_mask is None else obs[np.asarray(tr.obs_mask, dtype=bool)]
+    valid = valid[np.isfinite(valid)]
+    return float(valid.max()) if valid.size and valid.max() > 0 else 1.0
 
 
 def _batched(p: Particles) -> Particles:
