@@ -144,12 +144,11 @@ class ParticleFilter:
         proposal: str = "bootstrap",
         proposal_gate: float = 3.0,
     ):
-        self.proposal_gate = proposal_gate
         if proposal not in PROPOSALS:
             raise ValueError(f"proposal must be one of {PROPOSALS}, got {proposal!r}")
         if proposal == "linearised" and weighting == "tempered":
             raise ValueError("the linearised proposal needs Gaussian weights, not 'tempered'")
-        self.proposal = proposal
+        self.proposal, self.proposal_gate = proposal, proposal_gate
         if not 0.0 <= outlier_prob < 1.0:
             raise ValueError(f"outlier_prob must be in [0, 1), got {outlier_prob!r}")
         if outlier_range <= 0:
@@ -260,7 +259,9 @@ class ParticleFilter:
                 eps = self.outlier_prob
                 lb = torch.logaddexp(lb + math.log1p(-eps), lb.new_tensor(math.log(eps)))
             loglik = (beta * (lb if m is None else lb * m)).sum(-1)  # [..., K]
-        joint = logw + loglik if correction is None else logw + loglik + correction
+        if correction is not None:
+            loglik = loglik + correction
+        joint = logw + loglik
         resampling.check_weights(joint.detach(), step)
         inc = torch.logsumexp(joint, -1)  # [...]
         # normalised weights keep their graph: without resampling, the next step's evidence

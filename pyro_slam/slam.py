@@ -448,9 +448,9 @@ class SLAM:
             **pf_args,
         )
         ts = self.cfg.filter_sigma if self.cfg.train_sigma is None else self.cfg.train_sigma
-        to = self.cfg.train_outlier_prob
-        to = self.cfg.outlier_prob if to is None else to
-        train_pf = ParticleFilter(self.model, sigma_emission=ts, **{**pf_args, "outlier_prob": to})
+        tout = self.cfg.train_outlier_prob
+        pf_args["outlier_prob"] = self.cfg.outlier_prob if tout is None else tout
+        train_pf = ParticleFilter(self.model, sigma_emission=ts, **pf_args)
         self.cache = ParticleCache(self.T, self.cfg.cache_particles)
         w, h, _ = self.model.grid.shape
         self.first_seen = torch.full((w, h), float("inf"))  # [w, h] step of first mapping
