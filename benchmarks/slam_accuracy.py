@@ -112,7 +112,12 @@ def main(argv=None) -> int:
         help=f"comma-separated maze seeds instead of --mazes: test mazes {list(MAZE_SEEDS)} or "
         f"held-out tuning mazes {list(TUNING_SEEDS)} (for screening options)",
     )
-    p.add_argument("--traversals", type=int, default=4)
+    p.add_argument(
+        "--traversals",
+        default="4",
+        help="N: traversals (driver seeds) 1..N; or comma-separated driver seeds, e.g. '3,4' "
+        "to split the 24 runs between machines ('3,': seed 3 alone)",
+    )
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--modes", default="online,offline")
     p.add_argument("--transition", choices=["learned", "kinematic"], default="learned")
@@ -135,6 +140,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     from tqdm import tqdm
 
+    from pyro_slam import metrics
     from pyro_slam.cli import SHIPPED_FILTER
     from pyro_slam.plotting import plot_error_bands
 
@@ -148,10 +154,18 @@ def main(argv=None) -> int:
     if args.maze_seeds is not None:
         mazes = parse_maze_seeds(p, args.maze_seeds, MAZE_SEEDS, TUNING_SEEDS)
     modes = args.modes.split(",")
+    try:
+        seeds = [int(v) for v in args.traversals.split(",") if v.strip()]
+    except ValueError:
+        p.error(f"--traversals: N or comma-separated driver seeds, got {args.traversals!r}")
+    if "," not in args.traversals:
+        seeds = list(range(1, seeds[0] + 1))
+    if not seeds or min(seeds) < 1:
+        p.error(f"--traversals needs driver seeds >= 1, got {args.traversals!r}")
     jobs, files = [], {}
     for mode in modes:
         for m in mazes:
-            for s in range(1, args.traversals + 1):
+            for s in seeds:
                 tag = "" if args.map_poses == "filter" else f"_map-{args.map_poses}"
                 tag += "_pn" if args.per_maze_noise else ""
                 f = runs / f"{mode}{tag}_m{m}_t{s}_T{args.steps}.npz"
@@ -162,7 +176,7 @@ def main(argv=None) -> int:
     with mp.get_context("spawn").Pool(args.workers) as pool:
         for r in tqdm(pool.imap_unordered(run_one, jobs), total=len(jobs), desc="SLAM runs"):
             tqdm.write(json.dumps(r))
-    summary = {"steps": args.steps, "runs_per_mode": len(mazes) * args.traversals,
+    summary = {"steps": args.steps, "runs_per_mode": len(mazes) * len(seeds),
                "mazes": mazes,
                "transition": args.transition, "config": {**BENCH_CONFIG, **over},
                "map_poses": args.map_poses,
@@ -182,6 +196,12 @@ def main(argv=None) -> int:
             "time_avg_mean": float(e.mean()),
             "wall_s_mean": float(np.mean([d["wall_s"] for d in data])),
         }
+        # diagnostic: the error left after a rigid alignment of each whole trajectory to the
+        # truth, and that alignment's rotation (a map turned as a whole about the start)
+        al = [metrics.aligned_error(d["estimate"], d["truth"]) for d in data]
+        summary[mode]["aligned_final_mean"] = float(np.mean([a[0][-1] for a in al]))
+        summary[mode]["aligned_final_std"] = float(np.std([a[0][-1] for a in al]))
+        summary[mode]["aligning_rotation_abs_mean"] = float(np.mean([abs(a[1]) for a in al]))
         if all("std" in d for d in data):  # runs from before the std was saved lack it
             pos_std = np.stack([np.hypot(d["std"][:, 0], d["std"][:, 1]) for d in data])
             # calibration: the filter's position std over its actual error (1: calibrated)

@@ -124,7 +124,8 @@ class ParticleFilter:
             no gradient is needed (filtering); ~2-3x faster on CPU, range error ~1e-3.
         beam_trust: with an emission that has ``beam_variance``
             (:class:`~pyro_slam.networks.RayEmission`), one trust per beam from the map's
-            variance where that beam stops, instead of one per particle from its own chart.
+            variance where that beam stops, instead of one per particle from its own chart;
+            ``"path"``: from the variance where it stops or anywhere on its way there.
     """
 
     def __init__(
@@ -139,7 +140,7 @@ class ParticleFilter:
         outlier_prob: float = 0.0,
         autocast_dtype: torch.dtype | None = None,
         prior_predictive_std: float = 0.15,
-        beam_trust: bool = False,
+        beam_trust: bool | str = False,
         outlier_range: float = 1.0,
         proposal: str = "bootstrap",
         proposal_gate: float = 3.0,
@@ -154,6 +155,8 @@ class ParticleFilter:
         if outlier_range <= 0:
             raise ValueError(f"outlier_range must be positive, got {outlier_range!r}")
         self.outlier_range = outlier_range
+        if beam_trust not in (False, True, "path"):
+            raise ValueError(f"beam_trust must be False, True or 'path', got {beam_trust!r}")
         if beam_trust and not hasattr(model.emission, "beam_variance"):
             raise ValueError(
                 "beam_trust needs an emission with beam_variance (RayEmission), "
@@ -184,7 +187,8 @@ class ParticleFilter:
         variance where each beam stops."""
         g, xy = self.model.grid, z[..., :2]
         if self.beam_trust:
-            var = self.model.emission.beam_variance(g, M.loc, M.scale, z)  # [..., K, B]
+            path = self.beam_trust == "path"
+            var = self.model.emission.beam_variance(g, M.loc, M.scale, z, path=path)  # [.., K, B]
         else:
             n = getattr(self.model.emission, "trust_features", None)  # None: every feature
             scale = M.scale if n is None else M.scale[..., :n]

@@ -107,6 +107,19 @@ def ate(est: np.ndarray, true: np.ndarray, align: bool = False) -> dict:
     return {k: float(s[k]) for k in ("rmse", "mean", "std", "max")}
 
 
+def aligned_error(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, float]:
+    """A diagnostic, not the benchmark's error: the position error per step ``[T]`` after the
+    least-squares rigid alignment (rotation and translation, evo's Umeyama) of the whole
+    trajectory ``est [T, 3]`` to ``true [T, 3]``, and that alignment's rotation (rad). What
+    remains after it is the trajectory's shape error; the rest of the plain error is a rigid
+    offset of the whole solution (map and poses) from the world frame."""
+    stamps = np.arange(len(true), dtype=np.float64)
+    ref, e = _to_evo(true, stamps), _to_evo(est, stamps)
+    rot, _, _ = e.align(ref, correct_scale=False)
+    err = np.linalg.norm(e.positions_xyz[:, :2] - ref.positions_xyz[:, :2], axis=1)
+    return err, float(np.arctan2(rot[1, 0], rot[0, 0]))
+
+
 def summary(est: np.ndarray, true: np.ndarray) -> dict:
     """Final and mean errors, relative error and ATE for one run."""
     e = localisation_error(est, true)

@@ -247,15 +247,22 @@ class RayEmission(Emission):
     def read(self, grid, M, z):
         return self.expected_range(grid, M, z)
 
-    def beam_variance(self, grid, loc: torch.Tensor, scale: torch.Tensor, z: torch.Tensor):
+    def beam_variance(
+        self, grid, loc: torch.Tensor, scale: torch.Tensor, z: torch.Tensor, path: bool = False
+    ):
         """How unknown each beam's reading is under a mean-field ``q(M) = N(loc, scale^2)``:
         ``[..., B]`` in ``[0, 1]``, the map variance relative to the prior's (as
         :meth:`~pyro_slam.filtering.ParticleFilter.trust` measures it at a chart) where the ray
         stops under ``loc``, averaged over the stopping point (passing rays: the last point).
         A beam that ends on a mapped wall is trusted even where the pose is new; one that runs
-        into unmapped space is not."""
+        into unmapped space is not. With ``path``, a stop counts as known only if the ray's
+        path up to it is known too (the running maximum of the variance along the ray): a beam
+        that crosses unmapped space before it reaches a mapped wall could have stopped at a
+        wall not mapped yet, as in an occupancy grid's unknown cells."""
         pts, stop, passes = self._stops(grid, loc, z)
         var = grid.relative_variance(scale[..., :1], pts)[..., 0]  # [..., B, S] occupancy's
+        if path:
+            var = var.cummax(-1).values
         return (stop * var).sum(-1) + passes * var[..., -1]
 
 

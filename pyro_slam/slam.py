@@ -147,9 +147,19 @@ class SLAMConfig:
     ray_insert: float | None = None
     ray_insert_gap: float = 0.05  # hits of neighbouring beams closer than this form one wall
     ray_insert_scale: float | None = None  # and q(M)'s scale there (None: left as it is)
+    # and this occupancy (e.g. -1) at grid points the beams cross before their hits (or up to
+    # the range), with the same scale, where no scan wrote before (None: free space not written)
+    ray_insert_free: float | None = None
+    # raycast: the scans of the first ray_anchor steps (taken from the known start pose) are
+    # written into q(M) - their hits as walls, the grid points their beams cross as free space,
+    # both with scale ray_anchor_scale - and held there through every SVI step, so that the
+    # map's frame (its offset and rotation) stays tied to the start pose (0: off)
+    ray_anchor: int = 0
+    ray_anchor_scale: float = 0.05
     # raycast: the weights' trust in q(M) per beam (variance where each beam stops) instead of
-    # per particle (variance of its own chart); per beam screened worse (docs/benchmarks.md)
-    beam_trust: bool = False
+    # per particle (variance of its own chart); per beam screened worse (docs/benchmarks.md);
+    # "path": a beam is trusted only where the map is known all the way to its stop
+    beam_trust: bool | str = False
     image_bins: int = 32  # image emission: angular bins k of the map (D_m = k * image rows)
     # camera read-out: "mlp" (the paper's rotated chart + row-wise MLPs) or "raycast"
     # (RayImageEmission: one ray per column through an occupancy map, a pinhole camera draws the
@@ -404,6 +414,20 @@ class SLAM:
                 "ray_insert writes LiDAR hits into an occupancy map: it needs "
                 "observation='lidar' and lidar_emission='raycast'"
             )
+        if self.cfg.ray_anchor and (
+            self.cfg.observation != "lidar" or self.cfg.lidar_emission != "raycast"
+        ):
+            raise ValueError(
+                "ray_anchor writes LiDAR scans into an occupancy map: it needs "
+                "observation='lidar' and lidar_emission='raycast'"
+            )
+        if not (self.cfg.ray_anchor >= 0 and self.cfg.ray_anchor_scale > 0):
+            raise ValueError(
+                f"ray_anchor must be >= 0 and ray_anchor_scale positive, got "
+                f"{self.cfg.ray_anchor!r}, {self.cfg.ray_anchor_scale!r}"
+            )
+        if self.cfg.ray_insert_free is not None and self.cfg.ray_insert is None:
+            raise ValueError("ray_insert_free writes free space with ray_insert: set ray_insert")
         ris = self.cfg.ray_insert_scale
         if ris is not None and not ris > 0:
             raise ValueError(f"ray_insert_scale must be positive, got {ris!r}")
@@ -455,6 +479,8 @@ class SLAM:
         w, h, _ = self.model.grid.shape
         self.first_seen = torch.full((w, h), float("inf"))  # [w, h] step of first mapping
         self.inserted = torch.zeros((w, h), dtype=torch.bool)  # [w, h] hit by a ray_insert scan
+        self.freed = torch.zeros((w, h), dtype=torch.bool)  # [w, h] ray_insert_free written
+        self.anchor = torch.full((w, h), float("nan"))  # [w, h] ray_anchor's held mean (nan: none)
         self.track = torch.full((self.T, 2), float("nan"))  # [T, 2] online position estimates
         self.elbo = ParticleChunkELBO(
             train_pf,
@@ -534,26 +560,26 @@ class SLAM:
         if newest is not None:
             starts = torch.cat([torch.tensor([newest]), starts])
         loss = self.svi.step(ChunkBatch(starts, self.cfg.chunk_length))
+        self._hold_anchor()
         if not math.isfinite(loss):
             raise FloatingPointError(f"SVI loss became {loss} (step t={self.state.t})")
         return loss
 
-    def _insert_scan(self, t: int) -> None:
-        """``ray_insert``: write the hits of scan ``t`` into q(M)'s mean, placed from the
-        cloud's mean pose, as a polyline: hits of neighbouring beams closer than
-        ``ray_insert_gap`` are joined (one wall seen by both), and every grid point nearest to
-        the polyline (sampled at half a grid spacing) that no earlier scan wrote gets the
-        occupancy ``ray_insert``. Readings at the sensor's range are misses and write nothing."""
+    def _scan_points(self, t: int):
+        """Scan ``t`` placed from the cloud's mean pose, as grid indices: the hits joined into a
+        polyline (hits of neighbouring beams closer than ``ray_insert_gap`` are one wall, sampled
+        at half a grid spacing) and the free space the beams cross (the four grid points around
+        each point sampled along a beam, up to 1.5 grid spacings before its hit, or to the
+        sensor's range for a miss). Returns two ``(i, j)`` pairs of ``[P]`` index tensors,
+        ``hits`` and ``free``."""
         em, g = self.model.emission, self.model.grid
         x = self.obs[t]  # [B]
-        hit = x < em.max_range * (1 - 1e-3)  # [B]
-        if self.mask is not None:
-            hit = hit & self.mask[t].bool()
-        if not bool(hit.any()):
-            return
+        valid = torch.ones_like(x, dtype=torch.bool) if self.mask is None else self.mask[t].bool()
+        hit = (x < em.max_range * (1 - 1e-3)) & valid  # [B]
         z = self.particles.mean()  # [3]
         ang = z[2] + em.beam_angles.to(x.dtype)  # [B]
-        pts = z[:2] + x[:, None] * torch.stack([ang.cos(), ang.sin()], -1)  # [B, 2]
+        u = torch.stack([ang.cos(), ang.sin()], -1)  # [B, 2]
+        pts = z[:2] + x[:, None] * u  # [B, 2]
         w, h, _ = g.shape
         spacing = min(g.size[0] / (w - 1), g.size[1] / (h - 1))
         nxt = torch.roll(torch.arange(x.shape[0]), -1)  # [B] the neighbouring beam
@@ -561,21 +587,71 @@ class SLAM:
         n = int(math.ceil(self.cfg.ray_insert_gap / (0.5 * spacing))) + 1
         f = torch.linspace(0, 1, n, dtype=x.dtype)[:, None, None]  # [n, 1, 1]
         on = pts[seg] + f * (pts[nxt][seg] - pts[seg])  # [n, S, 2] along joined pairs
-        pts = torch.cat([pts[hit], on.reshape(-1, 2)])  # [P, 2]
-        ij = []
-        for k, m in enumerate((w, h)):
-            c = (pts[:, k] - g.origin[k]) * ((m - 1) / g.size[k])
-            ij.append(c.round().long().clamp(0, m - 1))  # [P]
-        new = ~self.inserted[ij[0], ij[1]]  # [P]
-        i, j = ij[0][new], ij[1][new]
+        hits = torch.cat([pts[hit], on.reshape(-1, 2)])  # [P, 2]
+        free_margin = 1.5
+        reach = torch.where(hit, (x - free_margin * spacing).clamp_min(0), x)[valid]  # [V]
+        n = int(math.ceil(em.max_range / (0.5 * spacing))) + 1
+        d = torch.linspace(0, 1, n, dtype=x.dtype)[:, None] * reach  # [n, V]
+        free = (z[:2] + d[..., None] * u[valid]).reshape(-1, 2)  # [n * V, 2]
+
+        def cells(p, corners=False):  # [P, 2] -> nearest grid points (i [P], j [P])
+            c = [(p[:, k] - g.origin[k]) * ((m - 1) / g.size[k]) for k, m in enumerate((w, h))]
+            if not corners:
+                return tuple(ck.round().long().clamp(0, m - 1) for ck, m in zip(c, (w, h)))
+            # the four grid points a bilinear read at p attends (free space: known around it)
+            i0, j0 = c[0].floor().long(), c[1].floor().long()
+            i = torch.cat([i0, i0 + 1, i0, i0 + 1]).clamp(0, w - 1)
+            j = torch.cat([j0, j0, j0 + 1, j0 + 1]).clamp(0, h - 1)
+            return i, j
+
+        return cells(hits), cells(free, corners=True)
+
+    def _write_map(self, i, j, value: float, scale: float | None) -> None:
+        """Set q(M)'s mean (and scale, unless None) at grid points ``(i [P], j [P])``."""
         loc, _ = self.guide.params()
         with torch.no_grad():
-            loc[i, j, 0] = self.cfg.ray_insert
-            if self.cfg.ray_insert_scale is not None:
+            loc[i, j, 0] = value
+            if scale is not None:
                 # the store keeps the scale unconstrained (its log)
                 raw = dict(pyro.get_param_store().named_parameters())[f"{self.guide.prefix}_scale"]
-                raw[i, j, 0] = math.log(self.cfg.ray_insert_scale)
+                raw[i, j, 0] = math.log(scale)
+
+    def _insert_scan(self, t: int) -> None:
+        """``ray_insert``: write the hits of scan ``t`` into q(M)'s mean, placed from the
+        cloud's mean pose, as a polyline (see :meth:`_scan_points`): every grid point nearest to
+        it that no earlier scan hit gets the occupancy ``ray_insert``. Readings at the
+        sensor's range are misses and write no wall. With ``ray_insert_free``, the grid points
+        the beams cross that no scan wrote yet get that occupancy (a later hit overrides it)."""
+        (i, j), (fi, fj) = self._scan_points(t)
+        new = ~self.inserted[i, j]  # [P]
+        i, j = i[new], j[new]
+        self._write_map(i, j, self.cfg.ray_insert, self.cfg.ray_insert_scale)
         self.inserted[i, j] = True
+        if self.cfg.ray_insert_free is not None:  # free space: where nothing was written yet
+            new = ~self.inserted[fi, fj] & ~self.freed[fi, fj]
+            fi, fj = fi[new], fj[new]
+            self._write_map(fi, fj, self.cfg.ray_insert_free, self.cfg.ray_insert_scale)
+            self.freed[fi, fj] = True
+
+    def _anchor_scan(self, t: int) -> None:
+        """``ray_anchor``: scan ``t`` (one of the first, at the known start) fixes q(M) where it
+        saw walls (occupancy ``ray_insert``, 2 if unset) and free space (-1), with scale
+        ``ray_anchor_scale``; :meth:`_hold_anchor` restores these cells after each SVI step.
+        A wall seen by any anchor scan overrides free space seen by another."""
+        (hi, hj), (fi, fj) = self._scan_points(t)
+        free = torch.isnan(self.anchor[fi, fj]) | (self.anchor[fi, fj] < 0)
+        self.anchor[fi[free], fj[free]] = -1.0
+        self.anchor[hi, hj] = 2.0 if self.cfg.ray_insert is None else self.cfg.ray_insert
+        self._hold_anchor()
+
+    def _hold_anchor(self) -> None:
+        """Write ``ray_anchor``'s cells back into q(M) (after an SVI step moved them)."""
+        if not self.cfg.ray_anchor:
+            return
+        keep = ~torch.isnan(self.anchor)  # [w, h]
+        if bool(keep.any()):
+            i, j = keep.nonzero(as_tuple=True)
+            self._write_map(i, j, self.anchor[i, j].to(self.obs.dtype), self.cfg.ray_anchor_scale)
 
     def _filter_step(self, t: int, M):
         x = self.obs[t]
@@ -644,6 +720,8 @@ class SLAM:
             with torch.no_grad():
                 self._filter_step(t, self.map_mean(t))
                 self._mark_seen(t)
+                if t < self.cfg.ray_anchor and st.phase == "online":
+                    self._anchor_scan(t)
                 if self.cfg.ray_insert is not None:
                     self._insert_scan(t)
                 self.track[t] = self.particles.mean()[:2]
@@ -664,6 +742,7 @@ class SLAM:
                 # is still there, without larger steps on the older cells
                 for _ in range(self.cfg.newest_svi_steps):
                     self.svi.step(ChunkBatch(torch.tensor([tw - L + 1]), L))
+                    self._hold_anchor()
             st.t += 1
             bar.update(1)
             if self.checkpoint and st.t % self.cfg.checkpoint_every == 0:
@@ -811,6 +890,8 @@ class SLAM:
             "elbo_seen": self.elbo.num_steps_seen,
             "first_seen": self.first_seen.clone(),
             "inserted": self.inserted.clone(),
+            "anchor": self.anchor.clone(),
+            "freed": self.freed.clone(),
             "track": self.track.clone(),
         }
 
@@ -840,6 +921,9 @@ class SLAM:
         self.first_seen.copy_(d["first_seen"])
         if "inserted" in d:  # (checkpoints before ray_insert have none)
             self.inserted.copy_(d["inserted"])
+        if "anchor" in d:  # (checkpoints before ray_anchor have none)
+            self.anchor.copy_(d["anchor"])
+            self.freed.copy_(d["freed"])
         if "track" in d:  # (checkpoints before revisit_radius have none)
             self.track.copy_(d["track"])
         self.state = SLAMState(**d["state"])

@@ -66,6 +66,9 @@ def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path
         assert math.isclose(summary["online"]["time_avg_mean"], float(z["slam"].mean()))
         assert (z["std"] >= 0).all()
     assert summary["online"]["std_over_error_median"] > 0
+    # diagnostic: the error left after a rigid alignment of each trajectory to the truth
+    assert 0 <= summary["online"]["aligned_final_mean"] < 0.05
+    assert 0 <= summary["online"]["aligning_rotation_abs_mean"] < 0.1
     stamp = runs[0].stat().st_mtime_ns
     run("slam_accuracy.py", *args)  # finished runs are reused, not recomputed
     assert runs[0].stat().st_mtime_ns == stamp
@@ -94,6 +97,13 @@ def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path
     assert tuned["mazes"] == [991] and tuned["runs_per_mode"] == 1
     assert (tmp_path / "runs" / "online_pn_m991_t1_T40.npz").is_file()
     assert 0 <= tuned["online"]["final_mean"] < 0.05
+    # driver seeds as a list: the 24 runs can be split between machines
+    assert args[2:4] == ("--traversals", "1")
+    run("slam_accuracy.py", *args[:3], "2,", *args[4:])
+    two = json.loads((tmp_path / "summary.json").read_text())
+    assert two["runs_per_mode"] == 1
+    assert (tmp_path / "runs" / "online_pn_m1001_t2_T40.npz").is_file()
+    assert two["online"]["final_mean"] != summary["online"]["final_mean"]
 
 
 def test_maze_seeds_accept_test_and_tuning_mazes_and_name_the_others(capsys):
@@ -160,6 +170,21 @@ def test_slam_trace_prints_rows_and_summary():
     assert final["max_heading_err"] >= 0 and final["median_heading_std"] > 0
     # the cloud's trust in the map: flat weights at the start, when nothing is mapped
     assert rows[0]["trust"] == 0.01 and all(0.01 <= r["trust"] <= 1 for r in rows[:-1])
+
+
+def test_heading_profile_finds_the_true_heading_on_the_true_walls():
+    """The diagnostic of session 27: on the maze's true walls the best heading offset is the
+    truth's (to one 0.01 rad step); the first scan's own step is matched by its own map."""
+    lines = run("heading_profile.py", "--maze", "993", "--steps", "4", "--windows", "0:1,1:4")
+    rows = [json.loads(line) for line in lines.strip().splitlines()]
+    assert len(rows[0]["slam_heading_error"]) == 4 and abs(rows[0]["slam_heading_error"][0]) < 1e-3
+    prof = {(r["map"], tuple(r["steps"])): r for r in rows[1:]}
+    assert len(prof) == 6
+    for w in [(0, 1), (1, 4)]:
+        assert abs(prof["true walls", w]["best_offset"]) <= 0.011
+        assert prof["true walls", w]["truth_below_best_nats"] > -1.0
+    assert abs(prof["first scan", (0, 1)]["best_offset"]) <= 0.011
+    assert all(r["truth_below_best_nats"] <= 0 for r in prof.values())
 
 
 def test_slam_trace_runs_the_ray_cast_emission_without_loading_the_mlp():

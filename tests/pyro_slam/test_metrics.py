@@ -9,6 +9,7 @@ import pytest
 
 from pyro_slam.data import Traversal
 from pyro_slam.metrics import (
+    aligned_error,
     along_track_error,
     ate,
     distance_travelled,
@@ -53,6 +54,24 @@ def test_ate_constant_offset_and_alignment():
     moved[:, 2] += 0.3
     assert ate(moved, SQUARE)["rmse"] > 1
     assert ate(moved, SQUARE, align=True)["rmse"] == pytest.approx(0, abs=1e-9)
+
+
+def test_aligned_error_removes_a_rigid_turn_and_reports_its_angle():
+    """A trajectory turned by 0.3 rad about its start (a map rotated as a whole) has a plain
+    error growing along the path, no aligned error, and an aligning rotation of -0.3."""
+    c, s = math.cos(0.3), math.sin(0.3)
+    turned = SQUARE.copy()
+    turned[:, :2] = SQUARE[:, :2] @ np.array([[c, s], [-s, c]])  # rows: R(0.3) p
+    turned[:, 2] += 0.3
+    err, rot = aligned_error(turned, SQUARE)
+    assert localisation_error(turned, SQUARE)[2] == pytest.approx(2 * math.sqrt(2) * math.sin(0.15))
+    np.testing.assert_allclose(err, 0, atol=1e-9)
+    assert rot == pytest.approx(-0.3)
+    # a shape error survives the alignment: one corner 0.4 off
+    bent = SQUARE.copy()
+    bent[2, :2] += [0.4, 0.0]
+    err, rot = aligned_error(bent, SQUARE)
+    assert err[2] > 0.2 and abs(rot) < 0.2
 
 
 def test_ate_statistics_match_numpy():

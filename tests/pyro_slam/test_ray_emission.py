@@ -200,3 +200,85 @@ def test_ray_insert_writes_scan_hits_as_walls_once(small_traversal):
         SLAM(tr, SLAMConfig(lidar_emission="raycast", ray_insert=2.0, ray_insert_scale=0.0))
     with pytest.raises(ValueError, match="filter_proposal"):
         SLAM(tr, SLAMConfig(filter_proposal="optimal"))
+
+
+def test_ray_anchor_holds_the_first_scan_through_svi(small_traversal):
+    """``ray_anchor``: the first scan, taken at the known start, fixes q(M) where it saw walls
+    and free space; SVI steps cannot move those cells, so the map's frame stays tied to the
+    start pose."""
+    from pyro_slam.filtering import Particles
+    from pyro_slam.slam import SLAM
+
+    tr = small_traversal
+    cfg = SLAMConfig(lidar_emission="raycast", map_resolution=1 / 63, ray_anchor=1)
+    slam = SLAM(tr, cfg)
+    z = torch.as_tensor(tr.poses[:1], dtype=slam.obs.dtype)  # [1, 3] the true start pose
+    slam.particles = Particles(z, torch.zeros(1))
+    slam._anchor_scan(0)
+    held = ~torch.isnan(slam.anchor)  # [w, h]
+    walls, free = slam.anchor == 2.0, slam.anchor == -1.0
+    assert int(walls.sum()) > 20 and int(free.sum()) > 5 * int(walls.sum())
+    assert bool((walls | free)[held].all())
+    loc, scale = (p.detach()[..., 0] for p in slam.guide.params())
+    assert torch.equal(loc[held], slam.anchor[held].to(loc.dtype))
+    assert torch.allclose(scale[held], torch.tensor(0.05)) and float(scale[~held].min()) == 1.0
+    em, grid = slam.model.emission, slam.model.grid
+    hit = slam.obs[0] < em.max_range * 0.999
+    err = (em.read(grid, loc[..., None], z[0]) - slam.obs[0])[hit].abs()
+    assert err.median() < 0.02  # the anchored map reproduces the scan (a grid spacing: 0.016)
+    # online SLAM from the start: its SVI steps move q(M) everywhere but at the anchored cells
+    slam = SLAM(tr, SLAMConfig(**{**cfg.to_dict(), "seed": 0}))
+    res = slam.run("online", progress=False)
+    assert torch.isfinite(torch.as_tensor(res["mean"])).all()
+    held = ~torch.isnan(slam.anchor)
+    loc, scale = (p.detach()[..., 0] for p in slam.guide.params())
+    assert int(held.sum()) > 100 and torch.equal(loc[held], slam.anchor[held].to(loc.dtype))
+    assert torch.allclose(scale[held], torch.tensor(0.05))
+    assert float((loc[~held] - 0).abs().max()) > 0.1  # SVI did learn the other cells
+    assert torch.allclose(slam.state_dict()["anchor"], slam.anchor, equal_nan=True)
+    with pytest.raises(ValueError, match="ray_anchor"):
+        SLAM(tr, SLAMConfig(ray_anchor=1))  # the paper's emission MLP has no occupancy
+    with pytest.raises(ValueError, match="ray_anchor"):
+        SLAM(tr, SLAMConfig(lidar_emission="raycast", ray_anchor=-1))
+
+
+def test_ray_insert_free_and_path_trust(small_traversal):
+    """``ray_insert_free`` writes the space the beams cross as free; with ``beam_trust="path"``
+    a beam is trusted only if the map is known all the way to where it stops: a beam that
+    crosses unknown cells before a mapped wall is not."""
+    from pyro_slam.filtering import MapBelief, Particles
+    from pyro_slam.slam import SLAM
+
+    tr = small_traversal
+    cfg = SLAMConfig(
+        lidar_emission="raycast", map_resolution=1 / 63, ray_insert=2.0, ray_insert_scale=0.3,
+        ray_insert_free=-1.0, beam_trust="path",
+    )  # fmt: skip
+    slam = SLAM(tr, cfg)
+    z = torch.as_tensor(tr.poses[:1], dtype=slam.obs.dtype)  # [1, 3] the true start pose
+    slam.particles = Particles(z, torch.zeros(1))
+    slam._insert_scan(0)
+    loc, scale = (p.detach()[..., 0] for p in slam.guide.params())
+    assert int(slam.freed.sum()) > 5 * int(slam.inserted.sum()) > 100
+    assert not bool((slam.freed & slam.inserted).any())
+    assert bool((loc[slam.freed] == -1.0).all()) and bool((loc[slam.inserted] == 2.0).all())
+    assert torch.allclose(scale[slam.freed], torch.tensor(0.3))
+    em, grid = slam.model.emission, slam.model.grid
+    hit = slam.obs[0] < em.max_range * 0.999
+    assert (em.read(grid, loc[..., None], z[0]) - slam.obs[0])[hit].abs().median() < 0.02
+    # the beams of the inserted scan: known to their stops, with or without the path
+    s2 = scale[..., None]
+    v_path = em.beam_variance(grid, loc[..., None], s2, z[0], path=True)  # [B]
+    v_stop = em.beam_variance(grid, loc[..., None], s2, z[0])
+    assert float(v_path[hit].median()) < 0.3 and bool((v_path >= v_stop - 1e-6).all())
+    # forget the free space: the stops are still known, the paths to them are not
+    s2 = torch.where(slam.freed, torch.tensor(1.0), scale)[..., None]
+    v_path = em.beam_variance(grid, loc[..., None], s2, z[0], path=True)
+    v_stop = em.beam_variance(grid, loc[..., None], s2, z[0])
+    assert float(v_stop[hit].median()) < 0.3 < float(v_path[hit].median())
+    trust = slam.pf.trust(z, MapBelief(loc[..., None], s2))  # [1, B]
+    assert trust.shape == (1, em.beam_angles.shape[0]) and float(trust.max()) < 0.7
+    with pytest.raises(ValueError, match="ray_insert_free"):
+        SLAM(tr, SLAMConfig(lidar_emission="raycast", ray_insert_free=-1.0))
+    with pytest.raises(ValueError, match="beam_trust"):
+        SLAM(tr, SLAMConfig(lidar_emission="raycast", beam_trust="yes"))
