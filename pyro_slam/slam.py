@@ -606,8 +606,9 @@ class SLAM:
 
         return cells(hits), cells(free, corners=True)
 
-    def _write_map(self, i, j, value: float, scale: float | None) -> None:
-        """Set q(M)'s mean (and scale, unless None) at grid points ``(i [P], j [P])``."""
+    def _write_map(self, i, j, value: float | torch.Tensor, scale: float | None) -> None:
+        """Set q(M)'s mean (one value or ``[P]``; and scale, unless None) at grid points
+        ``(i [P], j [P])``."""
         loc, _ = self.guide.params()
         with torch.no_grad():
             loc[i, j, 0] = value
