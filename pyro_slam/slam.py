@@ -150,6 +150,9 @@ class SLAMConfig:
     # and this occupancy (e.g. -1) at grid points the beams cross before their hits (or up to
     # the range), with the same scale, where no scan wrote before (None: free space not written)
     ray_insert_free: float | None = None
+    # scan t is written at step t + ray_insert_lag, from the pose estimated at t: the filter
+    # then matches each scan against walls that older steps saw, not against its own last scans
+    ray_insert_lag: int = 0
     # raycast: the scans of the first ray_anchor steps (taken from the known start pose) are
     # written into q(M) - their hits as walls, the grid points their beams cross as free space,
     # both with scale ray_anchor_scale - and held there through every SVI step, so that the
@@ -431,6 +434,9 @@ class SLAM:
         ris = self.cfg.ray_insert_scale
         if ris is not None and not ris > 0:
             raise ValueError(f"ray_insert_scale must be positive, got {ris!r}")
+        lag = self.cfg.ray_insert_lag
+        if not (isinstance(lag, int) and lag >= 0):
+            raise ValueError(f"ray_insert_lag must be an int >= 0, got {lag!r}")
         if not self.cfg.ray_insert_gap > 0:
             raise ValueError(f"ray_insert_gap must be positive, got {self.cfg.ray_insert_gap!r}")
         if self.cfg.filter_proposal not in PROPOSALS:
@@ -509,6 +515,7 @@ class SLAM:
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
         self.particles: Particles | None = None
         self.state: SLAMState | None = None
+        self.pinned_poses: torch.Tensor | None = None  # [T, 3] set by pin_cache
 
     # --------------------------------------------------------------------------- helpers
     def map_mean(self, t: int | None = None):
@@ -565,18 +572,18 @@ class SLAM:
             raise FloatingPointError(f"SVI loss became {loss} (step t={self.state.t})")
         return loss
 
-    def _scan_points(self, t: int):
-        """Scan ``t`` placed from the cloud's mean pose, as grid indices: the hits joined into a
-        polyline (hits of neighbouring beams closer than ``ray_insert_gap`` are one wall, sampled
-        at half a grid spacing) and the free space the beams cross (the four grid points around
-        each point sampled along a beam, up to 1.5 grid spacings before its hit, or to the
-        sensor's range for a miss). Returns two ``(i, j)`` pairs of ``[P]`` index tensors,
-        ``hits`` and ``free``."""
+    def _scan_points(self, t: int, z: torch.Tensor | None = None):
+        """Scan ``t`` placed from pose ``z [3]`` (default: the cloud's mean), as grid indices:
+        the hits joined into a polyline (hits of neighbouring beams closer than
+        ``ray_insert_gap`` are one wall, sampled at half a grid spacing) and the free space the
+        beams cross (the four grid points around each point sampled along a beam, up to 1.5 grid
+        spacings before its hit, or to the sensor's range for a miss). Returns two ``(i, j)``
+        pairs of ``[P]`` index tensors, ``hits`` and ``free``."""
         em, g = self.model.emission, self.model.grid
         x = self.obs[t]  # [B]
         valid = torch.ones_like(x, dtype=torch.bool) if self.mask is None else self.mask[t].bool()
         hit = (x < em.max_range * (1 - 1e-3)) & valid  # [B]
-        z = self.particles.mean()  # [3]
+        z = self.particles.mean() if z is None else z  # [3]
         ang = z[2] + em.beam_angles.to(x.dtype)  # [B]
         u = torch.stack([ang.cos(), ang.sin()], -1)  # [B, 2]
         pts = z[:2] + x[:, None] * u  # [B, 2]
@@ -617,13 +624,14 @@ class SLAM:
                 raw = dict(pyro.get_param_store().named_parameters())[f"{self.guide.prefix}_scale"]
                 raw[i, j, 0] = math.log(scale)
 
-    def _insert_scan(self, t: int) -> None:
-        """``ray_insert``: write the hits of scan ``t`` into q(M)'s mean, placed from the
-        cloud's mean pose, as a polyline (see :meth:`_scan_points`): every grid point nearest to
-        it that no earlier scan hit gets the occupancy ``ray_insert``. Readings at the
-        sensor's range are misses and write no wall. With ``ray_insert_free``, the grid points
-        the beams cross that no scan wrote yet get that occupancy (a later hit overrides it)."""
-        (i, j), (fi, fj) = self._scan_points(t)
+    def _insert_scan(self, t: int, z: torch.Tensor | None = None) -> None:
+        """``ray_insert``: write the hits of scan ``t`` into q(M)'s mean, placed from pose
+        ``z [3]`` (default: the cloud's mean), as a polyline (see :meth:`_scan_points`): every
+        grid point nearest to it that no earlier scan hit gets the occupancy ``ray_insert``.
+        Readings at the sensor's range are misses and write no wall. With ``ray_insert_free``,
+        the grid points the beams cross that no scan wrote yet get that occupancy (a later hit
+        overrides it)."""
+        (i, j), (fi, fj) = self._scan_points(t, z)
         new = ~self.inserted[i, j]  # [P]
         i, j = i[new], j[new]
         self._write_map(i, j, self.cfg.ray_insert, self.cfg.ray_insert_scale)
@@ -723,14 +731,19 @@ class SLAM:
                 self._mark_seen(t)
                 if t < self.cfg.ray_anchor and st.phase == "online":
                     self._anchor_scan(t)
-                if self.cfg.ray_insert is not None:
-                    self._insert_scan(t)
                 self.track[t] = self.particles.mean()[:2]
             if st.phase == "online":
                 st.estimates.append(self.particles.mean().tolist())
                 st.stds.append(_std(self.particles).tolist())
             else:  # offline SLAM's initial sweep: kept for diagnostics (result's "sweep_mean")
                 st.sweep_estimates.append(self.particles.mean().tolist())
+            tl = t - self.cfg.ray_insert_lag  # the scan written now (ray_insert_lag)
+            if self.cfg.ray_insert is not None and tl >= 0:
+                est = st.estimates if st.phase == "online" else st.sweep_estimates
+                z = torch.tensor(est[tl], dtype=self.obs.dtype)
+                if self.pinned_poses is not None:  # pin_cache: the map is learned there
+                    z = self.pinned_poses[tl].to(self.obs.dtype)
+                self._insert_scan(tl, z)
             # the map is learned from the steps up to t - write_lag only: the filter then
             # matches a scan against what older steps wrote (a revisit), not against a copy of
             # its own latest scans written where it believes it is
@@ -859,8 +872,9 @@ class SLAM:
         learned at those poses (e.g. the ground truth or path integration) while the filter
         still localises against it. This separates "the filter cannot use the map" from "pose
         errors written into the map feed back into the filter"
-        (``benchmarks/slam_accuracy.py --map-poses``, ``benchmarks/slam_trace.py``). The pin is
-        not part of checkpoints: call it again after :meth:`resume`.
+        (``benchmarks/slam_accuracy.py --map-poses``, ``benchmarks/slam_trace.py``). With
+        ``ray_insert``, the scans are written at the given poses too. The pin is not part of
+        checkpoints: call it again after :meth:`resume`.
         """
         cache = self.cache
         poses = torch.as_tensor(np.asarray(poses), dtype=cache.z.dtype)
@@ -868,6 +882,7 @@ class SLAM:
             shape = tuple(poses.shape)
             raise ValueError(f"pin_cache needs poses of shape ({self.T}, 3), got {shape}")
         gen = torch.Generator().manual_seed(seed)
+        self.pinned_poses = poses  # [T, 3] (ray_insert writes its scans there)
 
         def store(t, p, generator=None):  # [C] steps; the particles p are ignored
             eps = torch.randn(len(t), cache.num_particles, 3, generator=gen, dtype=poses.dtype)

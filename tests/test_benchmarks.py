@@ -187,6 +187,21 @@ def test_heading_profile_finds_the_true_heading_on_the_true_walls():
     assert all(r["truth_below_best_nats"] <= 0 for r in prof.values())
 
 
+def test_heading_profile_young_maps_scores_the_filter_weights_on_true_pose_maps():
+    """Session 28's ``--young``: the filter's heading weights on maps written at the true
+    poses, per step window, next to the true walls'; maze 991's first steps are matched to
+    within 0.05 rad, and the weights' heading spread is finite and below the +-0.15 grid's."""
+    config = '{"ray_insert": 2.0, "ray_insert_scale": 0.3, "beam_trust": true}'
+    lines = run("heading_profile.py", "--young", "3", "--mazes", "991", "--young-windows", "1:4",
+                "--config", config).strip().splitlines()  # fmt: skip
+    rows = {r["map"]: r for r in map(json.loads, lines)}
+    assert set(rows) == {"young map", "true walls"}
+    for r in rows.values():
+        assert r["steps"] == [1, 4] and r["abs_best_offset"] <= 0.05
+        assert abs(r["mean_best_offset"]) <= r["abs_best_offset"] + 1e-9
+        assert 0.0 < r["weights_heading_std"] < 0.087  # a flat weight over +-0.15 has 0.087
+
+
 def test_slam_trace_runs_the_ray_cast_emission_without_loading_the_mlp():
     lines = run("slam_trace.py", "--steps", "30", "--every", "10", "--set",
                 "lidar_emission=raycast", "map_resolution=0.03").strip().splitlines()  # fmt: skip

@@ -202,6 +202,42 @@ def test_ray_insert_writes_scan_hits_as_walls_once(small_traversal):
         SLAM(tr, SLAMConfig(filter_proposal="optimal"))
 
 
+def test_ray_insert_lag_writes_each_scan_later_from_its_own_estimate(small_traversal):
+    """``ray_insert_lag = L``: scan ``t`` is written at step ``t + L`` from the pose estimated
+    at ``t`` (not the cloud's pose then), so the last ``L`` scans of a sweep are not written;
+    ``L = 0`` is the plain ``ray_insert``."""
+    from pyro_slam.slam import SLAM
+
+    tr, L = small_traversal, 3
+    base = dict(lidar_emission="raycast", map_resolution=1 / 63, ray_insert=2.0, seed=0)
+    slam = SLAM(tr, SLAMConfig(**base, ray_insert_lag=L))
+    seen = []  # the inserted grid points before each filter step
+    step = slam._filter_step
+    slam._filter_step = lambda t, M: (seen.append(int(slam.inserted.sum())), step(t, M))[1]
+    est = torch.as_tensor(slam.run("online", progress=False)["mean"], dtype=slam.obs.dtype)
+    T = est.shape[0]
+    assert seen[: L + 1] == [0] * (L + 1) and seen[L + 1] > 0  # scan 0 is written at step L
+    expect = torch.zeros_like(slam.inserted)
+    for t in range(T - L):  # the scans written, each from its own step's estimate
+        i, j = slam._scan_points(t, est[t])[0]
+        expect[i, j] = True
+    assert torch.equal(slam.inserted, expect)
+    i, j = slam._scan_points(T - 1, est[T - 1])[0]
+    assert not bool(slam.inserted[i, j].all())  # the last scan was not
+    with pytest.raises(ValueError, match="ray_insert_lag"):
+        SLAM(tr, SLAMConfig(**base, ray_insert_lag=-1))
+    # pin_cache (the --map-poses diagnostic): the scans are written at the pinned poses
+    slam = SLAM(tr, SLAMConfig(**base))
+    pinned = torch.as_tensor(tr.poses, dtype=slam.obs.dtype) + torch.tensor([0.05, 0.0, 0.1])
+    slam.pin_cache(pinned.numpy())
+    slam.run("online", progress=False)
+    expect = torch.zeros_like(slam.inserted)
+    for t in range(T):
+        i, j = slam._scan_points(t, pinned[t])[0]
+        expect[i, j] = True
+    assert torch.equal(slam.inserted, expect)
+
+
 def test_ray_anchor_holds_the_first_scan_through_svi(small_traversal):
     """``ray_anchor``: the first scan, taken at the known start, fixes q(M) where it saw walls
     and free space; SVI steps cannot move those cells, so the map's frame stays tied to the
