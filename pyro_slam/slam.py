@@ -739,10 +739,11 @@ class SLAM:
                 st.sweep_estimates.append(self.particles.mean().tolist())
             tl = t - self.cfg.ray_insert_lag  # the scan written now (ray_insert_lag)
             if self.cfg.ray_insert is not None and tl >= 0:
-                est = st.estimates if st.phase == "online" else st.sweep_estimates
-                z = torch.tensor(est[tl], dtype=self.obs.dtype)
                 if self.pinned_poses is not None:  # pin_cache: the map is learned there
                     z = self.pinned_poses[tl].to(self.obs.dtype)
+                else:  # the cloud's mean at step tl
+                    est = st.estimates if st.phase == "online" else st.sweep_estimates
+                    z = torch.tensor(est[tl], dtype=self.obs.dtype)
                 self._insert_scan(tl, z)
             # the map is learned from the steps up to t - write_lag only: the filter then
             # matches a scan against what older steps wrote (a revisit), not against a copy of
