@@ -9,6 +9,10 @@ particle cloud's std and its trust in the map (the weights' mean of
     python benchmarks/slam_trace.py --seed 12 --steps 220 --map-poses pi --frontier
     python benchmarks/slam_trace.py --steps 200 --every 20 --set lidar_emission=raycast \
         map_resolution=0.015873015873015872                 # ray-cast emission (no MLP loaded)
+    python benchmarks/slam_trace.py --maze-seed 993 --seed 1 --steps 80 --every 2 --set \
+        lidar_emission=raycast map_resolution=0.015873015873015872 ray_insert=2.0 \
+        ray_insert_scale=0.3 beam_trust=true outlier_prob=0.1 train_outlier_prob=0.0
+        # a slam_accuracy.py run (maze 993, traversal 1) as the benchmark filters it
 
 Diagnostics (they change what the map is trained from, never the filter):
 
@@ -26,6 +30,9 @@ Diagnostics (they change what the map is trained from, never the filter):
 
 Uses the shipped pretrained emission (frozen; or ``--emission PATH``) and the engineered
 kinematic transition on a ``moderate-medium`` traversal ``simulate_traversal(..., seed=SEED)``.
+With ``--maze-seed N`` it traces a run of ``slam_accuracy.py`` instead: maze ``N``, traversal
+``SEED`` with that run's own noise draw, and the benchmark's filter (``shipped_slam``: the
+learned transition, scaled as ``SHIPPED_FILTER`` says; ``--set`` overrides it).
 Prints one JSON line per row and a final JSON summary.
 """
 
@@ -116,6 +123,7 @@ def main(argv=None) -> int:
     ap.add_argument("--frontier", action="store_true", help="score the newest step at the truth")
     ap.add_argument("--emission", type=Path, help="pretrained emission .pt (default: shipped)")
     ap.add_argument("--set", nargs="*", default=[], help="SLAMConfig overrides key=json-value")
+    ap.add_argument("--maze-seed", type=int, help="trace slam_accuracy.py's run on this maze")
     args = ap.parse_args(argv)
     import torch
 
@@ -127,12 +135,20 @@ def main(argv=None) -> int:
 
     map_poses = "true" if args.oracle_map else args.map_poses
     over = parse_overrides(args.set)
-    tr = simulate_traversal("moderate-medium", steps=args.steps, seed=args.seed)
-    cfg = SLAMConfig(**{"learn_emission": False, **over, "seed": args.seed})
-    em = None  # the ray-cast emission has no pretrained network
-    if cfg.observation == "lidar" and cfg.lidar_emission != "raycast":
-        em = load_emission(args.emission or PRETRAINED / "emission_lidar20.pt", tr, cfg)
-    slam = SLAM(tr, cfg, emission=em)
+    if args.maze_seed is not None:  # the benchmark's run: its traversal and shipped filter
+        from slam_accuracy import _traversal
+
+        from pyro_slam.cli import shipped_slam
+
+        tr = _traversal(args.maze_seed, args.seed, args.steps, per_maze_noise=True)
+        slam = shipped_slam(tr, "learned", **{**over, "seed": args.seed})
+    else:
+        tr = simulate_traversal("moderate-medium", steps=args.steps, seed=args.seed)
+        cfg = SLAMConfig(**{"learn_emission": False, **over, "seed": args.seed})
+        em = None  # the ray-cast emission has no pretrained network
+        if cfg.observation == "lidar" and cfg.lidar_emission != "raycast":
+            em = load_emission(args.emission or PRETRAINED / "emission_lidar20.pt", tr, cfg)
+        slam = SLAM(tr, cfg, emission=em)
     pi = path_integration(tr, slam.model.transition)  # [T, 3]
     if map_poses != "filter":
         slam.pin_cache(tr.poses if map_poses == "true" else pi, seed=args.seed)
@@ -172,6 +188,7 @@ def main(argv=None) -> int:
     summary = dict(
         config=over,
         map_poses=map_poses,
+        maze_seed=args.maze_seed,
         frozen_cache=args.frozen_cache,
         oracle_map=map_poses == "true",
         seed=args.seed,

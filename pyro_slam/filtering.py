@@ -48,11 +48,14 @@ class MapBelief:
 @dataclass
 class Particles:
     """A weighted particle set. ``z [..., K, 3]``, ``logw [..., K]`` (normalised),
-    ``scan [..., K, B]`` predicted scan at ``z`` (the transition's input), detached."""
+    ``scan [..., K, B]`` predicted scan at ``z`` (the transition's input), detached;
+    ``past [..., K, L, 3]`` each particle's ancestors at the last ``L`` steps, oldest first
+    (kept by a filter with ``history = L``; ``None`` otherwise)."""
 
     z: torch.Tensor
     logw: torch.Tensor
     scan: torch.Tensor | None = None
+    past: torch.Tensor | None = None
 
     @property
     def num_particles(self) -> int:
@@ -60,25 +63,50 @@ class Particles:
 
     def mean(self) -> torch.Tensor:
         """Weighted mean pose ``[..., 3]`` (circular mean of the heading, wrapped)."""
-        w = self.logw.exp().unsqueeze(-1)
-        xy = (w * self.z[..., :2]).sum(-2)
-        h = self.z[..., 2:3]
-        c, s = (w * torch.cos(h)).sum(-2), (w * torch.sin(h)).sum(-2)
-        return torch.cat([xy, torch.atan2(s, c)], -1)
+        return _weighted_pose_mean(self.z, self.logw)
+
+    def smoothed(self, lag: int) -> torch.Tensor:
+        """Fixed-lag smoothed pose of ``lag`` steps ago ``[..., 3]``: the weighted mean of the
+        particles' ancestors there under the current weights (needs ``past``, ``lag <= L``).
+        ``lag = 0`` is :meth:`mean`."""
+        if lag == 0:
+            return self.mean()
+        if self.past is None or not 0 < lag <= self.past.shape[-2]:
+            L = 0 if self.past is None else self.past.shape[-2]
+            raise ValueError(f"smoothed(lag={lag}) needs the ancestors of {lag} steps; have {L}")
+        return _weighted_pose_mean(self.past[..., -lag, :], self.logw)
 
     def resample(self, generator=None, scheme="systematic") -> Particles:
         idx = resampling.SCHEMES[scheme](self.logw, generator)
         scan = None if self.scan is None else resampling.gather_particles(self.scan, idx)
+        past = None
+        if self.past is not None:  # [..., K, L, 3] -> gather along K
+            flat = self.past.flatten(-2)  # [..., K, L * 3]
+            past = resampling.gather_particles(flat, idx).unflatten(-1, self.past.shape[-2:])
         return Particles(
             resampling.gather_particles(self.z, idx),
             torch.full_like(self.logw, -math.log(self.num_particles)),
             scan,
+            past,
         )
 
     def detach(self) -> Particles:
         return Particles(
-            self.z.detach(), self.logw.detach(), None if self.scan is None else self.scan.detach()
+            self.z.detach(),
+            self.logw.detach(),
+            None if self.scan is None else self.scan.detach(),
+            None if self.past is None else self.past.detach(),
         )
+
+
+def _weighted_pose_mean(z: torch.Tensor, logw: torch.Tensor) -> torch.Tensor:
+    """``z [..., K, 3]`` weighted by ``exp(logw) [..., K]`` -> ``[..., 3]`` (circular mean of
+    the heading, wrapped)."""
+    w = logw.exp().unsqueeze(-1)
+    xy = (w * z[..., :2]).sum(-2)
+    h = z[..., 2:3]
+    c, s = (w * torch.cos(h)).sum(-2), (w * torch.sin(h)).sum(-2)
+    return torch.cat([xy, torch.atan2(s, c)], -1)
 
 
 class ParticleFilter:
@@ -126,6 +154,9 @@ class ParticleFilter:
             (:class:`~pyro_slam.networks.RayEmission`), one trust per beam from the map's
             variance where that beam stops, instead of one per particle from its own chart;
             ``"path"``: from the variance where it stops or anywhere on its way there.
+        history: keep each particle's ancestors at the last ``history`` steps
+            (:attr:`Particles.past`, gathered on resampling) for fixed-lag smoothing
+            (:meth:`Particles.smoothed`); 0: none.
     """
 
     def __init__(
@@ -144,7 +175,11 @@ class ParticleFilter:
         outlier_range: float = 1.0,
         proposal: str = "bootstrap",
         proposal_gate: float = 3.0,
+        history: int = 0,
     ):
+        if not (isinstance(history, int) and history >= 0):
+            raise ValueError(f"history must be an int >= 0, got {history!r}")
+        self.history = history
         if proposal not in PROPOSALS:
             raise ValueError(f"proposal must be one of {PROPOSALS}, got {proposal!r}")
         if proposal == "linearised" and weighting == "tempered":
@@ -316,13 +351,21 @@ class ParticleFilter:
                     torch.where(m.unsqueeze(-1), r.z, p.z),
                     torch.where(m, r.logw, p.logw),
                     None if p.scan is None else torch.where(m.unsqueeze(-1), r.scan, p.scan),
+                    None if p.past is None else torch.where(m[..., None, None], r.past, p.past),
                 )
             p = r
         if self.proposal == "linearised":
             z, correction = self._linearised_proposal(p, M, x, u, mask, sigma)
-            return self._weigh(z, M, x, mask, p.logw, step, correction)
-        z = self.propagate(p, u, sigma)
-        return self._weigh(z, M, x, mask, p.logw, step)
+            out, inc = self._weigh(z, M, x, mask, p.logw, step, correction)
+        else:
+            z = self.propagate(p, u, sigma)
+            out, inc = self._weigh(z, M, x, mask, p.logw, step)
+        if self.history:  # the resampled parents join their ancestors: [..., K, <= L, 3]
+            past = p.z.detach().unsqueeze(-2)
+            if p.past is not None:
+                past = torch.cat([p.past, past], -2)[..., -self.history :, :]
+            out.past = past
+        return out, inc
 
     @torch.no_grad()
     def _linearised_proposal(self, p: Particles, M, x, u, mask=None, sigma=None, fd=2e-3):

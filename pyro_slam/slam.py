@@ -153,6 +153,9 @@ class SLAMConfig:
     # scan t is written at step t + ray_insert_lag, from the pose estimated at t: the filter
     # then matches each scan against walls that older steps saw, not against its own last scans
     ray_insert_lag: int = 0
+    # with ray_insert_lag > 0: place scan t from the fixed-lag smoothed pose (the mean of the
+    # particles' ancestors at t under the weights of step t + lag) instead of step t's estimate
+    ray_insert_smooth: bool = False
     # raycast: the scans of the first ray_anchor steps (taken from the known start pose) are
     # written into q(M) - their hits as walls, the grid points their beams cross as free space,
     # both with scale ray_anchor_scale - and held there through every SVI step, so that the
@@ -437,6 +440,8 @@ class SLAM:
         lag = self.cfg.ray_insert_lag
         if not (isinstance(lag, int) and lag >= 0):
             raise ValueError(f"ray_insert_lag must be an int >= 0, got {lag!r}")
+        if self.cfg.ray_insert_smooth and lag == 0:
+            raise ValueError("ray_insert_smooth smooths over ray_insert_lag steps: set it > 0")
         if not self.cfg.ray_insert_gap > 0:
             raise ValueError(f"ray_insert_gap must be positive, got {self.cfg.ray_insert_gap!r}")
         if self.cfg.filter_proposal not in PROPOSALS:
@@ -475,6 +480,7 @@ class SLAM:
             self.model,
             sigma_emission=self.cfg.filter_sigma,
             proposal=self.cfg.filter_proposal,
+            history=lag if self.cfg.ray_insert_smooth else 0,
             **pf_args,
         )
         ts = self.cfg.filter_sigma if self.cfg.train_sigma is None else self.cfg.train_sigma
@@ -741,6 +747,8 @@ class SLAM:
             if self.cfg.ray_insert is not None and tl >= 0:
                 if self.pinned_poses is not None:  # pin_cache: the map is learned there
                     z = self.pinned_poses[tl].to(self.obs.dtype)
+                elif self.cfg.ray_insert_smooth:  # its ancestors at tl, weighed at t
+                    z = self.particles.smoothed(t - tl)
                 else:  # the cloud's mean at step tl
                     est = st.estimates if st.phase == "online" else st.sweep_estimates
                     z = torch.tensor(est[tl], dtype=self.obs.dtype)

@@ -210,6 +210,26 @@ def test_slam_trace_runs_the_ray_cast_emission_without_loading_the_mlp():
     assert rows[0]["trust"] == 0.01 and all(0.01 <= r["trust"] <= 1 for r in rows[:-1])
 
 
+def test_slam_trace_maze_seed_traces_the_benchmark_run():
+    """``--maze-seed``: slam_accuracy.py's traversal (its own noise draw) and shipped filter."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from slam_accuracy import _traversal
+
+    from pyro_slam.cli import shipped_slam
+    from pyro_slam.slam import path_integration
+
+    args = ["--maze-seed", "993", "--seed", "1", "--steps", "30", "--every", "10"]
+    args += ["--set", "lidar_emission=raycast", "map_resolution=0.03"]
+    lines = run("slam_trace.py", *args).splitlines()
+    rows = [json.loads(line) for line in lines if line.startswith("{")]
+    final = rows[-1]
+    assert final["maze_seed"] == 993 and final["seed"] == 1 and final["final_err"] < 0.05
+    tr = _traversal(993, 1, 30, per_maze_noise=True)
+    pi = path_integration(tr, shipped_slam(tr, "learned").model.transition)
+    err = np.linalg.norm(np.asarray(pi)[-1, :2] - tr.poses[-1, :2])
+    assert abs(final["final_err_pi"] - err) < 1e-6
+
+
 def test_ray_map_fit_scores_learned_and_oracle_maps_at_the_true_poses():
     lines = run("ray_map_fit.py", "--maze-seeds", "991", "--steps", "30", "--map-poses", "true",
                 "--set", "lr_map=0.1").strip().splitlines()  # fmt: skip

@@ -125,6 +125,61 @@ def test_log_evidence_and_means_match_kalman(dtype):
     assert (spread < 0.25 * kf_std).all()  # MC error << posterior spread
 
 
+def rts_means(h, x, u, z0):
+    """Exact smoothed means ``E[z_t | x_{0:T-1}]`` ``[T, 3]`` (Rauch-Tung-Striebel, float64)."""
+    h, x, u, m = (a.to(torch.float64) for a in (h, x, u, z0))
+    P = torch.diag(torch.tensor(S0, dtype=torch.float64) ** 2)
+    Qm = torch.diag(torch.tensor(Q, dtype=torch.float64) ** 2)
+    Rm = R**2 * torch.eye(h.shape[0], dtype=torch.float64)
+    ms, Ps = [], []
+    for t in range(x.shape[0]):
+        if t:
+            m, P = m + u[t - 1], P + Qm
+        K = P @ h.T @ torch.linalg.inv(h @ P @ h.T + Rm)
+        m, P = m + K @ (x[t] - h @ m), (torch.eye(3, dtype=torch.float64) - K @ h) @ P
+        ms.append(m)
+        Ps.append(P)
+    out = [ms[-1]]
+    for t in range(x.shape[0] - 2, -1, -1):  # random walk: the predicted cov is P_t + Q
+        G = Ps[t] @ torch.linalg.inv(Ps[t] + Qm)
+        out.insert(0, ms[t] + G @ (out[0] - ms[t] - u[t]))
+    return torch.stack(out)
+
+
+def test_fixed_lag_smoothing_matches_rts():
+    """``history = L`` keeps each particle's ancestors of the last ``L`` steps through
+    resampling: at the last step, :meth:`Particles.smoothed` (their mean under the current
+    weights) is the exact smoother's mean ``E[z_{T-1-lag} | x_{0:T-1}]``, not the filtering
+    mean of that step."""
+    h, x, u, z0 = simulate(torch.float64)
+    model, L = LinearGaussian(torch.float64), 3
+    g = torch.Generator().manual_seed(1)
+    pf = ParticleFilter(model, generator=g, history=L)
+    reps, K = 32, 2000
+    z = z0 + model.init_scale * torch.randn(reps, K, 3, generator=g, dtype=torch.float64)
+    p, _ = pf.init(z, h, x[0])
+    assert p.past is None
+    filt = [p.mean()]
+    for t in range(1, T):
+        p, _ = pf.step(p, h, x[t], u[t - 1], step=t)
+        assert p.past.shape == (reps, K, min(t, L), 3)
+        filt.append(p.mean())
+    rts, kf = rts_means(h, x, u, z0), kalman(h, x, u, z0)[0]
+    assert torch.allclose(p.smoothed(0), p.mean())
+    for lag in range(1, L + 1):
+        est = p.smoothed(lag)  # [reps, 3]
+        err = (est.mean(0) - rts[T - 1 - lag]).abs()
+        se = est.std(0) / math.sqrt(reps)
+        assert (err < 4 * se + 0.005).all(), (lag, err, se)
+        # the smoother is not the filtering mean (they differ by up to 0.2 here)
+        assert err.max() < 0.1 * (rts[T - 1 - lag] - kf[T - 1 - lag]).abs().max()
+        assert torch.allclose(torch.stack(filt)[T - 1 - lag].mean(0), kf[T - 1 - lag], atol=0.05)
+    with pytest.raises(ValueError, match="smoothed"):
+        p.smoothed(L + 1)
+    with pytest.raises(ValueError, match="history"):
+        ParticleFilter(model, history=-1)
+
+
 def test_linearised_proposal_is_exact_for_a_linear_emission(monkeypatch):
     """With a linear-Gaussian emission the linearised proposal is the optimal one. With a sharp
     likelihood (R = 0.05, far below the transition noise) the bootstrap filter degenerates; the

@@ -238,6 +238,36 @@ def test_ray_insert_lag_writes_each_scan_later_from_its_own_estimate(small_trave
     assert torch.equal(slam.inserted, expect)
 
 
+def test_ray_insert_smooth_writes_each_scan_from_its_fixed_lag_smoothed_pose(small_traversal):
+    """``ray_insert_smooth``: scan ``t`` is written at step ``t + L`` from the mean of the
+    particles' ancestors at ``t`` under step ``t + L``'s weights (the filter keeps ``L`` steps of
+    ancestry), once per scan; it needs ``ray_insert_lag > 0``."""
+    from pyro_slam.slam import SLAM
+
+    tr, L = small_traversal, 3
+    base = dict(lidar_emission="raycast", map_resolution=1 / 63, ray_insert=2.0, seed=0)
+    slam = SLAM(tr, SLAMConfig(**base, ray_insert_lag=L, ray_insert_smooth=True))
+    assert slam.pf.history == L
+    written = []
+    insert = slam._insert_scan
+
+    def spy(t, z=None):
+        expect = slam.particles.smoothed(L)  # [3] the ancestors' weighted mean at step t
+        assert torch.equal(z, expect) and slam.particles.past.shape[-2] == L
+        written.append((t, z))
+        insert(t, z)
+
+    slam._insert_scan = spy
+    est = torch.as_tensor(slam.run("online", progress=False)["mean"], dtype=slam.obs.dtype)
+    T = est.shape[0]
+    assert [t for t, _ in written] == list(range(T - L))
+    z = torch.stack([z for _, z in written])  # [T - L, 3]
+    d = (z - est[: T - L]).abs()
+    assert float(d.max()) < 0.05 and float(d.max()) > 0  # near the estimate, but smoothed
+    with pytest.raises(ValueError, match="ray_insert_smooth"):
+        SLAM(tr, SLAMConfig(**base, ray_insert_smooth=True))
+
+
 def test_ray_anchor_holds_the_first_scan_through_svi(small_traversal):
     """``ray_anchor``: the first scan, taken at the known start, fixes q(M) where it saw walls
     and free space; SVI steps cannot move those cells, so the map's frame stays tied to the
