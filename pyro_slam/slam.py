@@ -146,6 +146,9 @@ class SLAMConfig:
     # q(M) that SVI then refines; None: off)
     ray_insert: float | None = None
     ray_insert_gap: float = 0.05  # hits of neighbouring beams closer than this form one wall
+    # hits farther than this from the sensor are not written (None: all): a heading error e
+    # moves a wall seen at range r by e * r, so far walls carry the heading error into the map
+    ray_insert_range: float | None = None
     ray_insert_scale: float | None = None  # and q(M)'s scale there (None: left as it is)
     # and this occupancy (e.g. -1) at grid points the beams cross before their hits (or up to
     # the range), with the same scale, where no scan wrote before (None: free space not written)
@@ -442,6 +445,11 @@ class SLAM:
             raise ValueError(f"ray_insert_lag must be an int >= 0, got {lag!r}")
         if self.cfg.ray_insert_smooth and lag == 0:
             raise ValueError("ray_insert_smooth smooths over ray_insert_lag steps: set it > 0")
+        rir = self.cfg.ray_insert_range
+        if rir is not None and not rir > 0:
+            raise ValueError(f"ray_insert_range must be positive, got {rir!r}")
+        if rir is not None and self.cfg.ray_insert is None:
+            raise ValueError("ray_insert_range limits what ray_insert writes: set ray_insert")
         if not self.cfg.ray_insert_gap > 0:
             raise ValueError(f"ray_insert_gap must be positive, got {self.cfg.ray_insert_gap!r}")
         if self.cfg.filter_proposal not in PROPOSALS:
@@ -578,13 +586,14 @@ class SLAM:
             raise FloatingPointError(f"SVI loss became {loss} (step t={self.state.t})")
         return loss
 
-    def _scan_points(self, t: int, z: torch.Tensor | None = None):
+    def _scan_points(self, t: int, z: torch.Tensor | None = None, hit_range: float | None = None):
         """Scan ``t`` placed from pose ``z [3]`` (default: the cloud's mean), as grid indices:
-        the hits joined into a polyline (hits of neighbouring beams closer than
-        ``ray_insert_gap`` are one wall, sampled at half a grid spacing) and the free space the
-        beams cross (the four grid points around each point sampled along a beam, up to 1.5 grid
-        spacings before its hit, or to the sensor's range for a miss). Returns two ``(i, j)``
-        pairs of ``[P]`` index tensors, ``hits`` and ``free``."""
+        the hits (those within ``hit_range`` of the sensor, if given) joined into a polyline
+        (hits of neighbouring beams closer than ``ray_insert_gap`` are one wall, sampled at half
+        a grid spacing) and the free space the beams cross (the four grid points around each
+        point sampled along a beam, up to 1.5 grid spacings before its hit, or to the sensor's
+        range for a miss). Returns two ``(i, j)`` pairs of ``[P]`` index tensors, ``hits`` and
+        ``free``."""
         em, g = self.model.emission, self.model.grid
         x = self.obs[t]  # [B]
         valid = torch.ones_like(x, dtype=torch.bool) if self.mask is None else self.mask[t].bool()
@@ -596,11 +605,12 @@ class SLAM:
         w, h, _ = g.shape
         spacing = min(g.size[0] / (w - 1), g.size[1] / (h - 1))
         nxt = torch.roll(torch.arange(x.shape[0]), -1)  # [B] the neighbouring beam
-        seg = hit & hit[nxt] & ((pts[nxt] - pts).norm(dim=-1) < self.cfg.ray_insert_gap)  # [B]
+        near = hit if hit_range is None else hit & (x <= hit_range)  # [B] hits written as walls
+        seg = near & near[nxt] & ((pts[nxt] - pts).norm(dim=-1) < self.cfg.ray_insert_gap)  # [B]
         n = int(math.ceil(self.cfg.ray_insert_gap / (0.5 * spacing))) + 1
         f = torch.linspace(0, 1, n, dtype=x.dtype)[:, None, None]  # [n, 1, 1]
         on = pts[seg] + f * (pts[nxt][seg] - pts[seg])  # [n, S, 2] along joined pairs
-        hits = torch.cat([pts[hit], on.reshape(-1, 2)])  # [P, 2]
+        hits = torch.cat([pts[near], on.reshape(-1, 2)])  # [P, 2]
         free_margin = 1.5
         reach = torch.where(hit, (x - free_margin * spacing).clamp_min(0), x)[valid]  # [V]
         n = int(math.ceil(em.max_range / (0.5 * spacing))) + 1
@@ -634,10 +644,11 @@ class SLAM:
         """``ray_insert``: write the hits of scan ``t`` into q(M)'s mean, placed from pose
         ``z [3]`` (default: the cloud's mean), as a polyline (see :meth:`_scan_points`): every
         grid point nearest to it that no earlier scan hit gets the occupancy ``ray_insert``.
-        Readings at the sensor's range are misses and write no wall. With ``ray_insert_free``,
+        Readings at the sensor's range are misses and write no wall, nor (with
+        ``ray_insert_range``) do hits farther than that from the sensor. With ``ray_insert_free``,
         the grid points the beams cross that no scan wrote yet get that occupancy (a later hit
         overrides it)."""
-        (i, j), (fi, fj) = self._scan_points(t, z)
+        (i, j), (fi, fj) = self._scan_points(t, z, self.cfg.ray_insert_range)
         new = ~self.inserted[i, j]  # [P]
         i, j = i[new], j[new]
         self._write_map(i, j, self.cfg.ray_insert, self.cfg.ray_insert_scale)

@@ -268,6 +268,41 @@ def test_ray_insert_smooth_writes_each_scan_from_its_fixed_lag_smoothed_pose(sma
         SLAM(tr, SLAMConfig(**base, ray_insert_smooth=True))
 
 
+def test_ray_insert_range_writes_only_the_near_hits(small_traversal):
+    """``ray_insert_range = R``: hits farther than ``R`` from the sensor write no wall (a heading
+    error moves a wall seen at range r by r times the error); the near ones are written as
+    without it."""
+    from pyro_slam.filtering import Particles
+    from pyro_slam.slam import SLAM
+
+    tr = small_traversal
+    base = dict(lidar_emission="raycast", map_resolution=1 / 63, ray_insert=2.0, seed=0)
+    z = torch.as_tensor(tr.poses[:1], dtype=torch.get_default_dtype())  # [1, 3]
+    written = {}
+    for R in (None, 0.15):
+        slam = SLAM(tr, SLAMConfig(**base, ray_insert_range=R))
+        slam.particles = Particles(z.to(slam.obs.dtype), torch.zeros(1))
+        slam._insert_scan(0)
+        written[R] = slam.inserted.clone()
+    g = slam.model.grid
+    w, h, _ = g.shape
+    i, j = written[0.15].nonzero(as_tuple=True)
+    xy = torch.stack(
+        [g.origin[0] + i * g.size[0] / (w - 1), g.origin[1] + j * g.size[1] / (h - 1)], -1
+    )
+    d = (xy - z[0, :2].to(xy.dtype)).norm(dim=-1)  # [P] each written grid point's range
+    spacing = g.size[0] / (w - 1)
+    assert len(d) > 0 and float(d.max()) <= 0.15 + spacing  # within R (plus rounding)
+    assert bool((written[None] | ~written[0.15]).all())  # a subset of the full insertion
+    assert int(written[None].sum()) > int(written[0.15].sum())
+    far = torch.as_tensor(tr.observations[0]) > 0.15
+    assert bool(far.any())  # the first scan has far hits to leave out
+    with pytest.raises(ValueError, match="ray_insert_range"):
+        SLAM(tr, SLAMConfig(**base, ray_insert_range=0.0))
+    with pytest.raises(ValueError, match="ray_insert_range"):
+        SLAM(tr, SLAMConfig(lidar_emission="raycast", ray_insert_range=0.2))
+
+
 def test_ray_anchor_holds_the_first_scan_through_svi(small_traversal):
     """``ray_anchor``: the first scan, taken at the known start, fixes q(M) where it saw walls
     and free space; SVI steps cannot move those cells, so the map's frame stays tied to the
