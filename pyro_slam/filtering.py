@@ -46,6 +46,22 @@ class MapBelief:
 
 
 @dataclass
+class HeadingObservation:
+    """A direct observation of the heading modulo ``period``: ``heading = value (mod period)``
+    up to Gaussian noise of std ``sigma`` (rad). E.g. the Manhattan-world one: a scan's walls
+    run along the world axes, so ``heading + wall_direction`` is a multiple of ``pi / 2``
+    (:func:`~pyro_slam.geometry.wall_direction`, ``value = -direction``)."""
+
+    value: torch.Tensor  # [...] (one per batch element; nan: no observation there)
+    sigma: float
+    period: float = math.pi / 2
+
+    def at(self, t) -> HeadingObservation:
+        """The observation of step(s) ``t`` from one that holds a sequence ``value [T]``."""
+        return HeadingObservation(self.value[t], self.sigma, self.period)
+
+
+@dataclass
 class Particles:
     """A weighted particle set. ``z [..., K, 3]``, ``logw [..., K]`` (normalised),
     ``scan [..., K, B]`` predicted scan at ``z`` (the transition's input), detached;
@@ -64,6 +80,11 @@ class Particles:
     def mean(self) -> torch.Tensor:
         """Weighted mean pose ``[..., 3]`` (circular mean of the heading, wrapped)."""
         return _weighted_pose_mean(self.z, self.logw)
+
+    def std(self) -> torch.Tensor:
+        """Weighted std ``[..., 3]`` (the heading's about its circular mean, see
+        :func:`pose_moments`)."""
+        return pose_moments(self.z, self.logw)[1]
 
     def smoothed(self, lag: int) -> torch.Tensor:
         """Fixed-lag smoothed pose of ``lag`` steps ago ``[..., 3]``: the weighted mean of the
@@ -336,12 +357,17 @@ class ParticleFilter:
             eps = torch.randn(mean.shape, generator=self.generator, dtype=mean.dtype)
             return mean + eps * (self.model.transition.sigma if sigma is None else sigma)
 
-    def step(self, p: Particles, M, x, u, mask=None, step=None, sigma=None):
+    def step(self, p: Particles, M, x, u, mask=None, step=None, sigma=None, heading=None):
         """One filtering step: resample if needed, propagate with ``u [..., D_u]`` (transition
         std ``sigma``, default the model's), weigh ``x``.
 
+        ``heading``: a :class:`HeadingObservation` of the new pose, sampled exactly by
+        :meth:`_heading_proposal` (bootstrap proposal only).
+
         Returns ``(particles, log_evidence_increment [...])``.
         """
+        if heading is not None and self.proposal != "bootstrap":
+            raise ValueError("a heading observation needs the bootstrap proposal")
         need = resampling.ess(p.logw) < self.ess_threshold * p.num_particles  # [...]
         if bool(need.any()):
             r = p.resample(self.generator, self.scheme)
@@ -358,14 +384,47 @@ class ParticleFilter:
             z, correction = self._linearised_proposal(p, M, x, u, mask, sigma)
             out, inc = self._weigh(z, M, x, mask, p.logw, step, correction)
         else:
-            z = self.propagate(p, u, sigma)
-            out, inc = self._weigh(z, M, x, mask, p.logw, step)
+            correction = None
+            if heading is None:
+                z = self.propagate(p, u, sigma)
+            else:
+                z, correction = self._heading_proposal(p, u, heading, sigma)
+            out, inc = self._weigh(z, M, x, mask, p.logw, step, correction)
         if self.history:  # the resampled parents join their ancestors: [..., K, <= L, 3]
             past = p.z.detach().unsqueeze(-2)
             if p.past is not None:
                 past = torch.cat([p.past, past], -2)[..., -self.history :, :]
             out.past = past
         return out, inc
+
+    @torch.no_grad()
+    def _heading_proposal(self, p: Particles, u: torch.Tensor, obs: HeadingObservation, sigma=None):
+        """Sample ``z [..., K, 3]`` from the transition conditioned on a heading observation.
+
+        The transition's heading is Gaussian about its mean ``m`` (std ``s`` from ``sigma`` or
+        the model's) and independent of its position noise, and the observation is Gaussian in
+        the wrapped residual (std ``sigma_o``), so the optimal proposal is exact: with
+        ``r = wrap_period(m - value)`` and ``v = s^2 + sigma_o^2``, the heading is drawn from
+        ``N(m - r s^2 / v, s^2 sigma_o^2 / v)`` and the weight gains the predictive
+        ``log N(r; 0, sqrt(v))``. With a sharp observation (``sigma_o << s``) every particle
+        lands on a heading the observation allows, however narrow the cloud. Where the value is
+        nan the heading is the transition's sample and the weight unchanged. Returns
+        ``(z, log_weight [..., K])``."""
+        mean = self.model.transition.mean(p.z, u.unsqueeze(-2), p.scan)  # [..., K, 3]
+        std = self.model.transition.sigma if sigma is None else sigma
+        std = torch.as_tensor(std, dtype=mean.dtype)
+        eps = torch.randn(mean.shape, generator=self.generator, dtype=mean.dtype)
+        z = mean + eps * std
+        s = std[..., 2]
+        value = torch.as_tensor(obs.value, dtype=mean.dtype).unsqueeze(-1)  # [..., 1]
+        seen = ~torch.isnan(value)  # [..., 1]
+        half = obs.period / 2
+        r = torch.remainder(mean[..., 2] - value.nan_to_num() + half, obs.period) - half
+        v = s**2 + obs.sigma**2  # r: [..., K]
+        h = mean[..., 2] - r * s**2 / v + eps[..., 2] * (s * obs.sigma / v.sqrt())
+        h = torch.where(seen, wrap_angle(h), z[..., 2])
+        logw = torch.where(seen, -0.5 * r**2 / v - 0.5 * torch.log(2 * math.pi * v), 0.0)
+        return torch.cat([z[..., :2], h.unsqueeze(-1)], -1), logw
 
     @torch.no_grad()
     def _linearised_proposal(self, p: Particles, M, x, u, mask=None, sigma=None, fd=2e-3):
@@ -415,14 +474,14 @@ class ParticleFilter:
         p, ev = self.init(z0, M, observations[0], None if mask is None else mask[0], step=0)
         T = observations.shape[0]
         means = [p.mean()]
-        stds = [_std(p)]
+        stds = [p.std()]
         for t in range(1, T):
             p, inc = self.step(
                 p, M, observations[t], controls[t - 1], None if mask is None else mask[t], step=t
             )
             ev = ev + inc
             means.append(p.mean())
-            stds.append(_std(p))
+            stds.append(p.std())
         return {
             "mean": torch.stack(means),
             "std": torch.stack(stds),
@@ -431,10 +490,20 @@ class ParticleFilter:
         }
 
 
-def _std(p: Particles) -> torch.Tensor:
-    w = p.logw.exp().unsqueeze(-1)
-    m = (w * p.z).sum(-2, keepdim=True)
-    return ((w * (p.z - m) ** 2).sum(-2)).sqrt()
+def pose_moments(z: torch.Tensor, logw: torch.Tensor | None = None):
+    """Weighted mean and std ``[..., 3]`` of poses ``z [..., N, 3]`` (weights ``exp(logw)
+    [..., N]``, normalised; None: uniform). The heading's mean is the circular mean and its
+    std that of the wrapped deviations from it, so a cloud that straddles +-pi (heading ~pi)
+    has the mean ~pi and a small std, not 0 and ~pi."""
+    if logw is None:
+        logw = torch.full(z.shape[:-1], -math.log(z.shape[-2]), dtype=z.dtype)
+    mean = _weighted_pose_mean(z, logw)  # [..., 3]
+    d = torch.cat(
+        [z[..., :2] - mean[..., None, :2], wrap_angle(z[..., 2:] - mean[..., None, 2:])], -1
+    )
+    w = logw.exp().unsqueeze(-1)  # [..., N, 1]
+    dm = (w * d).sum(-2, keepdim=True)
+    return mean, (w * (d - dm) ** 2).sum(-2).sqrt()
 
 
 class ParticleCache:
@@ -472,9 +541,9 @@ class ParticleCache:
         self.filled[t] = True
 
     def moments(self, t: torch.Tensor):
-        """Mean and std ``[C, 3]`` of the cached particles at steps ``t [C]``."""
-        z = self.z[t]
-        return z.mean(-2), z.std(-2, unbiased=False)
+        """Mean and std ``[C, 3]`` of the cached particles at steps ``t [C]`` (the heading's
+        circular, :func:`pose_moments`)."""
+        return pose_moments(self.z[t])
 
     def propose(
         self,
@@ -497,7 +566,8 @@ class ParticleCache:
         if kind == "gaussian":
             loc, scale = self.moments(t)
             eps = torch.randn(len(t), K, 3, generator=generator, dtype=loc.dtype)
-            return loc.unsqueeze(1) + eps * (shrink * scale).clamp_min(min_std).unsqueeze(1)
+            z = loc.unsqueeze(1) + eps * (shrink * scale).clamp_min(min_std).unsqueeze(1)
+            return torch.cat([z[..., :2], wrap_angle(z[..., 2:])], -1)
         if kind == "categorical":
             N = self.num_particles
             idx = torch.randint(N, (len(t), K), generator=generator)
@@ -548,6 +618,8 @@ class ParticleChunkELBO(ELBO):
             added to the chunk's evidence in the loss (LiDAR only; ``max_range`` needed). The map
             then learns, from one scan, the sub-cell parallax a scan matcher uses, and the cells
             just ahead of the agent before it reaches them.
+        headings: a :class:`HeadingObservation` with ``value [T]`` (nan where none): each chunk
+            step samples its heading conditioned on it, as the online filter does.
     """
 
     def __init__(
@@ -565,8 +637,10 @@ class ParticleChunkELBO(ELBO):
         reproject_samples: int = 4,
         reproject_weight: float = 1.0,
         max_range: float | None = None,
+        headings: HeadingObservation | None = None,
     ):
         super().__init__(num_particles=1)
+        self.headings = headings
         if reproject_radius < 0 or reproject_samples < 1 or reproject_weight < 0:
             raise ValueError(
                 "reproject_radius and reproject_weight must be >= 0 and reproject_samples >= 1, "
@@ -599,9 +673,9 @@ class ParticleChunkELBO(ELBO):
         poses = [p.mean().detach()]  # L x [C, 3]
         for l in range(1, batch.length):
             tl = t + l
-            p, inc = self.pf.step(
-                p, M, obs[tl], ctl[tl - 1], None if mask is None else mask[tl], step=int(tl[0])
-            )
+            heading = None if self.headings is None else self.headings.at(tl)  # value [C]
+            m = None if mask is None else mask[tl]
+            p, inc = self.pf.step(p, M, obs[tl], ctl[tl - 1], m, step=int(tl[0]), heading=heading)
             ev = ev + inc
             self.cache.store(tl, p, self.pf.generator)
             poses.append(p.mean().detach())

@@ -93,3 +93,47 @@ def reproject_scan(
     s = ranges.unsqueeze(-2) - cross(d, t.unsqueeze(-3)) / safe  # [..., A, B]
     valid = ok.unsqueeze(-2) & (s > 0) & (s < max_range)
     return torch.where(valid, s, ranges.unsqueeze(-2).expand_as(s)), valid
+
+
+def wall_direction(
+    ranges: torch.Tensor,
+    angles: torch.Tensor,
+    max_range: float,
+    mask: torch.Tensor | None = None,
+    tol: float = 1e-3,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The direction of a scan's straight walls modulo ``pi / 2``, in the sensor's frame.
+
+    Each pair of neighbouring hits ``h_i, h_{i+1}`` (``h_i = r_i e_i``) spans a segment whose
+    direction, modulo ``pi / 2``, is that of the wall both lie on, or an arbitrary one where the
+    pair straddles a corner or a depth jump. In a rectilinear (Manhattan) world every wall
+    gives the same value, so the value shared by most segments (within ``tol`` rad, modulo
+    ``pi / 2``) is taken, with its support, the number of segments that share it. A world
+    heading ``phi`` is then consistent with the scan if ``phi + direction`` is a multiple of
+    ``pi / 2`` (walls along the world axes).
+
+    Args:
+        ranges: ``[..., B]`` readings along ``angles [B]`` (relative to the heading, increasing
+            around the full circle, so the first and last beams are neighbours).
+        max_range: readings ``>= max_range`` are no hits.
+        mask: ``[..., B]`` valid readings (None: all).
+        tol: segments whose directions differ by less than this (rad, modulo ``pi / 2``) agree.
+    Returns:
+        ``(direction [...] in [0, pi / 2), support [...] integer)``; support 0 or 1 means no
+        two segments agree and the direction is meaningless.
+    """
+    e = torch.stack([torch.cos(angles), torch.sin(angles)], -1).to(ranges.dtype)  # [B, 2]
+    h = ranges.unsqueeze(-1) * e  # [..., B, 2] hit points relative to the sensor
+    hit = ranges < max_range * (1 - 1e-3)  # [..., B]
+    if mask is not None:
+        hit = hit & mask.bool()
+    ok = hit & torch.roll(hit, -1, -1)  # [..., B] segment i -> i + 1 joins two hits
+    d = torch.roll(h, -1, -2) - h
+    quarter = math.pi / 2
+    a = torch.remainder(torch.atan2(d[..., 1], d[..., 0]), quarter)  # [..., B]
+    diff = a.unsqueeze(-1) - a.unsqueeze(-2)  # [..., B, B]
+    diff = torch.remainder(diff + quarter / 2, quarter) - quarter / 2
+    agree = (diff.abs() < tol) & ok.unsqueeze(-1) & ok.unsqueeze(-2)
+    support = torch.where(ok, agree.sum(-1), torch.zeros_like(ok, dtype=torch.long))  # [..., B]
+    best = support.argmax(-1, keepdim=True)  # [..., 1]
+    return a.gather(-1, best)[..., 0], support.gather(-1, best)[..., 0]

@@ -38,12 +38,14 @@ from .data import Traversal, atomic_write
 from .filtering import (
     PROPOSALS,
     ChunkBatch,
+    HeadingObservation,
     MapBelief,
     ParticleCache,
     ParticleChunkELBO,
     ParticleFilter,
     Particles,
 )
+from .geometry import wall_direction
 from .guide import MapGuide
 from .model import DVBFLM, MapGrid
 from .networks import (
@@ -175,6 +177,14 @@ class SLAMConfig:
     # wall it hits; D_m = 1 + ray_albedo_bins, image_bins and the emission MLP unused)
     image_emission: str = "mlp"
     ray_albedo_bins: int = 8  # raycast camera: albedo directions per cell
+    # LiDAR, not the paper's model: a Manhattan-world heading observation with this std (rad).
+    # Each scan's straight walls give its heading modulo pi / 2 (geometry.wall_direction) if
+    # the walls run along the world axes, as the simulator's mazes' do; the filter samples the
+    # heading exactly conditioned on it (ParticleFilter._heading_proposal) wherever at least
+    # wall_heading_support segments agree within wall_heading_tol rad (None: off)
+    wall_heading: float | None = None
+    wall_heading_tol: float = 1e-3
+    wall_heading_support: int = 2
 
     def to_dict(self):
         return asdict(self)
@@ -465,6 +475,16 @@ class SLAM:
                 f"trusted_passes must be one of {sorted(TRUSTED_PASSES)}, "
                 f"got {self.cfg.trusted_passes!r}"
             )
+        wh = self.cfg.wall_heading
+        if wh is not None and not (wh > 0 and self.cfg.observation == "lidar"):
+            raise ValueError(f"wall_heading must be a positive std on LiDAR scans, got {wh!r}")
+        if wh is not None and self.cfg.filter_proposal != "bootstrap":
+            raise ValueError("wall_heading samples the heading in the bootstrap proposal only")
+        if not (self.cfg.wall_heading_tol > 0 and self.cfg.wall_heading_support >= 2):
+            raise ValueError(
+                "wall_heading_tol must be positive and wall_heading_support >= 2, got "
+                f"{self.cfg.wall_heading_tol!r}, {self.cfg.wall_heading_support!r}"
+            )
         self.tr = traversal = prepare_traversal(traversal, self.cfg)
         self.obs, self.ctl, self.mask, self.init_pose = _tensors(traversal)
         self.T = self.obs.shape[0]
@@ -496,6 +516,15 @@ class SLAM:
         pf_args["outlier_prob"] = self.cfg.outlier_prob if tout is None else tout
         train_pf = ParticleFilter(self.model, sigma_emission=ts, **pf_args)
         self.cache = ParticleCache(self.T, self.cfg.cache_particles)
+        self.headings = None  # wall_heading: HeadingObservation, value [T] (nan: none)
+        if wh is not None:
+            angles = torch.as_tensor(traversal.beam_angles, dtype=self.obs.dtype)
+            direction, support = wall_direction(
+                self.obs, angles, float(traversal.max_range), self.mask, self.cfg.wall_heading_tol
+            )
+            ok = support >= self.cfg.wall_heading_support
+            value = torch.where(ok, -direction, torch.full_like(direction, math.nan))  # [T]
+            self.headings = HeadingObservation(value, wh)
         w, h, _ = self.model.grid.shape
         self.first_seen = torch.full((w, h), float("inf"))  # [w, h] step of first mapping
         self.inserted = torch.zeros((w, h), dtype=torch.bool)  # [w, h] hit by a ray_insert scan
@@ -515,6 +544,7 @@ class SLAM:
             reproject_samples=self.cfg.reproject_samples,
             reproject_weight=self.cfg.reproject_weight,
             max_range=float(traversal.max_range),
+            headings=self.headings,
         )
         lr = self.cfg
 
@@ -691,9 +721,16 @@ class SLAM:
         else:
             sigma = self._heading_jumps(self._transition_sigma(M), t)
             self.particles, _ = self.pf.step(
-                self.particles, M, x, self.ctl[t - 1], m, step=t, sigma=sigma
-            )
+                self.particles, M, x, self.ctl[t - 1], m, step=t, sigma=sigma,
+                heading=self._heading(t),
+            )  # fmt: skip
         self.cache.store(torch.tensor([t]), _batched(self.particles), self.gen)
+
+    def _heading(self, t: int) -> HeadingObservation | None:
+        """``wall_heading``: step ``t``'s heading observation (None: off, or no walls agree)."""
+        if self.headings is None or torch.isnan(self.headings.value[t]):
+            return None
+        return self.headings.at(t)
 
     def _heading_jumps(self, sigma, t: int):
         """With ``heading_jump = (p, s)``, a heavy-tailed transition: each particle's heading
@@ -751,7 +788,7 @@ class SLAM:
                 self.track[t] = self.particles.mean()[:2]
             if st.phase == "online":
                 st.estimates.append(self.particles.mean().tolist())
-                st.stds.append(_std(self.particles).tolist())
+                st.stds.append(self.particles.std().tolist())
             else:  # offline SLAM's initial sweep: kept for diagnostics (result's "sweep_mean")
                 st.sweep_estimates.append(self.particles.mean().tolist())
             tl = t - self.cfg.ray_insert_lag  # the scan written now (ray_insert_lag)
@@ -792,7 +829,7 @@ class SLAM:
             for t in tqdm(range(self.T), desc=desc, disable=not progress, leave=False):
                 self._filter_step(t, M)
                 means.append(self.particles.mean().tolist())
-                stds.append(_std(self.particles).tolist())
+                stds.append(self.particles.std().tolist())
         return means, stds
 
     def _cache_pass(self, progress: bool, desc: str):
@@ -814,10 +851,10 @@ class SLAM:
                     else:
                         self.particles, _ = self.pf.step(
                             self.particles, M, self.obs[t], self.ctl[t - 1], m, step=t,
-                            sigma=self._transition_sigma(M),
+                            sigma=self._transition_sigma(M), heading=self._heading(t),
                         )  # fmt: skip
                     means.append(self.particles.mean().tolist())
-                    stds.append(_std(self.particles).tolist())
+                    stds.append(self.particles.std().tolist())
         return means, stds
 
     def _offline(self, progress: bool):
@@ -985,12 +1022,6 @@ def _batched(p: Particles) -> Particles:
     return Particles(
         p.z.unsqueeze(0), p.logw.unsqueeze(0), None if p.scan is None else p.scan.unsqueeze(0)
     )
-
-
-def _std(p: Particles) -> torch.Tensor:
-    w = p.logw.exp().unsqueeze(-1)
-    m = (w * p.z).sum(-2, keepdim=True)
-    return (w * (p.z - m) ** 2).sum(-2).sqrt()
 
 
 def path_integration(traversal: Traversal, transition: Transition, emission_scan=True):

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from pyro_slam import resampling
-from pyro_slam.filtering import ParticleCache, ParticleFilter, Particles
+from pyro_slam.filtering import HeadingObservation, ParticleCache, ParticleFilter, Particles
 from pyro_slam.model import DVBFLM
 from pyro_slam.resampling import ParticleFilterFailed
 from pyro_slam.transitions import Transition
@@ -212,6 +212,60 @@ def test_linearised_proposal_is_exact_for_a_linear_emission(monkeypatch):
         ParticleFilter(LinearGaussian(torch.float64), proposal="linearised", weighting="tempered")
 
 
+def test_heading_observation_matches_kalman_with_an_extra_heading_row():
+    """A :class:`HeadingObservation` ``y_t`` (std ``sigma_o``, far from the wrap) is a linear
+    observation of the heading, so the filter that samples it by the exact heading proposal
+    must match the Kalman filter with the extra row ``[0, 0, 1]``: log-evidence and means within
+    Monte-Carlo error, though ``sigma_o`` is 10x below the transition's heading noise."""
+    h, x, u, z0 = simulate(torch.float64)
+    so = 0.01
+    gy = torch.Generator().manual_seed(7)
+    y = kalman(h, x, u, z0)[0][:, 2] + 0.03 * torch.randn(T, generator=gy, dtype=torch.float64)
+    # the augmented Kalman filter (the heading row from t = 1, as the filter's step applies it)
+    P = torch.diag(torch.tensor(S0, dtype=torch.float64) ** 2)
+    Qm = torch.diag(torch.tensor(Q, dtype=torch.float64) ** 2)
+    m, logz, means = z0.clone(), 0.0, []
+    for t in range(T):
+        hh, xx, rr = h, x[t], [R**2] * h.shape[0]
+        if t:
+            m, P = m + u[t - 1], P + Qm
+            hh = torch.cat([h, torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)])
+            xx, rr = torch.cat([x[t], y[t : t + 1]]), rr + [so**2]
+        S = hh @ P @ hh.T + torch.diag(torch.tensor(rr, dtype=torch.float64))
+        logz += torch.distributions.MultivariateNormal(hh @ m, S).log_prob(xx).item()
+        Kg = P @ hh.T @ torch.linalg.inv(S)
+        m, P = m + Kg @ (xx - hh @ m), (torch.eye(3, dtype=torch.float64) - Kg @ hh) @ P
+        means.append(m)
+    reps, K = 64, 200
+    model = LinearGaussian(torch.float64)
+    g = torch.Generator().manual_seed(0)
+    pf = ParticleFilter(model, generator=g)
+    z = z0 + model.init_scale * torch.randn(reps, K, 3, generator=g, dtype=torch.float64)
+    p, ev = pf.init(z, h, x[0])
+    for t in range(1, T):
+        obs = HeadingObservation(y[t].expand(reps), so, period=2 * math.pi)
+        p, inc = pf.step(p, h, x[t], u[t - 1], step=t, heading=obs)
+        ev = ev + inc
+        # the emission's own weights (measured ESS 0.49 K); a heading weight on the transition's
+        # samples alone, at 10x their std, would leave a handful
+        assert float(resampling.ess(p.logw).mean()) > 0.12 * K
+    assert abs(float(ev.mean()) - logz) < 0.3  # measured -0.07 nats (replicates' std 0.27)
+    assert (p.mean().mean(0) - means[-1]).abs().max() < 0.015  # measured 0.0065
+    assert (p.mean()[:, 2] - means[-1][2]).abs().max() < 0.01  # measured 0.003
+    # the cloud's heading spread is the posterior's, about sigma_o (the transition's is 0.1)
+    assert float(p.z[..., 2].std(-1).mean()) < 0.012  # measured 0.0098
+    # nan: no observation there, the step is the bootstrap one (same draws, same weights)
+    outs = []
+    for heading in (None, HeadingObservation(torch.full((reps,), math.nan), so)):
+        pf.generator.manual_seed(3)
+        outs.append(pf.step(p, h, x[1], u[0], step=1, heading=heading))
+    torch.testing.assert_close(outs[0][0].z, outs[1][0].z)
+    torch.testing.assert_close(outs[0][1], outs[1][1])
+    with pytest.raises(ValueError, match="bootstrap"):
+        lin = ParticleFilter(model, proposal="linearised")
+        lin.step(p, h, x[1], u[0], step=1, heading=HeadingObservation(y[1].expand(reps), so))
+
+
 def test_run_matches_kalman_and_reports_posterior_std():
     h, x, u, z0 = simulate(torch.float64)
     kf_mean, kf_std, kf_logz = kalman(h, x, u, z0)
@@ -326,6 +380,19 @@ def test_particle_cache_store_and_propose():
     for kind in ("gaussian", "categorical"):
         prop = cache.propose(torch.tensor([3, 4, 3]), 7, kind, generator=g)
         assert prop.shape == (3, 7, 3) and torch.isfinite(prop).all()
+    # a cloud facing west straddles +-pi: its heading moments are circular (mean ~pi, std
+    # 0.01), not the raw values' (mean ~0, std ~pi), and the proposal stays near +-pi
+    west = torch.tensor([0.5, 0.5, math.pi]) + torch.tensor([0.0, 0.0, 0.01]) * torch.randn(
+        1, 800, 3, generator=g
+    )
+    west[..., 2] = torch.remainder(west[..., 2] + math.pi, 2 * math.pi) - math.pi
+    cache.store(torch.tensor([6]), Particles(west, torch.full((1, 800), -math.log(800))), g)
+    loc, scale = cache.moments(torch.tensor([6]))
+    assert abs(abs(float(loc[0, 2])) - math.pi) < 0.003 and float(scale[0, 2]) < 0.012
+    prop = cache.propose(torch.tensor([6]), 100, generator=g)[..., 2]  # [1, 100]
+    assert float(prop.abs().min()) > math.pi - 0.05 and float(prop.abs().max()) <= math.pi
+    p = Particles(west[0], torch.full((800,), -math.log(800)))
+    assert float(p.std()[2]) < 0.012 and abs(abs(float(p.mean()[2])) - math.pi) < 0.003
     with pytest.raises(ValueError, match=r"no particles at steps \[5\]"):
         cache.propose(torch.tensor([4, 5]), 7)
     with pytest.raises(ValueError, match="unknown proposal"):

@@ -68,3 +68,28 @@ def test_batch_shapes(shape):
     world = ANGLES + torch.rand(*shape, 1, dtype=torch.float64)
     s, valid = reproject_scan(x, world, torch.zeros(*shape, 6, 2, dtype=torch.float64), 0.53)
     assert s.shape == valid.shape == (*shape, 6, 20)
+
+
+def test_wall_direction_gives_the_heading_modulo_a_quarter_turn():
+    """In a maze (walls along the world axes) every simulated scan's wall direction, added to
+    the true heading, is a multiple of pi / 2 to float precision, with several agreeing
+    segments; a scan with fewer than two hits, or its hits masked out, has no support."""
+    from pyro_slam.geometry import wall_direction
+
+    tr = simulate_traversal("moderate-medium", steps=300, seed=3)
+    x = torch.as_tensor(tr.observations, dtype=torch.float64)  # [T, B]
+    angles = torch.as_tensor(tr.beam_angles, dtype=torch.float64)
+    direction, support = wall_direction(x, angles, tr.max_range)  # [T], [T]
+    assert direction.shape == support.shape == (300,)
+    assert int(support.min()) >= 3  # measured 7 or more: several walls in every scan
+    phi = torch.as_tensor(tr.poses[:, 2], dtype=torch.float64)
+    r = torch.remainder(phi + direction + math.pi / 4, math.pi / 2) - math.pi / 4
+    assert float(r.abs().max()) < 1e-6
+    # a rotated scan (the same readings, heading turned by 0.1) gives the same body-frame value
+    d0, _ = wall_direction(x[0], angles, tr.max_range)
+    assert float(d0) == pytest.approx(float(direction[0]))
+    lone = torch.full((20,), 0.53, dtype=torch.float64)
+    lone[3] = 0.2
+    assert int(wall_direction(lone, angles, 0.53)[1]) == 0
+    mask = torch.zeros(20, dtype=torch.bool)
+    assert int(wall_direction(x[0], angles, tr.max_range, mask)[1]) == 0

@@ -383,3 +383,31 @@ def test_ray_insert_free_and_path_trust(small_traversal):
         SLAM(tr, SLAMConfig(lidar_emission="raycast", ray_insert_free=-1.0))
     with pytest.raises(ValueError, match="beam_trust"):
         SLAM(tr, SLAMConfig(lidar_emission="raycast", beam_trust="yes"))
+
+
+def test_wall_heading_pins_the_heading_to_the_walls(small_traversal):
+    """``wall_heading``: in the simulator's maze (walls along the axes) each scan gives the
+    heading modulo pi / 2 exactly, and the filter samples the heading conditioned on it, so the
+    online estimate's heading stays within a few milliradians of the truth where the same run
+    without it drifts by several times more."""
+    from pyro_slam.geometry import wrap_angle
+    from pyro_slam.slam import SLAM
+
+    tr = small_traversal
+    base = dict(lidar_emission="raycast", beam_trust=True, map_resolution=1 / 31,
+                filter_particles=64, train_particles=8, cache_particles=8, ray_samples=24,
+                ray_insert=2.0, ray_insert_scale=0.3)  # fmt: skip
+    err = {}
+    for wh in (None, 1e-3):
+        slam = SLAM(tr, SLAMConfig(**base, wall_heading=wh))
+        res = slam.run("online", progress=False)
+        d = torch.as_tensor(res["mean"][:, 2] - tr.poses[:, 2])
+        err[wh] = float(wrap_angle(d).abs().max())
+    assert err[1e-3] < 0.005  # measured 0.0007
+    assert err[None] > 10 * err[1e-3]  # measured 0.055
+    with pytest.raises(ValueError, match="wall_heading"):
+        SLAM(tr, SLAMConfig(**base, wall_heading=0.0))
+    with pytest.raises(ValueError, match="bootstrap"):
+        SLAM(tr, SLAMConfig(**base, wall_heading=1e-3, filter_proposal="linearised"))
+    with pytest.raises(ValueError, match="wall_heading_support"):
+        SLAM(tr, SLAMConfig(**base, wall_heading=1e-3, wall_heading_support=1))
