@@ -106,6 +106,11 @@ def main(argv=None) -> int:
         help="poses the emission and q(M) are fitted at: the traversal's true poses (mapping "
         "with known poses) or the pose means of online DVBF-LM SLAM on it",
     )  # fmt: skip
+    p.add_argument(
+        "--slam-config", default="{}",
+        help="--map-poses slam: JSON SLAMConfig overrides of the SLAM run (e.g. the ray-cast "
+        "emission with the Manhattan heading observation, docs/navigation.md)",
+    )  # fmt: skip
     args = p.parse_args(argv)
     mazes = MAZE_SEEDS[: args.mazes]
     if args.maze_seeds is not None:
@@ -316,7 +321,8 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
     tour = pts if args.cover_grid else None
     traversal, poses, slam_err = None, None, None
     if args.map_poses == "slam":
-        traversal, poses, slam_err = _slam_poses(maze, tour, args.traversal_steps)
+        overrides = json.loads(args.slam_config)
+        traversal, poses, slam_err = _slam_poses(maze, tour, args.traversal_steps, **overrides)
     lenv, _, traversal = learned_env(
         maze, traversal=traversal, poses=poses, steps=args.traversal_steps,
         fit_steps=args.fit_steps, emission_steps=args.emission_steps, n_world=args.n_world,
@@ -410,19 +416,19 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
     return runs, targets
 
 
-def _slam_poses(maze, tour, steps: int, seed: int = 1):
+def _slam_poses(maze, tour, steps: int, seed: int = 1, **overrides):
     """``--map-poses slam``: online DVBF-LM SLAM on the mapping traversal, with the settings of
     ``benchmarks/slam_accuracy.py`` (shipped frozen emission, learned transition filtered as
-    ``pyro_slam.cli.SHIPPED_FILTER`` says). Returns ``(traversal, pose means [T, 3], error
-    summary)``; the traversal is the one :func:`~pyro_slam.planning.learned_env` would simulate
-    (same seed)."""
+    ``pyro_slam.cli.SHIPPED_FILTER`` says; ``overrides``: SLAMConfig fields, ``--slam-config``).
+    Returns ``(traversal, pose means [T, 3], error summary)``; the traversal is the one
+    :func:`~pyro_slam.planning.learned_env` would simulate (same seed)."""
     from pyro_slam import metrics
     from pyro_slam.cli import shipped_slam
     from pyro_slam.slam import path_integration
     from simulators import simulate_traversal
 
     tr = simulate_traversal(maze, steps=steps, seed=seed, tour=tour)
-    slam = shipped_slam(tr, seed=seed)
+    slam = shipped_slam(tr, seed=seed, **overrides)
     est = slam.run("online", progress=False)["mean"]  # [T, 3]
     err = metrics.localisation_error(est, tr.poses)  # [T]
     pi = metrics.localisation_error(path_integration(tr, slam.model.transition), tr.poses)

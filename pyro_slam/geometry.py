@@ -137,3 +137,129 @@ def wall_direction(
     support = torch.where(ok, agree.sum(-1), torch.zeros_like(ok, dtype=torch.long))  # [..., B]
     best = support.argmax(-1, keepdim=True)  # [..., 1]
     return a.gather(-1, best)[..., 0], support.gather(-1, best)[..., 0]
+
+
+def _halves(H: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Row indices of the upper and lower half, outwards from the horizon ``[H/2]`` each."""
+    return torch.arange(H // 2 - 1, -1, -1), torch.arange(H // 2, H)
+
+
+def _wall_runs(images: torch.Tensor, tol: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The wall's brightness at the horizon ``[..., W]`` and, per half, how many rows from the
+    horizon outwards keep it ``[..., 2, W]`` (0 where the two horizon rows differ)."""
+    H = images.shape[-2]
+    wall = images[..., H // 2 - 1, :]  # [..., W]
+    at_horizon = (images[..., H // 2, :] - wall).abs() < tol
+    runs = []
+    for half in _halves(H):
+        full = (images[..., half, :] - wall.unsqueeze(-2)).abs() < tol  # [..., H/2, W]
+        runs.append(torch.cumprod(full.long(), -2).sum(-2) * at_horizon)
+    return wall, torch.stack(runs, -2)
+
+
+def _row_at(x: torch.Tensor, i: torch.Tensor, shape) -> torch.Tensor:
+    """``x [..., R, W]`` (broadcast to ``shape``) at row ``i [..., W]`` of each column."""
+    return torch.gather(x.expand(*shape), -2, i.unsqueeze(-2))[..., 0, :]
+
+
+def image_background(images: torch.Tensor, tol: float = 1e-4) -> torch.Tensor:
+    """The floor / ceiling brightness of each image row, from the frames alone (no poses).
+
+    In a column whose wall ends ``k`` rows from the horizon (:func:`image_wall_extents`), the
+    rows ``k + 2`` and more from it see only floor or ceiling, whose brightness depends on the
+    row alone: a row's background is the median of those pixels over all frames and columns.
+
+    Args:
+        images: ``[N, H, W]`` frames.
+        tol: as in :func:`image_wall_extents`.
+    Returns:
+        ``[H]`` background brightness per row (nan: never seen, e.g. at the horizon).
+    """
+    H = images.shape[-2]
+    _, runs = _wall_runs(images, tol)  # [N, 2, W]
+    out = torch.full((H,), math.nan, dtype=images.dtype)
+    for side, half in enumerate(_halves(H)):
+        for j, row in enumerate(half.tolist()):
+            free = runs[:, side, :] <= j - 2  # [N, W]
+            if free.any():
+                out[row] = images[:, row, :][free].median()
+    return out  # [H]
+
+
+def image_wall_extents(
+    images: torch.Tensor, background: torch.Tensor, min_contrast: float = 0.05, tol: float = 1e-4
+) -> torch.Tensor:
+    """How far the wall seen in each column reaches above and below the horizon, in rows.
+
+    The camera draws a wall at perpendicular (z-) depth ``d`` from ``horizon - f a / d`` to
+    ``horizon + f b / d`` and blends a partly covered row as ``c wall + (1 - c) background``
+    (:class:`simulators.camera.Camera`). The wall fills the two rows at the horizon with one
+    brightness; counting the rows that keep it, outwards, and reading the coverage ``c`` of the
+    first row that does not (from ``background``) gives each edge's distance from the horizon,
+    ``f a / d`` and ``f b / d``: both proportional to the inverse depth, without knowing ``f``,
+    ``a`` or ``b``.
+
+    Args:
+        images: ``[..., H, W]`` frames (``H`` even, horizon between rows ``H/2 - 1`` and ``H/2``).
+        background: ``[H]`` per-row floor / ceiling brightness (:func:`image_background`).
+        min_contrast: an edge is measured only where wall and background differ by this much
+            (in the edge row and the row inside it).
+        tol: rows within this of the horizon's brightness are fully covered.
+    Returns:
+        ``[..., 2, W]`` the top and bottom extents (rows); nan where not measurable (no wall
+        at the horizon, a wall filling the image to its border, too little contrast, unknown
+        background).
+    """
+    H = images.shape[-2]
+    if H % 2 or background.shape != (H,):
+        raise ValueError(
+            f"images [..., H, W] need an even H and background [H]; got {tuple(images.shape)} "
+            f"and {tuple(background.shape)}"
+        )
+    h0 = H // 2
+    wall, runs = _wall_runs(images, tol)  # [..., W], [..., 2, W]
+    extents = []
+    for side, half in enumerate(_halves(H)):
+        img, bg = images[..., half, :], background[half].unsqueeze(-1)  # [..., h0, W], [h0, 1]
+        k = runs[..., side, :]  # [..., W] fully covered rows from the horizon
+        edge, inner = k.clamp(max=h0 - 1), (k - 1).clamp(min=0)
+        b_edge, b_inner = _row_at(bg, edge, img.shape), _row_at(bg, inner, img.shape)
+        contrast = torch.minimum((wall - b_edge).abs(), (wall - b_inner).abs())
+        ok = (k > 0) & (k < h0) & (contrast > min_contrast)  # nan contrast: False
+        c = (_row_at(img, edge, img.shape) - b_edge) / torch.where(
+            ok, wall - b_edge, torch.ones_like(wall)
+        )
+        ok = ok & (c > -tol) & (c < 1 + tol)
+        extents.append(torch.where(ok, k + c.clamp(0, 1), torch.full_like(c, math.nan)))
+    return torch.stack(extents, -2)  # [..., 2, W]
+
+
+def image_wall_direction(
+    images: torch.Tensor,
+    angles: torch.Tensor,
+    background: torch.Tensor,
+    tol: float = 1e-3,
+    min_contrast: float = 0.05,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`wall_direction` for a first-person camera: the walls' direction modulo ``pi / 2``.
+
+    Each edge of the walls (:func:`image_wall_extents`) gives the inverse depth of every column
+    up to one scale, i.e. the wall points ``(1, tan(angle)) / extent`` in the camera's frame up
+    to a scale, which leaves their directions unchanged; the top and bottom edges are two such
+    partial scans whose segments vote together.
+
+    Args:
+        images: ``[..., H, W]`` frames.
+        angles: ``[W]`` each column's bearing relative to the heading.
+        background: ``[H]`` (:func:`image_background`).
+        tol, min_contrast: as in :func:`wall_direction` and :func:`image_wall_extents`.
+    Returns:
+        ``(direction [...] in [0, pi / 2), support [...])`` as :func:`wall_direction`.
+    """
+    ext = image_wall_extents(images, background, min_contrast)  # [..., 2, W]
+    ranges = 1.0 / (ext * torch.cos(angles).to(ext.dtype))  # [..., 2, W] up to a scale
+    gap = torch.full_like(ranges[..., :1], math.inf)
+    ranges = torch.cat([ranges, gap], -1).flatten(-2)  # [..., 2 (W + 1)] a no-hit between scans
+    a = torch.cat([angles, angles[:1]]).repeat(2)
+    hit = torch.isfinite(ranges)
+    return wall_direction(torch.where(hit, ranges, torch.zeros_like(ranges)), a, math.inf, hit, tol)

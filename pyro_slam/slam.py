@@ -45,7 +45,7 @@ from .filtering import (
     ParticleFilter,
     Particles,
 )
-from .geometry import wall_direction
+from .geometry import image_background, image_wall_direction, wall_direction
 from .guide import MapGuide
 from .model import DVBFLM, MapGrid
 from .networks import (
@@ -177,9 +177,10 @@ class SLAMConfig:
     # wall it hits; D_m = 1 + ray_albedo_bins, image_bins and the emission MLP unused)
     image_emission: str = "mlp"
     ray_albedo_bins: int = 8  # raycast camera: albedo directions per cell
-    # LiDAR, not the paper's model: a Manhattan-world heading observation with this std (rad).
-    # Each scan's straight walls give its heading modulo pi / 2 (geometry.wall_direction) if
-    # the walls run along the world axes, as the simulator's mazes' do; the filter samples the
+    # Not the paper's model: a Manhattan-world heading observation with this std (rad). Each
+    # scan's straight walls give its heading modulo pi / 2 (geometry.wall_direction; images:
+    # the walls' edges, geometry.image_wall_direction) if the walls run along the world axes,
+    # as the simulator's mazes' do; the filter samples the
     # heading exactly conditioned on it (ParticleFilter._heading_proposal) wherever at least
     # wall_heading_support segments agree within wall_heading_tol rad (None: off)
     wall_heading: float | None = None
@@ -476,8 +477,8 @@ class SLAM:
                 f"got {self.cfg.trusted_passes!r}"
             )
         wh = self.cfg.wall_heading
-        if wh is not None and not (wh > 0 and self.cfg.observation == "lidar"):
-            raise ValueError(f"wall_heading must be a positive std on LiDAR scans, got {wh!r}")
+        if wh is not None and not wh > 0:
+            raise ValueError(f"wall_heading must be a positive std (rad), got {wh!r}")
         if wh is not None and self.cfg.filter_proposal != "bootstrap":
             raise ValueError("wall_heading samples the heading in the bootstrap proposal only")
         if not (self.cfg.wall_heading_tol > 0 and self.cfg.wall_heading_support >= 2):
@@ -519,9 +520,17 @@ class SLAM:
         self.headings = None  # wall_heading: HeadingObservation, value [T] (nan: none)
         if wh is not None:
             angles = torch.as_tensor(traversal.beam_angles, dtype=self.obs.dtype)
-            direction, support = wall_direction(
-                self.obs, angles, float(traversal.max_range), self.mask, self.cfg.wall_heading_tol
-            )
+            tol = self.cfg.wall_heading_tol
+            if self.cfg.observation == "image":  # the walls' edges in each frame
+                frames = self.obs.reshape(self.T, *traversal.metadata["image_shape"])
+                columns = angles.reshape(frames.shape[1:])[0]  # [W] column bearings
+                direction, support = image_wall_direction(
+                    frames, columns, image_background(frames), tol
+                )
+            else:
+                direction, support = wall_direction(
+                    self.obs, angles, float(traversal.max_range), self.mask, tol
+                )
             ok = support >= self.cfg.wall_heading_support
             value = torch.where(ok, -direction, torch.full_like(direction, math.nan))  # [T]
             self.headings = HeadingObservation(value, wh)
