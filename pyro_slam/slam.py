@@ -180,9 +180,9 @@ class SLAMConfig:
     # Not the paper's model: a Manhattan-world heading observation with this std (rad). Each
     # scan's straight walls give its heading modulo pi / 2 (geometry.wall_direction; images:
     # the walls' edges, geometry.image_wall_direction) if the walls run along the world axes,
-    # as the simulator's mazes' do; the filter samples the
-    # heading exactly conditioned on it (ParticleFilter._heading_proposal) wherever at least
-    # wall_heading_support segments agree within wall_heading_tol rad (None: off)
+    # as the simulator's mazes' do; the filter samples the heading exactly conditioned on it
+    # (ParticleFilter._heading_proposal) wherever at least wall_heading_support segments agree
+    # within wall_heading_tol rad (None: off)
     wall_heading: float | None = None
     wall_heading_tol: float = 1e-3
     wall_heading_support: int = 2
