@@ -37,6 +37,16 @@ by less than ``--alias-tol``). Observation runs are also judged in observation s
 target nor within 0.05 of a pose whose true scan matches the target scan (``--alias-tol``), so an
 aliased target reached at its look-alike place counts as reached.
 
+The upper bound for observation targets (planner ``ground_truth_obs``): the truth's own inverse,
+:meth:`~pyro_slam.planning.GroundTruthEnv.places` (every place whose true, noise-free scan
+matches the target scan, refined; the best one is the goal), planned and executed like
+``ground_truth``. The places also measure the targets' *exact* perceptual aliasing: a target
+with a look-alike place more than 0.05 away whose true scan differs by less than
+``--exact-tol`` (1e-6) cannot be told from it by any inverse reading the scan;
+``obs_oracle_expected_failure`` is the failure ratio of a uniform choice among the exact
+look-alike places, and ``*_obs_failure_ratio_unaliased`` the failure ratios on the runs whose
+target has no exact look-alike.
+
     python benchmarks/navigation.py --out out/navigation --pairs-limit 4
 
 Each maze's rows are saved to ``OUT/mazes/m<seed>.json`` when the maze is done; a re-run with the
@@ -62,6 +72,8 @@ from _common import parse_maze_seeds
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
+# planner rows per pair: the learned model and the truth, to the pose and to the observation
+PLANNERS = ("learned", "ground_truth", "learned_obs", "ground_truth_obs")
 
 
 def main(argv=None) -> int:
@@ -102,6 +114,11 @@ def main(argv=None) -> int:
     p.add_argument("--inverse-steps", type=int, default=1000, help="q(z|x) ELBO steps")
     p.add_argument("--alias-tol", type=float, default=0.01)
     p.add_argument(
+        "--exact-tol", type=float, default=1e-6,
+        help="a place whose true scan differs from the target's by less (mean absolute range, "
+        "after refinement) is an exact look-alike",
+    )  # fmt: skip
+    p.add_argument(
         "--map-poses", choices=["true", "slam"], default="true",
         help="poses the emission and q(M) are fitted at: the traversal's true poses (mapping "
         "with known poses) or the pose means of online DVBF-LM SLAM on it",
@@ -126,7 +143,9 @@ def main(argv=None) -> int:
     runs, targets, resumed = [], [], []
     t0 = time.perf_counter()
     settings = {k: str(v) for k, v in vars(args).items() if k not in ("out", "mazes", "maze_seeds")}
-    settings["rows"] = "2"  # row format: 2 adds the observation-space success (session 19)
+    # row format: 2 adds the observation-space success (session 19), 3 the ground-truth
+    # observation-target planner and the exact look-alikes (session 32)
+    settings["rows"] = "3"
     all_pairs = maze_pairs(args.pairs_limit, args.seed)
     for ms in mazes:
         maze = make_maze("moderate-medium", ms)
@@ -152,12 +171,12 @@ def main(argv=None) -> int:
     )
     summary = {
         "budgets": budgets,
-        "pairs": len(runs) // 3,
+        "pairs": len(runs) // len(PLANNERS),
         "wall_s": time.perf_counter() - t0,
         "resumed_mazes": resumed,
         "args": {k: str(v) for k, v in vars(args).items()},
     }
-    for name in ("learned", "ground_truth", "learned_obs"):
+    for name in PLANNERS:
         rs = [r for r in runs if r["planner"] == name]
         for nz in ("noiseless", "noisy"):
             summary[f"{name}_{nz}"] = [
@@ -193,6 +212,27 @@ def main(argv=None) -> int:
         summary[f"obs_failure_ratio_scan_{nz}"] = float(
             np.mean([not r[f"scan_success_{nz}"] for r in obs])
         )
+    # the upper bound for observation targets: the truth's inverse (GroundTruthEnv.places, the
+    # best-matching pose, exact ties broken by the order of the refinement) and the truth's
+    # planner; and what any inverse reading only the scan can expect on these targets: the
+    # runs whose target has an exact look-alike place > 0.05 away, and the failure ratio of a
+    # uniform choice among the exact look-alikes
+    gobs = [r for r in runs if r["planner"] == "ground_truth_obs"]
+    summary["ground_truth_obs_failure_ratio"] = float(
+        np.mean([not r["success_noiseless"] for r in gobs])
+    )
+    summary["ground_truth_obs_failure_ratio_scan_noiseless"] = float(
+        np.mean([not r["scan_success_noiseless"] for r in gobs])
+    )
+    summary["obs_target_aliased_exact"] = float(
+        np.mean([r["target_lookalikes_exact"] > 0 for r in obs])
+    )
+    summary["obs_oracle_expected_failure"] = float(
+        np.mean([r["target_oracle_failure"] for r in obs])
+    )
+    for name, rs in (("learned_obs", obs), ("ground_truth_obs", gobs)):
+        clear = [not r["success_noiseless"] for r in rs if r["target_lookalikes_exact"] == 0]
+        summary[f"{name}_failure_ratio_unaliased"] = float(np.mean(clear)) if clear else None
     # the search's own resolution: where the agent did reach the target, the smallest
     # difference found near it is not 0 (grid 0.01, 1 deg), so a tolerance below its maximum
     # would reject the target itself
@@ -225,6 +265,9 @@ def main(argv=None) -> int:
         "mode_within_0.025": float(np.mean(em <= 0.025)),
         "mode_within_0.05": float(np.mean(em <= 0.05)),
         "aliased": float(np.mean(al)),
+        "lookalike_exact": float(np.mean([t["lookalikes_exact"] > 0 for t in targets])),
+        "oracle_expected_failure": float(np.mean([t["oracle_failure"] for t in targets])),
+        "gt_inverse_within_0.05": float(np.mean([t["gt_inverse_error"] <= 0.05 for t in targets])),
         "mode_far_and_model_prefers_it": float(
             np.mean(
                 [t["error_mode"] > 0.05 and t["ll_mode"] >= t["ll_true_refined"] for t in targets]
@@ -259,12 +302,14 @@ def _counts(runs: list[dict]) -> dict[str, dict[str, int]]:
     observation targets missed by position and in observation space (``scan_success``), and
     the latter by cause: ``not_found`` (no plan), ``wrong_goal`` (a plan to an inferred goal
     more than 0.05 from the target, ending where the target's view is not), ``execution`` (the
-    goal was within 0.05 of the target, the executed controls ended elsewhere)."""
+    goal was within 0.05 of the target, the executed controls ended elsewhere); observation
+    runs whose target has an exact look-alike place more than 0.05 away, and the ground-truth
+    observation-target planner's misses by position."""
     out = {}
     for ms in sorted({r["maze"] for r in runs}):
         by = {
             p: {(r["start"], r["goal"]): r for r in runs if r["maze"] == ms and r["planner"] == p}
-            for p in ("learned", "ground_truth", "learned_obs")
+            for p in PLANNERS
         }
         solved = [k for k, r in by["ground_truth"].items() if r["success_noiseless"]]
         obs = by["learned_obs"].values()
@@ -281,6 +326,10 @@ def _counts(runs: list[dict]) -> dict[str, dict[str, int]]:
             ),
             "obs_missed_scan_execution": sum(
                 r["found"] and r["inference_error"] <= 0.05 for r in missed
+            ),
+            "obs_target_aliased": sum(r.get("target_lookalikes_exact", 0) > 0 for r in obs),
+            "gt_obs_missed": sum(
+                not r["success_noiseless"] for r in by["ground_truth_obs"].values()
             ),
         }
     out["all"] = {k: sum(c[k] for c in out.values()) for k in next(iter(out.values()), {})}
@@ -303,6 +352,14 @@ def maze_pairs(pairs_limit: int, seed: int) -> dict[int, list[tuple[int, int]]]:
             pairs = [pairs[i] for i in rng.choice(len(pairs), pairs_limit, replace=False)]
         out[ms] = pairs
     return out
+
+
+def observation_targets(pts: np.ndarray, ms: int, seed: int) -> np.ndarray:
+    """The observation targets of maze ``ms``: every grid point of ``pts [n, 2]``, two random
+    headings each, ``[2 n, 3]`` (own rng: the pairs drawn in main stay those of the
+    pose-to-pose runs)."""
+    trng = np.random.default_rng([seed, ms])
+    return np.concatenate([np.repeat(pts, 2, 0), trng.uniform(-np.pi, np.pi, (2 * len(pts), 1))], 1)
 
 
 def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
@@ -334,12 +391,7 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
         lenv, traversal, steps=args.inverse_steps, sleep_steps=args.sleep_steps, seed=ms
     )
     inv_fit_s = time.perf_counter() - t
-    # observation targets: every grid point, two random headings each (own rng: the pairs
-    # drawn in main stay those of the pose-to-pose runs)
-    trng = np.random.default_rng([args.seed, ms])
-    tposes = np.concatenate(
-        [np.repeat(pts, 2, 0), trng.uniform(-np.pi, np.pi, (2 * len(pts), 1))], 1
-    )
+    tposes = observation_targets(pts, ms, args.seed)  # [2 * 25, 3]
     tscans = envs["ground_truth"].scan(tposes)  # [2 * 25, B]
     t = time.perf_counter()
     mode, ll_mode = (v.numpy() for v in inv.infer(tscans))
@@ -348,10 +400,17 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
     zt = inv.refine(tscans, torch.as_tensor(tposes, dtype=tscans.dtype))
     ll_true = inv.log_likelihood(tscans, zt).detach().numpy()
     enc = inv.infer(tscans, n_samples=0, n_restarts=0, refine_steps=0)[0].numpy()
-    aliased = _aliased(envs["ground_truth"], maze, tposes, tscans.numpy(), args.alias_tol)
+    # the truth's own inverse: every place whose TRUE scan matches the target's (refined), the
+    # best of them the ground-truth planner's goal; exact look-alikes (< --exact-tol) more than
+    # 0.05 away are ambiguity that no inverse reading the scan can resolve
+    places = envs["ground_truth"].places(tscans.numpy())
     # the world's own ambiguity at the answer: the TRUE scan at the mode vs the target scan
     mode_diff = np.abs(envs["ground_truth"].scan(mode).numpy() - tscans.numpy()).mean(1)
     for i, tp in enumerate(tposes):
+        pz, pd = places[i]  # [k, 3], [k]
+        far = np.hypot(*(pz[:, :2] - tp[:2]).T) > 0.05  # [k]
+        exact = pd < args.exact_tol  # [k]
+        n_far, n_near = int((far & exact).sum()), int((~far & exact).sum())
         targets.append(
             {
                 "maze": ms,
@@ -361,7 +420,13 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
                 "error_mode": float(np.hypot(*(mode[i, :2] - tp[:2]))),
                 "error_encoder": float(np.hypot(*(enc[i, :2] - tp[:2]))),
                 "heading_error_mode": float(heading_error(mode[i, 2], tp[2])),
-                "aliased": bool(aliased[i]),
+                "aliased": bool((far & (pd < args.alias_tol)).any()),
+                "lookalikes_exact": n_far,
+                # a uniform choice among the exact look-alike places misses the target this often
+                "oracle_failure": n_far / (n_far + max(n_near, 1)),
+                "gt_inverse": pz[0].tolist(),
+                "gt_inverse_error": float(np.hypot(*(pz[0, :2] - tp[:2]))),
+                "gt_inverse_diff": float(pd[0]),
                 "true_scan_diff_at_mode": float(mode_diff[i]),
                 "ll_mode": float(ll_mode[i]),
                 "ll_true_refined": float(ll_true[i]),
@@ -373,12 +438,13 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
         )
     for a, b in tqdm(pairs, desc=f"maze {ms} pairs", leave=False):
         start = np.array([*pts[a], 0.0])
-        goals = {"learned": pts[b], "ground_truth": pts[b], "learned_obs": mode[2 * b, :2]}
+        goals = {"learned": pts[b], "ground_truth": pts[b], "learned_obs": mode[2 * b, :2],
+                 "ground_truth_obs": places[2 * b][0][0, :2]}  # fmt: skip
         if args.start_scan:  # the agent's own scan at the start: trusted free space
             seen = lenv.with_observation(start, envs["ground_truth"].scan(start)[0].numpy())
-        for name in ("learned", "ground_truth", "learned_obs"):
+        for name in PLANNERS:
             env, goal = envs[name.removesuffix("_obs")], goals[name]
-            if args.start_scan and name != "ground_truth":
+            if args.start_scan and not name.startswith("ground_truth"):
                 env = seen
             t = time.perf_counter()
             r = plan(
@@ -396,16 +462,18 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
                 "steps": len(r.controls),
                 "plan_s": wall,
             }
-            if name == "learned_obs":
+            if name.endswith("_obs"):
                 row["target_heading"] = float(tposes[2 * b, 2])
                 row["inference_error"] = float(np.hypot(*(goal - pts[b])))
+                row["target_lookalikes_exact"] = targets[2 * b]["lookalikes_exact"]
+                row["target_oracle_failure"] = targets[2 * b]["oracle_failure"]
             for noise_name, noise in (("noiseless", 0), ("noisy", None)):
                 ex, coll = execute(maze, start, r.controls, noise=noise, seed=a * 100 + b)
                 err = float(np.hypot(*(ex[-1, :2] - pts[b])))  # to the TRUE target
                 row[f"error_{noise_name}"] = err
                 row[f"success_{noise_name}"] = bool(r.success and err <= 0.05)
                 row[f"collisions_{noise_name}"] = int(coll)
-                if name == "learned_obs":  # the place it reached looks like the target
+                if name.endswith("_obs"):  # the place it reached looks like the target
                     d = _scan_match(envs["ground_truth"], maze, ex[-1, :2], tscans[2 * b].numpy())
                     row[f"scan_diff_{noise_name}"] = d
                     row[f"scan_success_{noise_name}"] = bool(
@@ -435,24 +503,6 @@ def _slam_poses(maze, tour, steps: int, seed: int = 1, **overrides):
     summary = {"final": float(err[-1]), "mean": float(err.mean()), "max": float(err.max()),
                "pi_final": float(pi[-1]), "pi_mean": float(pi.mean())}  # fmt: skip
     return tr, est, summary
-
-
-def _aliased(gt_env, maze, poses, scans, tol, spacing=0.02, headings=24) -> np.ndarray:
-    """Per target pose ``[n, 3]`` with true scan ``[n, B]``: is there a free pose (grid of
-    ``spacing`` x ``headings``) more than 0.05 away whose *true* scan differs by less than
-    ``tol`` mean absolute range? Then one scan cannot tell the two apart."""
-    from simulators.world import point_segment_distance
-
-    xs = np.arange(spacing / 2, maze.side, spacing)
-    xy = np.array([(x, y) for x in xs for y in xs])
-    xy = xy[[point_segment_distance(p, maze.walls).min() > 0.02 for p in xy]]
-    grid = _with_headings(xy, headings)  # [G, 3]
-    gscans = gt_env.scan(grid).numpy()  # [G, B]
-    out = np.zeros(len(poses), dtype=bool)
-    for i in range(len(poses)):
-        far = np.hypot(*(grid[:, :2] - poses[i, :2]).T) > 0.05
-        out[i] = bool((np.abs(gscans[far] - scans[i]).mean(1) < tol).any())
-    return out
 
 
 def _scan_match(gt_env, maze, xy, scan, radius=0.05, spacing=0.01, headings=360) -> float:
@@ -489,13 +539,14 @@ def _plot(s, path):
         ("learned", "tab:blue"),
         ("ground_truth", "tab:green"),
         ("learned_obs", "tab:orange"),
+        ("ground_truth_obs", "tab:red"),
     ):
         ax.plot(s["budgets"], s[f"{name}_noiseless"], "-", color=c, label=f"{name}, noise-free")
         ax.plot(s["budgets"], s[f"{name}_noisy"], "--", color=c, label=f"{name}, actuation noise")
     ax.set_xlabel("A* expansion budget")
     ax.set_ylabel("success ratio")
     ax.set_ylim(-0.02, 1.02)
-    ax.set_title(f"navigation, {s['pairs']} pairs (learned_obs: observation targets)")
+    ax.set_title(f"navigation, {s['pairs']} pairs (*_obs: observation targets)")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

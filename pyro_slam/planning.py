@@ -211,6 +211,97 @@ class GroundTruthEnv:
     def valid(self, z) -> np.ndarray:
         return np.ones(len(z), dtype=bool)
 
+    def places(
+        self,
+        scans,
+        *,
+        spacing: float = 0.01,
+        n_headings: int = 360,
+        coarse_tol: float = 0.03,
+        separation: float = 0.05,
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The exact inverse of the noise-free LiDAR: for each scan of ``scans [N, B]``, the
+        distinct places whose *true* scan matches it, as ``(poses [k, 3], diffs [k])`` sorted by
+        ``diffs``, the mean absolute range difference (``k = 0`` if no pose is within
+        ``coarse_tol``).
+
+        The positions of a ``spacing`` grid (free of walls) are ray-cast once in ``n_headings``
+        directions (a multiple of the beam count: the scan of every grid heading is then a
+        rotation of those rays). The grid poses whose scan is within ``coarse_tol`` of the
+        target are thinned greedily, best first, to one per ``separation``, and each is refined
+        by Nelder-Mead on the difference (non-smooth, so derivative-free); refinements that end
+        within ``separation`` of a better one are dropped. ``poses[0]`` is the
+        best match, the truth's mode: the ground-truth planner's goal for an observation target.
+        Entries with ``diffs`` below ~1e-6 are exact look-alikes, perceptual aliasing that no
+        inverse model reading this one scan can resolve.
+        """
+        from scipy.optimize import minimize
+
+        from simulators import raycast
+
+        def diff(z, x):  # float64, no torch round trip
+            r = raycast(self.maze.walls, z[None, :2], z[2] + self.lidar.beam_angles[None],
+                        self.lidar.max_range)  # fmt: skip
+            return np.abs(r[0] - x).mean()
+
+        B = self.lidar.n_beams
+        if n_headings % B:
+            raise ValueError(f"n_headings={n_headings} must be a multiple of the {B} beams")
+        scans = np.atleast_2d(np.asarray(scans, dtype=np.float64))  # [N, B]
+        if scans.shape[-1] != B:
+            raise ValueError(f"scans have {scans.shape[-1]} beams, the LiDAR {B}: {scans.shape}")
+        xy, rays = self._ray_grid(spacing, n_headings)  # [P, 2], [P, H]
+        angles = 2 * np.pi * np.arange(n_headings) / n_headings  # [H]
+        step = n_headings // B
+        out = []
+        for x in scans:
+            d = torch.zeros_like(rays)  # [P, H]: grid pose (p, h) reads ray h + step * i
+            for i in range(B):
+                d += (torch.roll(rays, -i * step, dims=1) - float(x[i])).abs()
+            best, h = (d / B).min(1)  # [P]
+            reps: list[int] = []
+            for p in torch.argsort(best).tolist():
+                if best[p] > coarse_tol:
+                    break
+                if all(np.hypot(*(xy[p] - xy[q])) > separation for q in reps):
+                    reps.append(p)
+            poses, diffs = [], []
+            for p in reps:
+                z0 = np.array([*xy[p], angles[h[p]]])
+                simplex = z0 + np.array([[0, 0, 0], [spacing / 2, 0, 0], [0, spacing / 2, 0],
+                                         [0, 0, np.pi / n_headings]])  # fmt: skip
+                r = minimize(
+                    diff, z0, args=(x,), method="Nelder-Mead",
+                    options={"initial_simplex": simplex, "xatol": 1e-8, "fatol": 1e-10},
+                )  # fmt: skip
+                z = r.x.copy()
+                z[2] = (z[2] + np.pi) % (2 * np.pi) - np.pi
+                poses.append(z)
+                diffs.append(float(r.fun))
+            keep: list[int] = []  # refinements that converged to one place count once
+            for j in np.argsort(diffs, kind="stable"):
+                if all(np.hypot(*(poses[j][:2] - poses[q][:2])) > separation for q in keep):
+                    keep.append(j)
+            out.append((np.array(poses).reshape(-1, 3)[keep], np.array(diffs)[keep]))
+        return out
+
+    def _ray_grid(self, spacing: float, n_headings: int):
+        """Cached: the wall-free positions ``[P, 2]`` of a ``spacing`` grid over the maze and
+        their ranges ``[P, n_headings]`` at ``n_headings`` evenly spaced directions from 0."""
+        from simulators import raycast
+        from simulators.world import point_segment_distance
+
+        key = (spacing, n_headings)
+        if getattr(self, "_grid_key", None) != key:
+            xs = np.arange(spacing / 2, self.maze.side, spacing)
+            xy = np.stack(np.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
+            xy = xy[[point_segment_distance(p, self.maze.walls).min() > 1e-3 for p in xy]]
+            ang = 2 * np.pi * np.arange(n_headings) / n_headings
+            rays = raycast(self.maze.walls, xy, np.broadcast_to(ang, (len(xy), n_headings)),
+                           self.lidar.max_range)  # fmt: skip
+            self._grid_key, self._grid = key, (xy, torch.as_tensor(rays))
+        return self._grid
+
 
 # --------------------------------------------------------------------------- hybrid A*
 @dataclass
@@ -484,7 +575,8 @@ def add_navigate_parser(subparsers) -> argparse.ArgumentParser:
         default=None,
         metavar=("X", "Y", "H"),
         help="observation target: render the simulator's scan at this pose, infer the goal "
-        "with the inverse model q(z|x) (pyro_slam.inverse); overrides --goal",
+        "with the inverse model q(z|x) (pyro_slam.inverse; with --planner ground_truth the "
+        "truth's own inverse, GroundTruthEnv.places); overrides --goal",
     )
     p.add_argument("--inverse-steps", type=int, default=1000, help="ELBO steps of q(z|x)")
     p.add_argument("--inverse-sleep-steps", type=int, default=3000, help="sleep steps of q(z|x)")
@@ -538,15 +630,24 @@ def run_navigate(args) -> int:
         env = lenv.with_observation(start, GroundTruthEnv(maze).scan(start)[0].numpy())
     else:
         env = GroundTruthEnv(maze)
-    inferred = None
+    inferred, lookalikes = None, None
     if args.target_scan_from_pose is not None:
         from .inverse import fit_inverse
 
         target = np.array(args.target_scan_from_pose)
-        inv = fit_inverse(
-            lenv, tr, steps=args.inverse_steps, sleep_steps=args.inverse_sleep_steps, progress=True
-        )
-        inferred = inv.infer(GroundTruthEnv(maze).scan(target)[0])[0].numpy()
+        truth = GroundTruthEnv(maze)
+        tscan = truth.scan(target)  # [1, B]
+        pz, pd = truth.places(tscan.numpy())[0]  # every place that looks like the target
+        far = np.hypot(*(pz[:, :2] - target[:2]).T) > 0.05
+        lookalikes = int((far & (pd < 1e-6)).sum())
+        if args.planner == "learned":
+            inv = fit_inverse(
+                lenv, tr, steps=args.inverse_steps, sleep_steps=args.inverse_sleep_steps,
+                progress=True,
+            )  # fmt: skip
+            inferred = inv.infer(tscan[0])[0].numpy()
+        else:  # the truth's own inverse: its best-matching place
+            inferred = pz[0]
         goal = inferred[:2]
     res = plan(env, start, goal, max_expansions=args.max_expansions)
     executed, coll = execute(maze, start, res.controls, noise=None if args.noise else 0)
@@ -575,5 +676,6 @@ def run_navigate(args) -> int:
     if inferred is not None:
         report["inferred_goal"] = inferred.tolist()
         report["inference_error"] = float(np.hypot(*(inferred[:2] - target[:2])))
+        report["target_lookalikes_exact"] = lookalikes  # places > 0.05 away that look the same
     print(json.dumps(report))
     return 0

@@ -307,7 +307,7 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     run("navigation.py", *args)
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["pairs"] == 2 and s["budgets"][-1] == 60
-    for name in ("learned", "ground_truth", "learned_obs"):
+    for name in ("learned", "ground_truth", "learned_obs", "ground_truth_obs"):
         curve = s[f"{name}_noiseless"]
         assert len(curve) == len(s["budgets"]) and all(0 <= v <= 1 for v in curve)
         assert curve == sorted(curve)  # success can only grow with the budget
@@ -318,13 +318,20 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     targets = json.loads((tmp_path / "targets.json").read_text())
     assert min(t["traversal_steps"] for t in targets) > 300
     runs = json.loads((tmp_path / "runs.json").read_text())
-    assert len(runs) == 6 and {r["planner"] for r in runs} == {"learned", "ground_truth",
-                                                               "learned_obs"}  # fmt: skip
+    planners = {"learned", "ground_truth", "learned_obs", "ground_truth_obs"}
+    assert len(runs) == 8 and {r["planner"] for r in runs} == planners
+    # the truth's inverse finds every target's exact scan; the oracle's expected failure is 0
+    # on targets without an exact look-alike 0.05 away and below 1 on the others
+    for t in targets:
+        assert t["gt_inverse_diff"] < 1e-6
+        assert (t["oracle_failure"] > 0) == (t["lookalikes_exact"] > 0) and t["oracle_failure"] < 1
+    assert inv["lookalike_exact"] == np.mean([t["lookalikes_exact"] > 0 for t in targets])
+    assert 0 <= s["obs_oracle_expected_failure"] <= s["obs_target_aliased_exact"]
     assert (tmp_path / "navigation.png").stat().st_size > 10_000
     assert s["resumed_mazes"] == []
     # observation runs judged in observation space too: reaching the target counts as reaching
     # its observation, so that failure ratio can only be lower
-    for r in (r for r in runs if r["planner"] == "learned_obs"):
+    for r in (r for r in runs if r["planner"].endswith("_obs")):
         for nz in ("noiseless", "noisy"):
             assert r[f"scan_diff_{nz}"] >= 0
             assert r[f"scan_success_{nz}"] >= r[f"success_{nz}"]
@@ -345,6 +352,7 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
         )
     assert s["obs_failure_ratio"] == c["all"]["obs_missed"] / 2
     assert s["obs_failure_ratio_scan_noiseless"] == c["all"]["obs_missed_scan"] / 2
+    assert s["ground_truth_obs_failure_ratio"] == c["all"]["gt_obs_missed"] / 2
     # a second run resumes from the finished maze: the same rows, timings included
     run("navigation.py", *args)
     assert json.loads((tmp_path / "runs.json").read_text()) == runs
@@ -374,15 +382,16 @@ def test_navigation_counts_sort_the_missed_observation_targets_by_cause():
         return {"maze": maze, "start": 0, "goal": goal, "planner": planner,
                 "success_noiseless": ok, "found": True, **kw}  # fmt: skip
 
-    def obs(maze, goal, ok, scan_ok, found=True, inference_error=0.01):
+    def obs(maze, goal, ok, scan_ok, found=True, inference_error=0.01, aliased=0):
         return row(maze, goal, "learned_obs", ok, scan_success_noiseless=scan_ok, found=found,
-                   inference_error=inference_error)  # fmt: skip
+                   inference_error=inference_error, target_lookalikes_exact=aliased)  # fmt: skip
 
     runs = [
         *(row(1001, g, "ground_truth", g != 4) for g in range(1, 6)),  # 4 solved by the truth
         *(row(1001, g, "learned", g not in (3, 4)) for g in range(1, 6)),  # misses 3 (and 4)
         obs(1001, 1, True, True),
-        obs(1001, 2, False, True, inference_error=0.3),  # a look-alike place: reached
+        obs(1001, 2, False, True, inference_error=0.3, aliased=2),  # a look-alike: reached
+        *(row(1001, g, "ground_truth_obs", g not in (2, 4)) for g in range(1, 6)),
         obs(1001, 3, False, False, found=False),
         obs(1001, 4, False, False, inference_error=0.3),  # a wrong goal
         obs(1001, 5, False, False),  # right goal, ended elsewhere
@@ -394,7 +403,7 @@ def test_navigation_counts_sort_the_missed_observation_targets_by_cause():
     assert c["1001"] == {
         "pairs": 5, "gt_solved": 4, "learned_on_gt_solved": 3, "obs_missed": 4,
         "obs_missed_scan": 3, "obs_missed_scan_not_found": 1, "obs_missed_scan_wrong_goal": 1,
-        "obs_missed_scan_execution": 1,
+        "obs_missed_scan_execution": 1, "obs_target_aliased": 1, "gt_obs_missed": 2,
     }  # fmt: skip
     assert c["1002"]["obs_missed_scan_wrong_goal"] == 1 and c["1002"]["gt_solved"] == 1
     assert c["all"]["pairs"] == 6 and c["all"]["obs_missed_scan"] == 4
@@ -694,3 +703,39 @@ def test_slam_pose_graph_spreads_a_loop_closure_back_along_the_odometry(tmp_path
     script = str(REPO / "benchmarks" / "slam_pose_graph.py")
     proc = subprocess.run([sys.executable, script, str(tmp_path)], capture_output=True, text=True)
     assert proc.returncode != 0 and "online_m1002_t1_T400.npz: no ['estimate']" in proc.stderr
+
+
+def test_aliasing_counts_exact_look_alikes_and_the_ideal_failure():
+    """In an empty square room every pose but the centre has three exact look-alikes (the
+    room's rotations), so an ideal inverse picks the right one of four: it fails 3/4 of the
+    time; the centre is unique. A longer range does not help in an empty room, and a sensor
+    that is not BEAMSxRANGE is a usage error."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from aliasing import _summary, aliasing
+
+    from simulators import LidarConfig
+    from simulators.maze import Maze
+
+    n = 6
+    h, v = np.zeros((n, n + 1), bool), np.zeros((n + 1, n), bool)
+    h[:, [0, n]], v[[0, n], :] = True, True
+    room = Maze("room", 0, n, 1 / n, h, v)
+    tposes = np.array([[0.3, 0.4, 0.7], [0.5, 0.5, 0.2], [0.2, 0.2, -1.0]])
+    r = aliasing(room, tposes, LidarConfig(), tols=[1e-6], spacing=0.01)[1e-6]
+    assert r["lookalikes"] == [3, 0, 3]
+    assert r["ideal_failure"] == pytest.approx([0.75, 0.0, 0.75])
+    r = aliasing(room, tposes[:1], LidarConfig(n_beams=40, max_range=1.5), [1e-6], 0.01)
+    assert r[1e-6]["lookalikes"] == [3]
+    # the summary splits the targets by whether free_grid moved their point to a cell centre
+    per_maze = {
+        "1": {"lookalikes": [3, 0], "ideal_failure": [0.75, 0.0], "moved": [True, False]},
+        "2": {"lookalikes": [1, 0], "ideal_failure": [0.5, 0.0], "moved": [True, True]},
+    }
+    s = _summary(per_maze)
+    assert s["targets"] == 4 and s["aliased"] == 0.5 and s["ideal_failure"] == 0.3125
+    assert s["kept"] == {"targets": 1, "aliased": 0.0, "ideal_failure": 0.0}
+    assert s["moved_to_cell_centre"]["ideal_failure"] == pytest.approx(1.25 / 3)
+    assert s["per_maze"]["2"]["aliased"] == 0.5
+    cmd = [sys.executable, str(REPO / "benchmarks" / "aliasing.py"), "--sensors", "20-0.5"]
+    err = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert err.returncode == 2 and "sensor '20-0.5': expected BEAMSxRANGE" in err.stderr

@@ -96,4 +96,9 @@ def test_navigate_cli_with_observation_target(tmp_path, capsys):
     assert cli.main(args) == 0
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert len(report["inferred_goal"]) == 3 and report["inference_error"] >= 0
+    assert report["target_lookalikes_exact"] >= 0
     assert out.is_file()
+    # the ground-truth planner takes the truth's own inverse: the target's place, exactly
+    assert cli.main([*args, "--planner", "ground_truth"]) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["target_lookalikes_exact"] == 0 and report["inference_error"] < 1e-4

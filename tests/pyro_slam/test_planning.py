@@ -149,3 +149,35 @@ def test_with_observation_trusts_the_seen_free_space_without_changing_the_env():
     r = plan(seen, start, start[:2] + [0.0, 0.3], max_expansions=200)
     assert not r.success and r.expansions > 1  # moves in the seen free space, no further
     assert np.all(np.hypot(*(r.visited[:, :2] - start[:2]).T) < 0.3)
+
+
+def test_ground_truth_places_finds_every_exact_look_alike():
+    """The truth's inverse of a noise-free scan: in an empty square room a pose has exactly
+    four look-alikes (the room's rotations by 90 degrees), found to float precision; a grid
+    point of a test maze whose view is unique has one place, and a near look-alike elsewhere
+    is ranked behind it by its (non-zero) difference."""
+    from simulators.maze import Maze
+
+    n = 6
+    h, v = np.zeros((n, n + 1), bool), np.zeros((n + 1, n), bool)
+    h[:, [0, n]], v[[0, n], :] = True, True  # outer walls only
+    env = GroundTruthEnv(Maze("room", 0, n, 1 / n, h, v))
+    poses, diffs = env.places(env.scan(np.array([0.3, 0.4, 0.7])))[0]
+    assert len(poses) == 4 and diffs.max() < 1e-6
+    want = {(0.3, 0.4), (0.6, 0.3), (0.7, 0.6), (0.4, 0.7)}
+    assert {tuple(np.round(p[:2], 4)) for p in poses} == want
+    for p in poses:  # each rotation of the room turns the heading by a multiple of pi / 2
+        k = (p[2] - 0.7) / (np.pi / 2)
+        assert abs(k - round(k)) < 1e-4
+
+    maze = make_maze("moderate-medium", 1001)
+    env, pts = GroundTruthEnv(maze), free_grid(maze)
+    unique, near = env.places(env.scan(np.array([[*pts[3], 0.7], [*pts[0], 0.2]])))
+    assert len(unique[0]) == 1 and unique[1][0] < 1e-6
+    assert np.hypot(*(unique[0][0, :2] - pts[3])) < 1e-4
+    assert np.hypot(*(near[0][0, :2] - pts[0])) < 1e-4 and near[1][0] < 1e-6
+    assert near[1][1] > 1e-3  # the best place elsewhere differs: not a look-alike
+    with pytest.raises(ValueError, match="multiple of the 20 beams"):
+        env.places(env.scan(np.array([0.1, 0.1, 0.0])), n_headings=50)
+    with pytest.raises(ValueError, match="19 beams"):
+        env.places(np.zeros((1, 19)))
