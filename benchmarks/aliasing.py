@@ -63,21 +63,15 @@ def aliasing(maze, tposes: np.ndarray, lidar, tols, spacing: float) -> dict:
     tolerance of ``tols`` (mean absolute range difference): per target the number of look-alike
     places more than 0.05 away and the failure probability of a uniform choice among all its
     places within the tolerance. Returns ``{tol: {"lookalikes": [n], "ideal_failure": [n]}}``."""
-    from pyro_slam.planning import GroundTruthEnv
+    from pyro_slam.planning import GroundTruthEnv, lookalikes
 
     env = GroundTruthEnv(maze, lidar)
     n_headings = 360 if 360 % lidar.n_beams == 0 else 18 * lidar.n_beams
     places = env.places(env.scan(tposes).numpy(), spacing=spacing, n_headings=n_headings)
     out = {}
     for tol in tols:
-        far_counts, fail = [], []
-        for tp, (pz, pd) in zip(tposes, places):
-            far = np.hypot(*(pz[:, :2] - tp[:2]).T) > 0.05  # [k]
-            alike = pd < tol
-            n_far, n_near = int((far & alike).sum()), int((~far & alike).sum())
-            far_counts.append(n_far)
-            fail.append(n_far / (n_far + max(n_near, 1)))
-        out[tol] = {"lookalikes": far_counts, "ideal_failure": fail}
+        counts = [lookalikes(pz, pd, tp, tol) for tp, (pz, pd) in zip(tposes, places)]
+        out[tol] = {"lookalikes": [c[0] for c in counts], "ideal_failure": [c[1] for c in counts]}
     return out
 
 

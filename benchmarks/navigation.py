@@ -371,7 +371,14 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
     from tqdm.auto import tqdm
 
     from pyro_slam.inverse import fit_inverse, heading_error
-    from pyro_slam.planning import GroundTruthEnv, execute, free_grid, learned_env, plan
+    from pyro_slam.planning import (
+        GroundTruthEnv,
+        execute,
+        free_grid,
+        learned_env,
+        lookalikes,
+        plan,
+    )
 
     runs, targets = [], []
     pts = free_grid(maze)
@@ -408,9 +415,7 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
     mode_diff = np.abs(envs["ground_truth"].scan(mode).numpy() - tscans.numpy()).mean(1)
     for i, tp in enumerate(tposes):
         pz, pd = places[i]  # [k, 3], [k]
-        far = np.hypot(*(pz[:, :2] - tp[:2]).T) > 0.05  # [k]
-        exact = pd < args.exact_tol  # [k]
-        n_far, n_near = int((far & exact).sum()), int((~far & exact).sum())
+        n_far, oracle_failure = lookalikes(pz, pd, tp, args.exact_tol)
         targets.append(
             {
                 "maze": ms,
@@ -420,10 +425,10 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
                 "error_mode": float(np.hypot(*(mode[i, :2] - tp[:2]))),
                 "error_encoder": float(np.hypot(*(enc[i, :2] - tp[:2]))),
                 "heading_error_mode": float(heading_error(mode[i, 2], tp[2])),
-                "aliased": bool((far & (pd < args.alias_tol)).any()),
+                "aliased": lookalikes(pz, pd, tp, args.alias_tol)[0] > 0,
                 "lookalikes_exact": n_far,
                 # a uniform choice among the exact look-alike places misses the target this often
-                "oracle_failure": n_far / (n_far + max(n_near, 1)),
+                "oracle_failure": oracle_failure,
                 "gt_inverse": pz[0].tolist(),
                 "gt_inverse_error": float(np.hypot(*(pz[0, :2] - tp[:2]))),
                 "gt_inverse_diff": float(pd[0]),

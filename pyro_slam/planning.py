@@ -187,6 +187,7 @@ class GroundTruthEnv:
         self.lidar = lidar or LidarConfig()
         self.world = World(maze, self.lidar, odometry_noise=0, seed=0)
         self.bounds = maze_bounds(maze)
+        self._grid_key, self._grid = None, None  # places(): the ray-cast search grid
 
     def scan(self, z) -> torch.Tensor:
         from simulators import raycast
@@ -292,7 +293,7 @@ class GroundTruthEnv:
         from simulators.world import point_segment_distance
 
         key = (spacing, n_headings)
-        if getattr(self, "_grid_key", None) != key:
+        if self._grid_key != key:
             xs = np.arange(spacing / 2, self.maze.side, spacing)
             xy = np.stack(np.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
             xy = xy[[point_segment_distance(p, self.maze.walls).min() > 1e-3 for p in xy]]
@@ -301,6 +302,18 @@ class GroundTruthEnv:
                            self.lidar.max_range)  # fmt: skip
             self._grid_key, self._grid = key, (xy, torch.as_tensor(rays))
         return self._grid
+
+
+def lookalikes(poses, diffs, target, tol: float = 1e-6, radius: float = 0.05) -> tuple[int, float]:
+    """Perceptual aliasing of a target pose ``target [2 or 3]`` from its
+    :meth:`GroundTruthEnv.places` ``(poses [k, 3], diffs [k])``: the number of look-alike places
+    (``diffs < tol``) more than ``radius`` from the target, and how often a uniform choice among
+    all its places within ``tol`` (the target's own counted once at least) lands farther than
+    ``radius`` -- the expected failure of an ideal inverse that reads only the scan."""
+    far = np.hypot(*(np.asarray(poses)[:, :2] - np.asarray(target)[:2]).T) > radius  # [k]
+    alike = np.asarray(diffs) < tol  # [k]
+    n_far, n_near = int((far & alike).sum()), int((~far & alike).sum())
+    return n_far, n_far / (n_far + max(n_near, 1))
 
 
 # --------------------------------------------------------------------------- hybrid A*
@@ -630,7 +643,7 @@ def run_navigate(args) -> int:
         env = lenv.with_observation(start, GroundTruthEnv(maze).scan(start)[0].numpy())
     else:
         env = GroundTruthEnv(maze)
-    inferred, lookalikes = None, None
+    inferred, n_lookalikes = None, None
     if args.target_scan_from_pose is not None:
         from .inverse import fit_inverse
 
@@ -638,8 +651,7 @@ def run_navigate(args) -> int:
         truth = GroundTruthEnv(maze)
         tscan = truth.scan(target)  # [1, B]
         pz, pd = truth.places(tscan.numpy())[0]  # every place that looks like the target
-        far = np.hypot(*(pz[:, :2] - target[:2]).T) > 0.05
-        lookalikes = int((far & (pd < 1e-6)).sum())
+        n_lookalikes = lookalikes(pz, pd, target)[0]
         if args.planner == "learned":
             inv = fit_inverse(
                 lenv, tr, steps=args.inverse_steps, sleep_steps=args.inverse_sleep_steps,
@@ -676,6 +688,6 @@ def run_navigate(args) -> int:
     if inferred is not None:
         report["inferred_goal"] = inferred.tolist()
         report["inference_error"] = float(np.hypot(*(inferred[:2] - target[:2])))
-        report["target_lookalikes_exact"] = lookalikes  # places > 0.05 away that look the same
+        report["target_lookalikes_exact"] = n_lookalikes  # places > 0.05 away that look the same
     print(json.dumps(report))
     return 0

@@ -13,6 +13,7 @@ from pyro_slam.planning import (
     free_grid,
     inside_scan,
     learned_env,
+    lookalikes,
     plan,
     safety,
     safety_cost,
@@ -166,6 +167,9 @@ def test_ground_truth_places_finds_every_exact_look_alike():
     assert len(poses) == 4 and diffs.max() < 1e-6
     want = {(0.3, 0.4), (0.6, 0.3), (0.7, 0.6), (0.4, 0.7)}
     assert {tuple(np.round(p[:2], 4)) for p in poses} == want
+    # three look-alikes besides the target: an ideal inverse picks the wrong one 3 times in 4
+    assert lookalikes(poses, diffs, [0.3, 0.4]) == (3, 0.75)
+    assert lookalikes(poses, diffs, [0.3, 0.4], radius=0.5) == (0, 0.0)
     for p in poses:  # each rotation of the room turns the heading by a multiple of pi / 2
         k = (p[2] - 0.7) / (np.pi / 2)
         assert abs(k - round(k)) < 1e-4
