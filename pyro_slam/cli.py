@@ -1,10 +1,12 @@
-"""The ``pyro-slam`` command line.
+"""The ``pyro-slam`` command line: the only argparse layer of the project.
 
     pyro-slam simulate --maze moderate-medium --steps 3000 --seed 1 --out traversal.npz
-    pyro-slam pretrain --out pretrained/            # emission (+ learned transition), held-out maze
     pyro-slam slam traversal.npz --mode online --out run/     # also .clf / .log / ROS bags
+    pyro-slam slam traversal.npz --preset manhattan --config '{"filter": {"particles": 256}}'
     pyro-slam slam traversal.npz --out run/ --resume          # continue from run/checkpoint.pt
     pyro-slam demo --out out/                       # simulate + SLAM + plots + metrics.json
+    pyro-slam navigate --maze-seed 1001             # hybrid A* in the learned model
+    pyro-slam pretrain --out pretrained/            # emission + learned transition
 
 Every sub-command validates its inputs before computing and exits with status 2 and a one-line
 message naming the file and problem on bad input.
@@ -15,50 +17,38 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
-from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from .data import DatasetError, Traversal, atomic_write
+from simulators import make_maze, simulate_traversal
+from simulators.maze import SCALES
+from simulators.plotting import plot_traversal
+from simulators.traversal import integrate_controls
 
-PRETRAINED = Path(__file__).parent / "pretrained"
-EMISSION_FILE = "emission_lidar20.pt"
-TRANSITION_FILE = "transition_moderate_medium.pt"
-# SLAMConfig.transition_scale for the shipped transition: SLAM filters with its sigma_T scaled by
-# these factors (x, y, heading). A stiffer heading keeps the map's frontier from tilting it, more
-# position noise lets revisits pull the position back (docs/benchmarks.md, session 10)
-TRANSITION_SCALE = (3.0, 3.0, 0.2)
-# ... and where the map is established (the cloud's trust in it near 1) the heading gets the
-# transition's calibrated noise back, with one trust for the whole cloud ("shared" weights): the
-# stiff heading is needed only at the frontier, where a young chart tilts it (session 13)
-TRANSITION_SCALE_TRUSTED = (3.0, 3.0, 1.0)
-SHIPPED_FILTER = dict(
-    transition_scale=TRANSITION_SCALE,
-    transition_scale_trusted=TRANSITION_SCALE_TRUSTED,
-    weighting="shared",
-    # offline SLAM: the paper's cache-started chunk filter for the final poses, no
-    # whole-traversal passes (0.058 against 0.063 on the 24 LiDAR runs; session 16)
-    offline_estimate="cache",
-)
+from . import pretrained
+from .data import DatasetError, Traversal
+from .io import read_any
+from .model import pretrain_transition
+from .planning import GroundTruthEnv, execute, free_grid, learned_env, lookalikes, plan
+from .planning.inverse import fit_inverse
+from .plotting import plot_navigation
+from .slam import SLAM, ConfigError, SLAMConfig, presets, with_overrides
+from .slam.outputs import run_slam
+from .slam.training import pretrain_emission
 
 
 # ----------------------------------------------------------------------------------- helpers
-def _is_real_log(traversal: Traversal) -> bool:
-    """A metric log from a reader (no walls, robot-frame odometry), not a simulated maze."""
-    return not traversal.walls.shape[0] and (
-        traversal.metadata.get("control_model") == "odometry_delta"
-    )
-
-
-def _config(args, traversal: Traversal | None = None):
-    """SLAMConfig from ``--config`` overrides; real logs start from :func:`real_log_config`
-    (beam stride, 0.5 m map, range clip, transition noise from ``--odometry-noise``)."""
-    from .slam import SLAMConfig, real_log_config
-
-    over = {}
+def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
+    """The preset named by ``--preset`` (default: ``real`` for a real log, else the default
+    preset) for this traversal, with the ``--config`` JSON overrides (a string or a file)."""
+    name = args.preset or ("real" if presets.is_real_log(traversal) else presets.DEFAULT)
+    preset = presets.get(name)
+    if getattr(args, "odometry_noise", None) is not None and preset.adapt is presets.adapt_real_log:
+        config = presets.adapt_real_log(traversal, preset.config, odometry_noise=args.odometry_noise)
+    else:
+        config = preset.for_traversal(traversal)
     if args.config:
         src = Path(args.config)
         text = src.read_text() if src.is_file() else args.config
@@ -66,149 +56,15 @@ def _config(args, traversal: Traversal | None = None):
             over = json.loads(text)
         except json.JSONDecodeError as e:
             raise DatasetError(f"--config: not a JSON object or file: {e}") from e
-        names = {f.name for f in fields(SLAMConfig)}
-        bad = sorted(set(over) - names)
-        if bad:
-            raise DatasetError(f"--config: unknown SLAMConfig fields {bad}; known: {sorted(names)}")
-    over["seed"] = args.seed
-    noise = getattr(args, "odometry_noise", None)
-    if traversal is not None and _is_real_log(traversal):
-        return real_log_config(traversal, odometry_noise=0.1 if noise is None else noise, **over)
-    if noise is not None and traversal is not None and "transition_sigma" not in over:
-        from .slam import odometry_sigma
-
-        over["transition_sigma"] = odometry_sigma(traversal.controls, noise, noise)
-    return SLAMConfig(**over)
-
-
-def load_emission(path, traversal: Traversal, config):
-    """A pretrained emission network from ``path`` (``None`` -> learn from scratch)."""
-    from .networks import EmissionMLP
-
-    if path is None:
-        return None
-    blob = torch.load(path, weights_only=True)
-    meta = blob.get("meta", {})
-    n_world = meta.get("n_world", 20)
-    wanted = max(traversal.num_beams, config.n_world)
-    if n_world != wanted or meta.get("map_dim", 10) != config.map_dim:
-        raise DatasetError(
-            f"{path}: emission pretrained for {n_world} world directions / map_dim "
-            f"{meta.get('map_dim')}, but the traversal has {traversal.num_beams} beams, "
-            f"n_world {config.n_world}, map_dim {config.map_dim}"
-        )
-    em = EmissionMLP(
-        config.map_dim, n_world, config.emission_hidden, config.emission_layers,
-        scale=meta.get("scale", traversal.max_range),
-    )  # fmt: skip
-    em.load_state_dict(blob["state_dict"])
-    return em
-
-
-def load_transition(path):
-    from .transitions import LearnedTransition
-
-    blob = torch.load(path, weights_only=True)
-    return LearnedTransition.from_state(blob)
-
-
-def shipped_slam(traversal: Traversal, transition: str = "learned", **overrides):
-    """A :class:`~pyro_slam.slam.SLAM` with the shipped (frozen) LiDAR emission and the shipped
-    learned transition filtered as :data:`SHIPPED_FILTER` says (``transition="kinematic"``: the
-    simulator's kinematics, unscaled, and the :class:`~pyro_slam.slam.SLAMConfig` defaults), as
-    the LiDAR benchmarks run it. ``overrides`` are
-    :class:`~pyro_slam.slam.SLAMConfig` fields and win over these defaults."""
-    from .slam import SLAM, SLAMConfig
-
-    if transition not in ("learned", "kinematic"):
-        raise ValueError(f"transition must be 'learned' or 'kinematic', got {transition!r}")
-    defaults = {"learn_emission": False}
-    tran = None
-    if transition == "learned":
-        defaults.update(SHIPPED_FILTER)
-        tran = load_transition(PRETRAINED / TRANSITION_FILE)
-    cfg = SLAMConfig(**{**defaults, **overrides})
-    emission = None  # raycast: a RayEmission, which has no weights to load
-    if cfg.lidar_emission == "mlp":
-        emission = load_emission(PRETRAINED / EMISSION_FILE, traversal, cfg)
-    return SLAM(traversal, cfg, transition=tran, emission=emission)
-
-
-def _default_emission(traversal: Traversal):
-    """The shipped emission fits the simulator's 20-beam unit-maze LiDAR only."""
-    f = PRETRAINED / EMISSION_FILE
-    if f.is_file() and traversal.num_beams == 20 and abs(traversal.max_range - 0.53) < 1e-9:
-        return f
-    return None
-
-
-def run_slam(
-    traversal: Traversal,
-    out: Path,
-    mode: str,
-    config,
-    emission=None,
-    transition=None,
-    resume: bool = False,
-    progress: bool = True,
-) -> dict:
-    """SLAM on ``traversal`` writing plots, trajectories, metrics and a checkpoint into ``out``."""
-    from . import metrics, plotting
-    from .slam import SLAM, path_integration
-
-    out.mkdir(parents=True, exist_ok=True)
-    ckpt = out / "checkpoint.pt"
-    slam = SLAM(traversal, config, transition=transition, emission=emission, checkpoint=ckpt)
-    if resume:
-        if not ckpt.is_file():
-            raise DatasetError(f"{ckpt}: no checkpoint to resume from")
-        slam.resume(ckpt)
-    t0 = time.perf_counter()
-    res = slam.run(mode, progress=progress)
-    wall = time.perf_counter() - t0
-    res["mode"] = mode
-    res["path_integration"] = path_integration(traversal, slam.model.transition)
-    metrics.write_trajectory_tum(out / "trajectory_slam.tum", res["mean"], traversal.timestamps)
-    metrics.write_trajectory_tum(
-        out / "trajectory_path_integration.tum", res["path_integration"], traversal.timestamps
-    )
-    np.savez_compressed(
-        out / "posterior.npz",
-        pose_mean=res["mean"],
-        pose_std=res["std"],
-        map_loc=res["map_loc"],
-        map_scale=res["map_scale"],
-        path_integration=res["path_integration"],
-    )
-    report = {
-        "mode": mode,
-        "steps": traversal.num_steps,
-        "wall_time_s": wall,
-        "seconds_per_step": wall / traversal.num_steps,
-        "config": config.to_dict(),
-        "metadata": {k: traversal.metadata.get(k) for k in ("source", "seed", "maze")},
-    }
-    if traversal.poses is not None:
-        report["slam"] = metrics.summary(res["mean"], traversal.poses)
-        report["path_integration"] = metrics.summary(res["path_integration"], traversal.poses)
-        plotting.plot_errors(traversal, res, out / "error.png")
-    plotting.plot_slam(traversal, res, slam.model.grid, out / "slam.png")
-    if not traversal.walls.shape[0]:  # real log: map image from the reprojected scans
-        plotting.plot_scan_map(
-            slam.tr, res["mean"], out / "map.png", slam.model.grid, res["map_loc"],
-            others={"path integration": res["path_integration"]},
-        )  # fmt: skip
-        report["scan_consistency"] = {
-            "slam": metrics.scan_consistency(slam.tr, res["mean"]),
-            "path_integration": metrics.scan_consistency(slam.tr, res["path_integration"]),
-        }
-    text = json.dumps(report, indent=2, default=float)
-    atomic_write(out / "metrics.json", lambda f: f.write(text.encode()))
-    return report
+        try:
+            config = with_overrides(config, over)
+        except ConfigError as e:
+            raise DatasetError(f"--config: {e}") from e
+    return name, config
 
 
 def _print_report(report: dict, out: Path) -> None:
-    line = f"slam ({report['mode']}): T={report['steps']} {report['wall_time_s']:.0f}s"
+    line = f"slam ({report['preset']}, {report['mode']}): T={report['steps']} {report['wall_time_s']:.0f}s"
     if "slam" in report:
         s, p = report["slam"], report["path_integration"]
         line += (
@@ -225,129 +81,239 @@ def _print_report(report: dict, out: Path) -> None:
 
 
 # ----------------------------------------------------------------------------------- commands
-def cmd_slam(args) -> int:
-    from .io import read_any
+def cmd_simulate(args) -> int:
+    """Simulate a traversal, save it (``.npz``) and a plot of it; print a one-line summary."""
+    tr = simulate_traversal(
+        args.maze, args.steps, args.seed, images=args.images, distractors=args.distractors
+    )
+    out = tr.save(args.out)
+    plot = None if args.no_plot else plot_traversal(tr, args.plot or Path(args.out).with_suffix(".png"))
+    dead = integrate_controls(tr.poses[0], tr.controls)
+    drift = float(np.linalg.norm(dead[-1, :2] - tr.poses[-1, :2]))
+    print(
+        f"simulate: {args.maze} seed={args.seed} T={tr.num_steps} beams={tr.num_beams} "
+        f"coverage={tr.metadata['coverage']:.2f} collisions={tr.metadata['collisions']} "
+        f"dead-reckoning drift={drift:.3f} images={'yes' if tr.images is not None else 'no'} "
+        f"-> {out}" + (f" (plot {plot})" if plot else "")
+    )
+    return 0
 
+
+def cmd_slam(args) -> int:
     torch.manual_seed(args.seed)
     tr = read_any(args.traversal)
     if args.steps:
         tr = tr.slice(0, min(args.steps, tr.num_steps))
-    config = _config(args, tr)
-    em_path = args.emission if args.emission else _default_emission(tr)
-    if args.emission == "none":
-        em_path = None
-    if config.lidar_emission == "raycast":  # a RayEmission has no network to load
-        if args.emission not in (None, "none"):
+    name, config = _config(args, tr)
+    emission = None
+    if args.emission is not None:
+        if config.emission.kind != "mlp":
             raise DatasetError(
-                "--emission loads an emission MLP; lidar_emission 'raycast' has none"
+                f"--emission loads a LiDAR emission MLP; emission.kind {config.emission.kind!r} "
+                "has none"
             )
-        em_path = None
-    if em_path is not None and "learn_emission" not in (args.config or ""):
-        config.learn_emission = False  # a pretrained emission is kept frozen by default
-    emission = load_emission(em_path, tr, config)
-    transition = load_transition(args.transition) if args.transition else None
-    report = run_slam(tr, args.out, args.mode, config, emission, transition, args.resume)
+        emission = pretrained.load_emission(args.emission, tr)
+    transition = pretrained.load_transition(args.transition) if args.transition else None
+    report = run_slam(tr, args.out, args.mode, config, emission, transition, args.resume,
+                      seed=args.seed, preset=name)  # fmt: skip
     _print_report(report, args.out)
     return 0
 
 
 def cmd_pretrain(args) -> int:
-    from simulators import simulate_traversal
-
-    from .slam import SLAMConfig, pretrain_emission
-    from .transitions import pretrain_transition
-
     args.out.mkdir(parents=True, exist_ok=True)
     tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
-    cfg = SLAMConfig()
-    em, stats = pretrain_emission([tr], cfg, steps=args.emission_steps, seed=args.seed)
+    em, stats = pretrain_emission([tr], SLAMConfig(), steps=args.emission_steps, seed=args.seed)
     blob = {
         "state_dict": em.state_dict(),
-        "meta": {"n_world": em.n_world, "map_dim": cfg.map_dim, "scale": tr.max_range,
+        "meta": {"n_world": em.n_world, "map_dim": em.map_dim, "scale": tr.max_range,
                  "maze": args.maze, "seed": args.seed, **stats},
     }  # fmt: skip
-    torch.save(blob, args.out / EMISSION_FILE)
+    torch.save(blob, args.out / pretrained.EMISSION_FILE)
     tran, tstats = pretrain_transition([tr], epochs=args.transition_epochs, seed=args.seed)
-    torch.save(tran.to_state(), args.out / TRANSITION_FILE)
+    torch.save(tran.to_state(), args.out / pretrained.TRANSITION_FILE)
     print(json.dumps({"emission": stats, "transition": tstats}, default=float))
     return 0
 
 
 def cmd_demo(args) -> int:
-    """Simulate the default maze, run online SLAM, write plots and metrics into ``args.out``."""
-    from simulators import simulate_traversal
-    from simulators.plotting import plot_traversal
-
-    from .slam import SLAMConfig
-
+    """Simulate the default maze, run SLAM with the default preset, write plots and metrics."""
     torch.manual_seed(args.seed)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
     tr.save(out / "traversal.npz")
     plot_traversal(tr, out / "traversal.png")
-    cfg = SLAMConfig(seed=args.seed, learn_emission=False, **SHIPPED_FILTER)
-    emission = load_emission(_default_emission(tr), tr, cfg)
-    transition = load_transition(PRETRAINED / TRANSITION_FILE)
-    report = run_slam(tr, out, args.mode, cfg, emission, transition, resume=args.resume)
+    config = presets.get(args.preset).for_traversal(tr)
+    report = run_slam(tr, out, args.mode, config, resume=args.resume, seed=args.seed,
+                      preset=args.preset)  # fmt: skip
     _print_report(report, out)
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from simulators.cli import add_simulate_parser
+def _navigation_map(args, maze, tr):
+    """The learned environment of ``navigate``: ``q(M)`` fitted at the true poses or at an
+    online SLAM run's pose means (``--map slam``, the ``paper`` preset: the map the planner
+    reads is the paper's chart map)."""
+    poses = None
+    if args.map == "slam":
+        res = SLAM(tr, presets.get("paper").config).run("online", progress=True)
+        poses = np.asarray(res["mean"])
+    lenv, _, _ = learned_env(
+        maze, tr, fit_steps=args.fit_steps, poses=poses, progress=True,
+        emission_steps=args.emission_steps, n_world=args.n_world,
+    )  # fmt: skip
+    return lenv
 
-    p = argparse.ArgumentParser(prog="pyro-slam", description=__doc__.split("\n")[0])
-    sub = p.add_subparsers(dest="command", required=True)
-    add_simulate_parser(sub)
 
-    s = sub.add_parser("slam", help="run DVBF-LM SLAM on a traversal (.npz, CARMEN, ROS bag)")
+def _observation_goal(args, maze, lenv, tr):
+    """``--target-scan-from-pose``: the goal inferred from the target's scan, the target, and
+    the number of exact look-alike places of its scan."""
+    target = np.array(args.target_scan_from_pose)
+    truth = GroundTruthEnv(maze)
+    tscan = truth.scan(target)  # [1, B]
+    pz, pd = truth.places(tscan.numpy())[0]  # every place that looks like the target
+    n_lookalikes = lookalikes(pz, pd, target)[0]
+    if args.planner == "learned":
+        inv = fit_inverse(lenv, tr, steps=args.inverse_steps, sleep_steps=args.inverse_sleep_steps,
+                          progress=True)  # fmt: skip
+        return inv.infer(tscan[0])[0].numpy(), target, n_lookalikes
+    return pz[0], target, n_lookalikes  # the truth's own inverse: its best-matching place
+
+
+def cmd_navigate(args) -> int:
+    torch.set_num_threads(1)
+    maze = make_maze(args.maze, args.maze_seed)
+    pts = free_grid(maze)
+    start = np.array(args.start) if args.start else np.array([*pts[0], 0.0])
+    goal = np.array(args.goal) if args.goal else pts[-1]
+    tr = simulate_traversal(maze, steps=args.traversal_steps, seed=1)
+    lenv = _navigation_map(args, maze, tr)
+    if args.planner == "learned":  # the agent's own scan at the start: trusted free space
+        env = lenv.with_observation(start, GroundTruthEnv(maze).scan(start)[0].numpy())
+    else:
+        env = GroundTruthEnv(maze)
+    inferred = target = n_lookalikes = None
+    if args.target_scan_from_pose is not None:
+        inferred, target, n_lookalikes = _observation_goal(args, maze, lenv, tr)
+        goal = inferred[:2]
+    res = plan(env, start, goal, max_expansions=args.max_expansions)
+    executed, coll = execute(maze, start, res.controls, noise=None if args.noise else 0)
+    true_goal = goal if inferred is None else target[:2]
+    err = float(np.hypot(*(executed[-1, :2] - true_goal)))
+    title = f"maze {args.maze_seed}, {args.planner} planner" + (
+        "" if inferred is None else " (x: goal inferred from the target scan)"
+    )
+    shown = lenv if args.planner == "learned" else env
+    plot_navigation(maze, shown, res, executed, true_goal, args.out, title, inferred=inferred)
+    report = {"found": res.success, "expansions": res.expansions, "steps": len(res.controls),
+              "final_error": err, "success": bool(res.success and err <= 0.05),
+              "collisions": int(coll), "plot": str(args.out)}  # fmt: skip
+    if inferred is not None:
+        report["inferred_goal"] = inferred.tolist()
+        report["inference_error"] = float(np.hypot(*(inferred[:2] - target[:2])))
+        report["target_lookalikes_exact"] = n_lookalikes  # places > 0.05 away that look the same
+    print(json.dumps(report))
+    return 0
+
+
+# ----------------------------------------------------------------------------------- parsers
+def _add_simulate(sub) -> None:
+    p = sub.add_parser("simulate", help="simulate a maze traversal and save it as .npz")
+    p.add_argument("--maze", default="moderate-medium", choices=sorted(SCALES), help="maze scale")
+    p.add_argument("--steps", type=int, default=3000, help="number of time steps T")
+    p.add_argument("--seed", type=int, default=1, help="seeds maze, noise and driver")
+    p.add_argument("--out", type=Path, default=Path("traversal.npz"), help="output .npz")
+    p.add_argument("--images", action="store_true", help="also render 32x24 camera frames")
+    p.add_argument("--distractors", type=int, default=0, help="boxes not in the floor map")
+    p.add_argument("--plot", type=Path, default=None, help="output PNG (default: next to --out)")
+    p.add_argument("--no-plot", action="store_true", help="do not write a PNG")
+    p.set_defaults(func=cmd_simulate)
+
+
+def _add_slam(sub) -> None:
+    s = sub.add_parser(
+        "slam", help="run DVBF-LM SLAM on a traversal (.npz, CARMEN, ROS bag)",
+        epilog="presets:\n" + presets.describe(), formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
     s.add_argument("traversal", type=Path)
     s.add_argument("--mode", choices=["online", "offline"], default="online")
     s.add_argument("--out", type=Path, default=Path("run"))
     s.add_argument("--steps", type=int, default=0, help="use only the first N steps")
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--config", help="JSON object (or file) of SLAMConfig overrides")
     s.add_argument(
-        "--emission",
-        help="pretrained emission .pt ('none': learn from scratch; default: the shipped one "
-        "when the sensor matches the simulator's)",
-    )
-    s.add_argument(
-        "--transition",
-        help="pretrained LearnedTransition .pt (default: kinematic); the demo and benchmarks "
-        f"filter the shipped one with {SHIPPED_FILTER} (--config)",
-    )
+        "--preset", choices=list(presets.PRESETS), default=None,
+        help=f"named configuration (default: {presets.DEFAULT}; 'real' for real laser logs)",
+    )  # fmt: skip
+    s.add_argument("--config", help="JSON object (or file) of overrides, e.g. "
+                   '\'{"filter": {"particles": 256}}\'')  # fmt: skip
+    s.add_argument("--emission", help="a pretrained LiDAR emission MLP .pt (emission.kind 'mlp'; "
+                   "default: the shipped one when the sensor matches the simulator's)")  # fmt: skip
+    s.add_argument("--transition", help="a pretrained LearnedTransition .pt (default: the "
+                   "preset's: the shipped one for transition.kind 'learned')")  # fmt: skip
     s.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     s.add_argument(
-        "--odometry-noise",
-        type=float,
-        help="transition std as this fraction of the RMS odometry step (relative-odometry "
-        "model; default 0.1 for real logs, the config's transition_sigma otherwise)",
-    )
+        "--odometry-noise", type=float,
+        help="real logs: transition std as this fraction of the RMS odometry step (default 0.1)",
+    )  # fmt: skip
     s.set_defaults(func=cmd_slam)
 
+
+def _add_pretrain_and_demo(sub) -> None:
     t = sub.add_parser("pretrain", help="pretrain emission + transition on a held-out maze")
-    t.add_argument("--out", type=Path, default=PRETRAINED)
+    t.add_argument("--out", type=Path, default=pretrained.PRETRAINED)
     t.add_argument("--maze", default="moderate-medium")
     t.add_argument("--seed", type=int, default=100)
     t.add_argument("--steps", type=int, default=6000)
     t.add_argument("--emission-steps", type=int, default=3000)
     t.add_argument("--transition-epochs", type=int, default=30)
     t.set_defaults(func=cmd_pretrain)
-
     d = sub.add_parser("demo", help="simulate the default maze and run SLAM (plots + metrics)")
     d.add_argument("--out", type=Path, default=Path("out"))
     d.add_argument("--maze", default="moderate-medium")
     d.add_argument("--steps", type=int, default=3000)
     d.add_argument("--seed", type=int, default=1)
     d.add_argument("--mode", choices=["online", "offline"], default="online")
+    d.add_argument("--preset", choices=list(presets.PRESETS), default=presets.DEFAULT)
     d.add_argument("--resume", action="store_true")
     d.set_defaults(func=cmd_demo)
 
-    from .planning import add_navigate_parser
 
-    add_navigate_parser(sub)
+def _add_navigate(sub) -> None:
+    p = sub.add_parser(
+        "navigate", help="plan with hybrid A* in the learned model and execute in the simulator"
+    )
+    p.add_argument("--maze", default="moderate-medium")
+    p.add_argument("--maze-seed", type=int, default=1001)
+    p.add_argument("--start", type=float, nargs=3, default=None, help="x y heading")
+    p.add_argument("--goal", type=float, nargs=2, default=None, help="x y")
+    p.add_argument(
+        "--target-scan-from-pose", type=float, nargs=3, default=None, metavar=("X", "Y", "H"),
+        help="observation target: render the simulator's scan at this pose and infer the goal "
+        "with the inverse model q(z|x) (with --planner ground_truth the truth's own inverse, "
+        "GroundTruthEnv.places); overrides --goal",
+    )  # fmt: skip
+    p.add_argument("--inverse-steps", type=int, default=1000, help="ELBO steps of q(z|x)")
+    p.add_argument("--inverse-sleep-steps", type=int, default=3000, help="sleep steps of q(z|x)")
+    p.add_argument("--planner", choices=["learned", "ground_truth"], default="learned")
+    p.add_argument("--map", choices=["known_poses", "slam"], default="known_poses",
+                   help="q(M) fitted at the true poses, or at an online SLAM run's pose means")
+    p.add_argument("--traversal-steps", type=int, default=3000)
+    p.add_argument("--fit-steps", type=int, default=1500)
+    p.add_argument("--emission-steps", type=int, default=0, help="fit the emission on the "
+                   "mapping traversal for this many steps (0: the shipped one, frozen)")
+    p.add_argument("--n-world", type=int, default=20, help="world directions of a fitted emission")
+    p.add_argument("--max-expansions", type=int, default=3000)
+    p.add_argument("--noise", action="store_true", help="execute with actuation noise")
+    p.add_argument("--out", type=Path, default=Path("navigate.png"))
+    p.set_defaults(func=cmd_navigate)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="pyro-slam", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    for add in (_add_simulate, _add_slam, _add_pretrain_and_demo, _add_navigate):
+        add(sub)
     return p
 
 

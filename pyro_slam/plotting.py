@@ -1,4 +1,5 @@
-"""Plots of SLAM runs: trajectories, map belief, error vs time with percentile bands.
+"""Plots of SLAM runs (trajectories, map belief, error vs time with percentile bands) and of
+navigation runs (plan over the map belief, executed trajectory).
 
 All functions write a PNG (matplotlib, Agg backend) and return its path.
 """
@@ -12,6 +13,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import torch  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
 from . import metrics  # noqa: E402
@@ -155,4 +157,53 @@ def plot_scan_map(traversal, poses, path_png, grid=None, map_loc=None, title="",
         ax.plot(*np.asarray(poses)[:, :2].T, color="w", lw=0.5)
         ax.set_aspect("equal")
         ax.set_title("map belief: mean (3 principal components)")
+    return _save(fig, path_png)
+
+
+def plot_navigation(
+    maze,
+    env,
+    result,
+    executed: np.ndarray,
+    goal,
+    path_png,
+    title: str = "",
+    inferred=None,
+) -> Path:
+    """``result``: a :class:`~pyro_slam.planning.PlanResult`. Left: the plan over the map belief (predicted nearest range per position); right: the
+    executed trajectory in the simulator with the true walls. ``inferred``: the goal inferred
+    from an observation target (drawn as a cross; ``goal`` is then the true target)."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 5))
+    n = 80
+    xs = (np.arange(n) + 0.5) / n * maze.side
+    X, Y = np.meshgrid(xs, xs)
+    z = torch.as_tensor(
+        np.stack([X.ravel(), Y.ravel(), np.zeros(n * n)], -1), dtype=torch.get_default_dtype()
+    )
+    with torch.no_grad():
+        img = env.scan(z).min(-1).values.reshape(n, n).numpy()
+    ax = axes[0]
+    ax.imshow(img, origin="lower", extent=(0, maze.side, 0, maze.side), cmap="gray")
+    if len(result.visited):
+        ax.plot(*result.visited[:, :2].T, ".", ms=2, color="tab:orange", alpha=0.4)
+    ax.plot(*result.path[:, :2].T, "-", color="tab:blue", lw=2, label="plan")
+    ax.set_title(f"plan in {env.name} belief ({result.expansions} expansions)")
+    ax = axes[1]
+    _walls(ax, maze.walls)
+    ax.plot(*result.path[:, :2].T, "--", color="tab:blue", lw=1, label="plan")
+    ax.plot(*executed[:, :2].T, "-", color="tab:green", lw=2, label="executed")
+    err = float(np.hypot(*(executed[-1, :2] - np.asarray(goal)[:2])))
+    ax.set_title(f"executed in simulator: final error {err:.3f}")
+    for ax in axes:
+        ax.plot(*result.path[0, :2], "o", color="k")
+        ax.plot(*np.asarray(goal)[:2], "*", color="tab:red", ms=14)
+        ax.add_patch(plt.Circle(np.asarray(goal)[:2], 0.05, fill=False, color="tab:red"))
+        if inferred is not None:
+            ax.plot(*np.asarray(inferred)[:2], "x", color="tab:purple", ms=12, mew=3)
+        ax.set_xlim(0, maze.side)
+        ax.set_ylim(0, maze.side)
+        ax.set_aspect("equal")
+    axes[1].legend(loc="upper right", fontsize=8)
+    if title:
+        fig.suptitle(title)
     return _save(fig, path_png)

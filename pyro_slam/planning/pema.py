@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from simulators import SCALES, World, make_maze
 from simulators.raycast import raycast
 
 
@@ -82,8 +83,6 @@ def rollout_rewards(policy: PEMAPolicy, thetas: torch.Tensor, mazes, starts, ste
     ``starts[m]``: start pose ``[3]`` in maze ``m`` (shared by all policies); the agents move by
     the simulator kinematics (rotate, then move, stopping before walls; no actuation noise).
     """
-    from simulators import World
-
     P = thetas.shape[0]
     w = policy.unflatten(thetas)
     total = np.zeros(P)
@@ -157,8 +156,6 @@ def train_pema(
 ):
     """Train ``policy.theta`` with ARS on ``n_mazes`` training mazes of ``scale_name``
     (seeds ``maze_seed0 ...``, disjoint from evaluation mazes); random starts per iteration."""
-    from simulators import SCALES, make_maze
-
     mazes = [make_maze(scale_name, maze_seed0 + i) for i in range(n_mazes)]
     tiles = [SCALES[scale_name].tiles] * n_mazes
     rng = np.random.default_rng(cfg.seed)

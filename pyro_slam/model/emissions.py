@@ -1,25 +1,16 @@
-"""Neural networks of DVBF-LM (paper Appendix B, Table I) and the scan-rotation layer.
+"""Emissions: the observation mean ``mu_E`` of DVBF-LM as a function of the map and the pose.
 
-* :class:`EmissionMLP`  -- ``mu_E``: chart ``m_t`` [..., D_m] -> world-frame range profile
-  [..., n_world] (4 x 256, softsign).
-* :func:`rotate_scan`   -- the "rotational shift of the beam outputs w.r.t. heading": samples a
-  world-frame profile at the beam directions ``heading + beam_angles`` (circular linear
-  interpolation, differentiable in the heading).
-* :class:`TransitionMLP` -- ``mu_T``: ``(cos h, sin h, u, mu_E(m_t))`` -> pose increment
-  (6 x 256, ReLU).
+An :class:`Emission` maps chart ``m_t`` and pose ``z_t`` to a predicted observation, flattened
+to ``[..., N]`` (``event_shape`` gives its structure):
 
-The sensor-specific part of the emission is an :class:`Emission`: chart ``m_t`` and pose ``z_t``
--> predicted observation, flattened to ``[..., N]`` (``event_shape`` gives its structure):
+* :class:`LidarEmission` -- the paper's: :class:`~pyro_slam.model.networks.EmissionMLP`, then
+  :func:`rotate_scan` (the "rotational shift of the beam outputs w.r.t. heading") to the beams;
+* :class:`ImageEmission` -- the paper's visual one: chart ``[k angular bins x l rows]`` rotated
+  with the heading and cropped to the camera's field of view, then row-wise MLPs (Appendix B-D).
 
-* :class:`LidarEmission` -- :class:`EmissionMLP`, then :func:`rotate_scan` to the beams;
-* :class:`ImageEmission` -- chart ``[k angular bins x l rows]`` rotated with the heading and
-  cropped to the camera's field of view, then row-wise MLPs (paper Appendix B-D, VizDoom).
-
-Geometric alternatives (not the paper's; opt-in) read the map along rays instead of at the pose:
+Geometric alternatives (not the paper's) read the map along rays instead of at the pose:
 :class:`RayEmission` (LiDAR ranges volume-rendered through an occupancy map) and
 :class:`RayImageEmission` (a pinhole camera drawing the walls those rays hit).
-
-Networks know nothing of Pyro; the model (:mod:`pyro_slam.model`) wires them into distributions.
 """
 
 from __future__ import annotations
@@ -29,47 +20,7 @@ import math
 import torch
 from torch import nn
 
-
-class Softsign(nn.Module):
-    """``x / (1 + |x|)``; in place when no gradient is needed (filtering: ~30% faster MLP)."""
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if torch.is_grad_enabled() and x.requires_grad:
-            return x / (1 + x.abs())
-        return x.div_(x.abs().add_(1))
-
-
-def mlp(n_in: int, n_out: int, hidden: int, layers: int, activation: type[nn.Module]):
-    """``layers`` hidden layers of ``hidden`` units, then a linear read-out."""
-    mods: list[nn.Module] = []
-    d = n_in
-    for _ in range(layers):
-        mods += [nn.Linear(d, hidden), activation()]
-        d = hidden
-    mods.append(nn.Linear(d, n_out))
-    return nn.Sequential(*mods)
-
-
-class EmissionMLP(nn.Module):
-    """``mu_E``: map chart -> world-frame range profile at ``n_world`` equally spaced angles.
-
-    Args:
-        map_dim: ``D_m``.
-        n_world: number of world-frame directions (``2 pi j / n_world``, j = 0..n_world-1).
-        scale: output scale (e.g. the sensor's max range); the output is ``scale * net(m)``, so
-            that the network works on O(1) numbers.
-    """
-
-    def __init__(
-        self, map_dim: int, n_world: int, hidden: int = 256, layers: int = 4, scale: float = 1.0
-    ):
-        super().__init__()
-        self.map_dim, self.n_world, self.scale = map_dim, n_world, float(scale)
-        self.net = mlp(map_dim, n_world, hidden, layers, Softsign)
-
-    def forward(self, m: torch.Tensor) -> torch.Tensor:
-        """``m [..., D_m]`` -> ``[..., n_world]``."""
-        return self.scale * self.net(m)
+from .networks import EmissionMLP
 
 
 def rotate_scan(
@@ -247,22 +198,15 @@ class RayEmission(Emission):
     def read(self, grid, M, z):
         return self.expected_range(grid, M, z)
 
-    def beam_variance(
-        self, grid, loc: torch.Tensor, scale: torch.Tensor, z: torch.Tensor, path: bool = False
-    ):
+    def beam_variance(self, grid, loc: torch.Tensor, scale: torch.Tensor, z: torch.Tensor):
         """How unknown each beam's reading is under a mean-field ``q(M) = N(loc, scale^2)``:
         ``[..., B]`` in ``[0, 1]``, the map variance relative to the prior's (as
-        :meth:`~pyro_slam.filtering.ParticleFilter.trust` measures it at a chart) where the ray
+        :meth:`~pyro_slam.inference.Weighting.trust` measures it at a chart) where the ray
         stops under ``loc``, averaged over the stopping point (passing rays: the last point).
         A beam that ends on a mapped wall is trusted even where the pose is new; one that runs
-        into unmapped space is not. With ``path``, a stop counts as known only if the ray's
-        path up to it is known too (the running maximum of the variance along the ray): a beam
-        that crosses unmapped space before it reaches a mapped wall could have stopped at a
-        wall not mapped yet, as in an occupancy grid's unknown cells."""
+        into unmapped space is not."""
         pts, stop, passes = self._stops(grid, loc, z)
         var = grid.relative_variance(scale[..., :1], pts)[..., 0]  # [..., B, S] occupancy's
-        if path:
-            var = var.cummax(-1).values
         return (stop * var).sum(-1) + passes * var[..., -1]
 
 
@@ -421,37 +365,3 @@ class RayImageEmission(RayEmission):
         return img.flatten(-2)
 
 
-class TransitionMLP(nn.Module):
-    """``mu_T``: predicts the pose increment from heading, control and predicted scan.
-
-    Input ``[cos h, sin h, u (D_u), scan (n_scan)]``; output ``(dx, dy, dh)`` added to ``z``.
-    Feeding the (predicted) scan ``mu_E(m_t)`` instead of ``m_t`` lets the network be pretrained
-    with ground-truth scans (paper Appendix B-B).
-    """
-
-    def __init__(self, control_dim: int, n_scan: int, hidden: int = 256, layers: int = 6):
-        super().__init__()
-        self.control_dim, self.n_scan = control_dim, n_scan
-        self.hidden, self.layers = hidden, layers
-        self.net = mlp(2 + control_dim + n_scan, 3, hidden, layers, nn.ReLU)
-        # input/output normalisation, set from data by `fit_normalisation`
-        self.register_buffer("in_loc", torch.zeros(2 + control_dim + n_scan))
-        self.register_buffer("in_scale", torch.ones(2 + control_dim + n_scan))
-        self.register_buffer("out_scale", torch.ones(3))
-
-    def features(self, z: torch.Tensor, u: torch.Tensor, scan: torch.Tensor) -> torch.Tensor:
-        h = z[..., 2:3]
-        u = u.expand(*z.shape[:-1], u.shape[-1])
-        scan = scan.expand(*z.shape[:-1], scan.shape[-1])
-        return torch.cat([torch.cos(h), torch.sin(h), u, scan], dim=-1)
-
-    def fit_normalisation(self, feats: torch.Tensor, deltas: torch.Tensor) -> None:
-        """Standardise inputs ``[N, F]`` and scale outputs ``[N, 3]`` from training data."""
-        self.in_loc.copy_(feats.mean(0))
-        self.in_scale.copy_(feats.std(0).clamp_min(1e-6))
-        self.out_scale.copy_(deltas.std(0).clamp_min(1e-6))
-
-    def forward(self, z: torch.Tensor, u: torch.Tensor, scan: torch.Tensor) -> torch.Tensor:
-        """``z [..., 3]``, ``u [..., D_u]``, ``scan [..., n_scan]`` -> next pose ``[..., 3]``."""
-        x = (self.features(z, u, scan) - self.in_loc) / self.in_scale
-        return z + self.net(x) * self.out_scale

@@ -5,7 +5,7 @@ Two interchangeable choices (paper III-B, Appendix B-B), both :class:`Transition
 * :class:`KinematicTransition` -- engineered: the simulator's kinematics (rotate, then move along
   the heading) or a robot-frame odometry increment; optionally stops short of walls that the
   model's predicted scan shows ahead (used by the planner).
-* :class:`LearnedTransition` -- the 6 x 256 ReLU MLP of :class:`~pyro_slam.networks.TransitionMLP`,
+* :class:`LearnedTransition` -- the 6 x 256 ReLU MLP of :class:`~pyro_slam.model.networks.TransitionMLP`,
   pretrained on a held-out maze with ground-truth poses and scans (:func:`pretrain_transition`).
 
 ``mean(z, u, scan)`` takes the emission mean ``mu_E(m_t)`` read in the body frame (``[..., B]``),
@@ -19,7 +19,7 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
-from .geometry import odometry_delta
+from ..geometry import odometry_delta, wrap_angle
 from .networks import TransitionMLP
 
 
@@ -138,8 +138,6 @@ def pretrain_transition(
     on the held-out last ``val_fraction`` of the data ("noise learned"). Returns the transition
     and a dict of training statistics.
     """
-    from .geometry import wrap_angle
-
     gen = torch.Generator().manual_seed(seed)
     zs, us, xs, dz = [], [], [], []
     control_model = traversals[0].metadata.get("control_model", "rotate_forward")

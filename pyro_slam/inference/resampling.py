@@ -2,7 +2,7 @@
 
 All functions take **log** weights of shape ``[..., K]`` (any batch shape, unnormalised) and
 return ancestor indices ``[..., K]`` (and, for soft resampling, the new log weights). They are
-used by the DVBF-LM particle guide (:mod:`pyro_slam.filtering`) and by PF-net
+used by the DVBF-LM particle guide (:mod:`pyro_slam.inference`) and by PF-net
 (:mod:`pyro_slam.pfnet`).
 """
 

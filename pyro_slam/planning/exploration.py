@@ -40,10 +40,10 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial import cKDTree
 from scipy.special import digamma, gammaln
 
-from .guide import MapGuide
-from .model import DVBFLM, MapGrid
-from .networks import EmissionMLP
-from .transitions import KinematicTransition
+from simulators import SCALES, World, make_maze
+
+from ..model import DVBFLM, EmissionMLP, KinematicTransition, MapGrid, MapGuide
+from ..pretrained import EMISSION_FILE, PRETRAINED
 
 # ----------------------------------------------------------------------------- entropy
 
@@ -142,8 +142,6 @@ def scale_grid(scale, dim: int) -> MapGrid:
 def _emission(cfg: ExploreConfig, n_world: int, max_range: float) -> EmissionMLP:
     em = EmissionMLP(cfg.map_dim, n_world, 256, 4, scale=max_range)
     if cfg.pretrained_emission:
-        from .cli import EMISSION_FILE, PRETRAINED
-
         blob = torch.load(PRETRAINED / EMISSION_FILE, weights_only=True)
         if blob["meta"].get("map_dim") == cfg.map_dim and blob["meta"]["n_world"] == n_world:
             em.load_state_dict(blob["state_dict"])
@@ -443,8 +441,6 @@ def run_agent(
     true path. ``progress``: ``True`` prints each block, a tqdm bar is advanced by the executed
     steps.
     """
-    from simulators import SCALES, World, make_maze
-
     scale = SCALES[scale_name]
     maze = make_maze(scale_name, maze_seed)
     world = World(maze, seed=maze_seed + 1000 * cfg.seed)

@@ -1,7 +1,7 @@
 """Trajectory data for PF-net (Karkus et al. 2018, Sec. V-A), scaled to our mazes.
 
 Scale: a ``6 x 6``-cell maze of side 1.0 has corridors 1/6 wide, read as 1 m
-(:data:`pyro_slam.pfnet.METRE`). The paper's motions then become: forward with probability
+(:data:`pyro_slam.pfnet.model.METRE`). The paper's motions then become: forward with probability
 0.8, a distance ``U[20 cm, 80 cm]`` = ``U[0.033, 0.133]`` units, else rotate by
 ``U[15, 60]`` degrees (random sign); an action whose forward motion would collide is re-drawn.
 The initial belief is ``N(c, diag(30 cm, 30 cm, 30 deg)^2)`` = ``diag(0.05, 0.05, 0.52 rad)``
@@ -29,7 +29,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from pyro_slam.pfnet import INIT_STD, METRE, ObsModelConfig, rasterize_floor_map
+from tqdm.auto import tqdm
+
+import simulators
+from simulators.world import point_segment_distance
+
+from .model import INIT_STD, METRE, ObsModelConfig, rasterize_floor_map
 
 T_STEPS = 24
 FORWARD_RANGE = (0.2 * METRE, 0.8 * METRE)
@@ -182,8 +187,6 @@ class SimWorld:
     """
 
     def __init__(self, maze, distractors: int = 0, seed: int = 0, n_beams=20, max_range=0.53):
-        import simulators
-
         self.maze = maze
         self.world = simulators.World(
             maze,
@@ -200,8 +203,6 @@ class SimWorld:
         self.column_angles = cfg.column_offsets
 
     def random_start(self, rng) -> np.ndarray:
-        from simulators.world import point_segment_distance
-
         d = self.world.distractor_segments
         for _ in range(1000):
             pose = self.maze.random_free_pose(rng)
@@ -274,8 +275,6 @@ def generate(
     ``make_world(maze, seed)`` returns a :class:`SimWorld` (or a stand-in with its members).
     The floor maps are rasterised from ``maze.walls`` only, so distractors never appear on them.
     """
-    from tqdm.auto import tqdm
-
     rng = np.random.default_rng(seed)
     P, O, L, D, idx, init = [], [], [], [], [], []
     maps, walls = [], []

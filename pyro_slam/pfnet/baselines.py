@@ -27,8 +27,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pyro_slam.geometry import odometry_delta, wrap_angle
-from pyro_slam.pfnet import (
+from simulators import raycast
+
+from ..geometry import odometry_delta, wrap_angle
+from .model import (
     METRE,
     GaussianTransition,
     ImageEncoder,
@@ -81,8 +83,6 @@ class BeamModelPF(PFNet):
         )
 
     def log_likelihood(self, batch, obs, particles, t):
-        from simulators import raycast
-
         p = self.params
         B, K, _ = particles.shape
         rmax = batch["max_range"]
@@ -105,8 +105,6 @@ class BeamModelPF(PFNet):
 def tune_beam_model(dataset, K=100, n_traj=40, progress=False):
     """Grid search of the beam model's mixture on ``dataset`` (LiDAR); returns the best params
     (lowest (x, y) RMSE) and the table of tried settings."""
-    from pyro_slam.pfnet import evaluate
-
     sub = dataset.subset(np.arange(min(n_traj, len(dataset)))).with_sensor("lidar")
     tried = []
     for sigma, z_hit in itertools.product((0.01, 0.02, 0.04), (0.5, 0.7, 0.9)):

@@ -6,7 +6,7 @@
 * :class:`BootstrapGuide` -- the pose proposal of a bootstrap particle filter, as a guide object
   with ``init``/``step`` for :class:`pyro.infer.SMCFilter`.
 * The custom SMC guide over poses used for *training* is the differentiable particle filter of
-  :mod:`pyro_slam.filtering`; it is bootstrap, so its weights are the emission likelihoods under
+  :mod:`pyro_slam.inference`; it is bootstrap, so its weights are the emission likelihoods under
   the sampled map.
 """
 

@@ -54,9 +54,10 @@ from pyro.infer import SVI, Trace_ELBO
 from pyro.optim import Adam
 from torch import nn
 
-from .metrics import heading_error  # noqa: F401 (re-exported)
-from .model import DVBFLM
-from .networks import mlp, rotate_scan
+from tqdm import tqdm
+
+from ..metrics import heading_error  # noqa: F401 (re-exported)
+from ..model import DVBFLM, mlp, rotate_scan
 
 
 class PoseEncoder(nn.Module):
@@ -247,8 +248,6 @@ class InversePose:
 
         Neither phase uses poses of the traversal.
         """
-        from tqdm import tqdm
-
         scans = self.encoder.check(scans)
         pyro.set_rng_seed(seed)
         gen = torch.Generator().manual_seed(seed)

@@ -9,12 +9,12 @@
 :class:`DVBFLM` holds the networks and exposes each factor as a plain function of tensors
 (:meth:`chart`, :meth:`emission_mean`, :meth:`emission_log_prob`, :meth:`transition_dist`) so that
 the Pyro model (:meth:`DVBFLM.model`), the SMCFilter model (:class:`FilterModel`) and the fast
-differentiable particle filter (:mod:`pyro_slam.filtering`) all evaluate the *same* factors.
+differentiable particle filter (:mod:`pyro_slam.inference`) all evaluate the *same* factors.
 
-The sensor enters only through the :class:`~pyro_slam.networks.Emission` (``mu_E`` as a function
+The sensor enters only through the :class:`~pyro_slam.model.emissions.Emission` (``mu_E`` as a function
 of chart and pose, with the observation flattened to ``[..., N]``): a
-:class:`~pyro_slam.networks.LidarEmission` (range profile rotated to the beams) or an
-:class:`~pyro_slam.networks.ImageEmission` (chart rotated and cropped to the camera's view, then
+:class:`~pyro_slam.model.emissions.LidarEmission` (range profile rotated to the beams) or an
+:class:`~pyro_slam.model.emissions.ImageEmission` (chart rotated and cropped to the camera's view, then
 row-wise MLPs). Model, guide, filter and ELBO are the same for both.
 """
 
@@ -27,7 +27,8 @@ import pyro.distributions as dist
 import torch
 from torch import nn
 
-from .networks import Emission, EmissionMLP, LidarEmission
+from .emissions import Emission, LidarEmission
+from .networks import EmissionMLP
 from .transitions import Transition
 
 
@@ -121,8 +122,8 @@ class DVBFLM(nn.Module):
 
     Args:
         grid: map geometry (:class:`MapGrid`); ``grid.dim`` must be the emission's ``map_dim``.
-        emission: ``mu_E``, an :class:`~pyro_slam.networks.Emission`; a bare
-            :class:`~pyro_slam.networks.EmissionMLP` is wrapped as a LiDAR emission with
+        emission: ``mu_E``, an :class:`~pyro_slam.model.emissions.Emission`; a bare
+            :class:`~pyro_slam.model.emissions.EmissionMLP` is wrapped as a LiDAR emission with
             ``beam_angles``.
         transition: a :class:`~pyro_slam.transitions.Transition`.
         beam_angles: ``[B]`` beam directions relative to the heading (bare ``EmissionMLP`` only).
@@ -166,8 +167,8 @@ class DVBFLM(nn.Module):
 
     def emission_mean(self, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """Predicted observation ``mu_E(f_m(z_t, M), z_t)`` (LiDAR: body-frame scan), or the
-        emission's own read-out of ``M`` (:meth:`~pyro_slam.networks.Emission.read`; a
-        :class:`~pyro_slam.networks.RayEmission` casts the beams through ``M``).
+        emission's own read-out of ``M`` (:meth:`~pyro_slam.model.emissions.Emission.read`; a
+        :class:`~pyro_slam.model.emissions.RayEmission` casts the beams through ``M``).
 
         ``z [..., 3]`` -> ``[..., N]``.
         """

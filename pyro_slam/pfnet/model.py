@@ -22,8 +22,8 @@ Pieces, top to bottom:
 * :func:`pose_loss`, :func:`train` -- eq. (10) and an RMSProp BPTT loop with fixed seeds, a tqdm
   progress bar and resumable checkpoints; :func:`evaluate` computes the (x, y) RMSE.
 
-Every estimator in this module and in :mod:`pyro_slam.pfnet_baselines` takes a *batch* dict
-(see :func:`pyro_slam.pfnet_data.PFNetDataset.batch`)::
+Every estimator in this module and in :mod:`pyro_slam.pfnet.baselines` takes a *batch* dict
+(see :func:`pyro_slam.pfnet.data.PFNetDataset.batch`)::
 
     maps      [B, 1, H, W]   floor-map rasters (walls only; distractors are never on the map)
     map_side  float          world extent of the rasters (maps cover [0, side]^2)
@@ -50,8 +50,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pyro_slam import resampling
-from pyro_slam.geometry import odometry_delta, wrap_angle
+from tqdm.auto import tqdm, trange
+
+from ..geometry import odometry_delta, wrap_angle
+from ..inference import resampling
 
 METRE = 1.0 / 6.0  # maze units per metre: a 1/6-wide corridor of a 6x6-cell maze ~ 1 m
 INIT_STD = (0.3 * METRE, 0.3 * METRE, math.radians(30.0))  # initial belief, paper's 30cm/30deg
@@ -559,14 +561,12 @@ def train(
     """End-to-end BPTT training with RMSProp on the pose loss (eq. 10).
 
     ``dataset`` must provide ``len()`` and ``batch(indices, init_generator)`` (see
-    :class:`pyro_slam.pfnet_data.PFNetDataset`). Each epoch shuffles with a generator seeded
+    :class:`pyro_slam.pfnet.data.PFNetDataset`). Each epoch shuffles with a generator seeded
     by ``(seed, epoch)``, which also draws the initial beliefs, the particle noise and the
     resampling, so a run resumed from the checkpoint of epoch ``e`` repeats the uninterrupted
     run exactly. The checkpoint is written after every epoch. Returns ``cfg`` with
     ``cfg.history`` (mean loss per epoch) filled in.
     """
-    from tqdm.auto import tqdm
-
     optimizer = torch.optim.RMSprop([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
     start = 0
     if checkpoint is not None and resume and Path(checkpoint).exists():
@@ -622,8 +622,6 @@ def pretrain_observation_model(
     cross-entropy of the true pose among the candidates' log-likelihoods -- i.e. a one-step
     particle-filter weight update that should put its mass on the truth. Returns the losses.
     """
-    from tqdm.auto import trange
-
     g = torch.Generator().manual_seed(seed)
     opt = torch.optim.RMSprop(obs_model.parameters(), lr=lr)
     losses = []

@@ -1,0 +1,68 @@
+"""Particle proposals: the transition itself (bootstrap) and the transition conditioned exactly
+on a direct observation of the heading (:class:`HeadingObservation`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..geometry import wrap_angle
+
+
+@dataclass
+class HeadingObservation:
+    """A direct observation of the heading modulo ``period``: ``heading = value (mod period)``
+    up to Gaussian noise of std ``sigma`` (rad). E.g. the Manhattan-world one: a scan's walls
+    run along the world axes, so ``heading + wall_direction`` is a multiple of ``pi / 2``
+    (:mod:`pyro_slam.slam.heading`)."""
+
+    value: torch.Tensor  # [...] (one per batch element; nan: no observation there)
+    sigma: float
+    period: float = math.pi / 2
+
+    def at(self, t) -> HeadingObservation:
+        """The observation of step(s) ``t`` from one that holds a sequence ``value [T]``."""
+        return HeadingObservation(self.value[t], self.sigma, self.period)
+
+
+@torch.no_grad()
+def bootstrap(model, p, u: torch.Tensor, sigma=None, generator=None) -> torch.Tensor:
+    """Sample ``z_{t+1} ~ p(. | z_t, u_t, mu_E(m_t))`` for particles ``p``: ``[..., K, 3]``.
+
+    ``sigma``: the transition std to use instead of the model's ``sigma_T`` (``[3]`` or
+    ``[..., 1, 3]``)."""
+    mean = model.transition.mean(p.z, u.unsqueeze(-2), p.scan)
+    eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+    return mean + eps * (model.transition.sigma if sigma is None else sigma)
+
+
+@torch.no_grad()
+def heading_conditioned(model, p, u, obs: HeadingObservation, sigma=None, generator=None):
+    """Sample ``z [..., K, 3]`` from the transition conditioned on a heading observation.
+
+    The transition's heading is Gaussian about its mean ``m`` (std ``s`` from ``sigma`` or
+    the model's) and independent of its position noise, and the observation is Gaussian in
+    the wrapped residual (std ``sigma_o``), so the optimal proposal is exact: with
+    ``r = wrap_period(m - value)`` and ``v = s^2 + sigma_o^2``, the heading is drawn from
+    ``N(m - r s^2 / v, s^2 sigma_o^2 / v)`` and the weight gains the predictive
+    ``log N(r; 0, sqrt(v))``. With a sharp observation (``sigma_o << s``) every particle
+    lands on a heading the observation allows, however narrow the cloud. Where the value is
+    nan the heading is the transition's sample and the weight unchanged. Returns
+    ``(z, log_weight [..., K])``."""
+    mean = model.transition.mean(p.z, u.unsqueeze(-2), p.scan)  # [..., K, 3]
+    std = model.transition.sigma if sigma is None else sigma
+    std = torch.as_tensor(std, dtype=mean.dtype)
+    eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+    z = mean + eps * std
+    s = std[..., 2]
+    value = torch.as_tensor(obs.value, dtype=mean.dtype).unsqueeze(-1)  # [..., 1]
+    seen = ~torch.isnan(value)  # [..., 1]
+    half = obs.period / 2
+    r = torch.remainder(mean[..., 2] - value.nan_to_num() + half, obs.period) - half
+    v = s**2 + obs.sigma**2  # r: [..., K]
+    h = mean[..., 2] - r * s**2 / v + eps[..., 2] * (s * obs.sigma / v.sqrt())
+    h = torch.where(seen, wrap_angle(h), z[..., 2])
+    logw = torch.where(seen, -0.5 * r**2 / v - 0.5 * torch.log(2 * math.pi * v), 0.0)
+    return torch.cat([z[..., :2], h.unsqueeze(-1)], -1), logw

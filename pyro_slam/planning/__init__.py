@@ -1,0 +1,40 @@
+"""Planning and exploration in the learned model: hybrid A* (:mod:`.planner`), planning
+environments (:mod:`.envs`), the inverse model ``q(z | x)`` for observation targets
+(:mod:`.inverse`), mutual-information exploration (:mod:`.exploration`) and PEMA
+(:mod:`.pema`)."""
+
+from .envs import (
+    GroundTruthEnv,
+    LearnedEnv,
+    execute,
+    free_grid,
+    learned_env,
+    lookalikes,
+    maze_bounds,
+)
+from .planner import (
+    PlanResult,
+    Primitives,
+    inside_scan,
+    plan,
+    safety,
+    safety_cost,
+    segments_cross,
+)
+
+__all__ = [
+    "GroundTruthEnv",
+    "LearnedEnv",
+    "PlanResult",
+    "Primitives",
+    "execute",
+    "free_grid",
+    "inside_scan",
+    "learned_env",
+    "lookalikes",
+    "maze_bounds",
+    "plan",
+    "safety",
+    "safety_cost",
+    "segments_cross",
+]

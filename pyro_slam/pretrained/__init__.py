@@ -1,0 +1,98 @@
+"""The shipped pretrained networks (trained by ``pyro-slam pretrain`` on a held-out maze,
+seed 100, never a test maze) and loaders for network files.
+
+* ``emission_lidar20.pt`` -- the paper's LiDAR emission MLP ``mu_E`` for the simulator's
+  20-beam, 0.53-range LiDAR;
+* ``transition_moderate_medium.pt`` -- the learned transition ``mu_T`` (it reads the 20-beam
+  predicted scan).
+
+Files hold tensors and plain data only and are read with ``torch.load(weights_only=True)``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from ..data import DatasetError, Traversal
+from ..model import EmissionMLP, LearnedTransition
+
+PRETRAINED = Path(__file__).parent
+EMISSION_FILE = "emission_lidar20.pt"
+TRANSITION_FILE = "transition_moderate_medium.pt"
+SHIPPED_BEAMS, SHIPPED_RANGE = 20, 0.53  # the sensor the shipped networks were trained on
+MIN_WORLD_DIRECTIONS = 20
+
+
+def _load(path) -> dict:
+    """A network file's contents (tensors and plain data only), or a clear error."""
+    try:
+        blob = torch.load(path, weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as e:
+        raise DatasetError(f"{path}: not a network file written by pyro-slam ({e})") from None
+    if not isinstance(blob, dict):
+        raise DatasetError(f"{path}: not a network file written by pyro-slam")
+    return blob
+
+
+def load_emission(path, traversal: Traversal) -> EmissionMLP:
+    """A pretrained LiDAR emission MLP from ``path`` for ``traversal``'s LiDAR."""
+    blob = _load(path)
+    if "state_dict" not in blob:
+        raise DatasetError(f"{path}: not an emission network file (no 'state_dict')")
+    meta = blob.get("meta", {})
+    n_world, map_dim = meta.get("n_world", 20), meta.get("map_dim", 10)
+    wanted = max(traversal.num_beams, MIN_WORLD_DIRECTIONS)
+    if n_world != wanted:
+        raise DatasetError(
+            f"{path}: emission pretrained for {n_world} world directions, but the traversal "
+            f"has {traversal.num_beams} beams (needs {wanted})"
+        )
+    em = EmissionMLP(map_dim, n_world, meta.get("hidden", 256), meta.get("layers", 4),
+                     scale=meta.get("scale", traversal.max_range))  # fmt: skip
+    try:
+        em.load_state_dict(blob["state_dict"])
+    except (RuntimeError, KeyError, TypeError) as e:
+        raise DatasetError(f"{path}: emission weights do not fit the network ({e})") from None
+    return em
+
+
+def load_transition(path) -> LearnedTransition:
+    """A :class:`~pyro_slam.model.LearnedTransition` from ``path``."""
+    blob = _load(path)
+    try:
+        return LearnedTransition.from_state(blob)
+    except (RuntimeError, KeyError, TypeError, ValueError) as e:
+        raise DatasetError(f"{path}: not a learned transition file ({e})") from None
+
+
+def shipped_sensor(traversal: Traversal) -> bool:
+    """Whether the traversal's LiDAR is the one the shipped networks were trained on."""
+    return (
+        traversal.num_beams == SHIPPED_BEAMS
+        and abs(traversal.max_range - SHIPPED_RANGE) < 1e-9
+        and "image_shape" not in traversal.metadata
+    )
+
+
+def emission_for(traversal: Traversal, kind: str) -> EmissionMLP | None:
+    """The shipped emission for an ``"mlp"`` emission on the shipped sensor; None otherwise
+    (the emission is then learned from scratch)."""
+    if kind == "mlp" and shipped_sensor(traversal) and (PRETRAINED / EMISSION_FILE).is_file():
+        return load_emission(PRETRAINED / EMISSION_FILE, traversal)
+    return None
+
+
+def transition_for(traversal: Traversal) -> LearnedTransition:
+    """The shipped learned transition; it reads the 20-beam predicted scan, so the traversal's
+    sensor must be the shipped one."""
+    if not shipped_sensor(traversal):
+        raise ValueError(
+            "the learned transition reads the simulator's 20-beam, 0.53-range LiDAR scan; this "
+            f"traversal has {traversal.num_beams} beams and range {traversal.max_range:g}: use "
+            "transition.kind 'kinematic'"
+        )
+    return load_transition(PRETRAINED / TRANSITION_FILE)

@@ -1,0 +1,157 @@
+"""From a traversal and a configuration to the model SLAM runs: the traversal as SLAM sees it
+(:func:`prepare_traversal`), the :class:`~pyro_slam.model.DVBFLM` and its map guide
+(:func:`build_model`), and dead reckoning (:func:`path_integration`)."""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from ..data import Traversal
+from ..geometry import wrap_angle
+from ..metrics import odometry_poses
+from ..model import (
+    DVBFLM,
+    Emission,
+    EmissionMLP,
+    ImageEmission,
+    KinematicTransition,
+    LidarEmission,
+    MapGrid,
+    MapGuide,
+    RayEmission,
+    RayImageEmission,
+    Transition,
+)
+from .config import SLAMConfig
+
+# the paper's emission networks: D_m = 10 features, 4 x 256 softsign layers (LiDAR); the
+# visual row MLPs are reduced from the paper's 4 x 256 to 4 x 64 for CPU
+MAP_DIM, LIDAR_HIDDEN, IMAGE_HIDDEN, LAYERS = 10, 256, 64, 4
+IMAGE_BINS = 32  # k, angular bins of the visual map (D_m = k x image rows)
+MIN_WORLD_DIRECTIONS = 20  # of the LiDAR emission's world-frame profile (at least the beams)
+
+
+def prepare_traversal(traversal: Traversal, config: SLAMConfig) -> Traversal:
+    """The traversal SLAM sees: every ``config.beam_stride``-th beam, readings clipped at
+    ``config.range_clip`` (both no-ops by default); for a camera emission the flattened camera
+    frames as observations (:func:`image_traversal`)."""
+    if config.emission.observation == "image":
+        return image_traversal(traversal)
+    tr = traversal.subsample_beams(config.beam_stride)
+    if config.range_clip is not None:
+        tr = tr.clip_ranges(config.range_clip)
+    return tr
+
+
+def image_traversal(traversal: Traversal) -> Traversal:
+    """The traversal with its camera frames ``images [T, H, W]`` as observations ``[T, H * W]``
+    (row-major), ``beam_angles`` the bearing of each pixel's column
+    (``metadata["camera"]["fov"]``, default 90 deg), ``max_range`` 1 and
+    ``metadata["image_shape"] = [H, W]``; already prepared traversals are returned as they are."""
+    if "image_shape" in traversal.metadata:
+        return traversal
+    if traversal.images is None:
+        raise ValueError("a camera emission needs a traversal with images")
+    T, H, W = traversal.images.shape
+    fov = float((traversal.metadata.get("camera") or {}).get("fov", math.pi / 2))
+    cols = fov / 2 - (np.arange(W) + 0.5) * (fov / W)
+    return replace(
+        traversal,
+        observations=traversal.images.reshape(T, H * W),
+        beam_angles=np.tile(cols, H),
+        max_range=1.0,
+        obs_mask=None,
+        metadata={**traversal.metadata, "image_shape": [H, W]},
+    )
+
+
+def make_emission(traversal: Traversal, config: SLAMConfig) -> Emission | EmissionMLP:
+    """A new (untrained) emission of ``config.emission.kind`` for a prepared traversal."""
+    kind = config.emission.kind
+    reach = float(config.range_clip or traversal.max_range)
+    if kind == "raycast":
+        return RayEmission(traversal.beam_angles, reach)
+    if kind == "mlp":
+        n_world = max(traversal.num_beams, MIN_WORLD_DIRECTIONS)
+        return EmissionMLP(MAP_DIM, n_world, LIDAR_HIDDEN, LAYERS, scale=reach)
+    rows, cols = traversal.metadata["image_shape"]
+    angles = traversal.beam_angles[:cols]
+    if kind == "ray_camera":
+        return RayImageEmission(angles, rows, reach)
+    return ImageEmission(IMAGE_BINS, rows, cols, hidden=IMAGE_HIDDEN, layers=LAYERS,
+                         column_angles=angles)  # fmt: skip
+
+
+def _extent(traversal: Traversal, config: SLAMConfig):
+    """The box ``(xmin, ymin, xmax, ymax)`` the map covers: the walls, or (logs without
+    walls) the odometry path plus the sensor's practical range."""
+    if traversal.walls.shape[0]:
+        pts = traversal.walls.reshape(-1, 2)
+        return (*pts.min(0), *pts.max(0))
+    reach = float(config.range_clip or traversal.max_range)
+    path = odometry_poses(traversal)[:, :2]
+    return (*(path.min(0) - reach), *(path.max(0) + reach))
+
+
+def build_model(
+    traversal: Traversal,
+    config: SLAMConfig,
+    transition: Transition | None = None,
+    emission: Emission | EmissionMLP | None = None,
+):
+    """A :class:`~pyro_slam.model.DVBFLM` and :class:`~pyro_slam.model.MapGuide` sized to a
+    prepared traversal's extent (see :func:`prepare_traversal`).
+
+    ``emission``: a (pretrained) emission, or None for a new one of the configured kind
+    (:func:`make_emission`); ``transition``: None for the configured kinematic one. SLAM filters
+    with ``sigma_T`` times ``config.transition.scale`` (the transition passed in is copied, not
+    changed)."""
+    if emission is None:
+        emission = make_emission(traversal, config)
+    elif isinstance(emission, LidarEmission):  # re-read at this traversal's beams
+        emission = emission.net
+    e = config.emission
+    map_dim = emission.map_dim
+    grid = MapGrid.covering(*_extent(traversal, config), e.resolution, map_dim, e.margin)
+    if transition is None:
+        control_model = traversal.metadata.get("control_model", "rotate_forward")
+        transition = KinematicTransition(config.transition.sigma, control_model)
+    scale = torch.as_tensor(config.transition.scale, dtype=transition.sigma.dtype)
+    if not bool((scale == 1).all()):
+        transition = copy.deepcopy(transition)
+        transition.sigma.mul_(scale)
+    model = DVBFLM(grid, emission, transition, traversal.beam_angles, e.sigma)
+    return model, MapGuide(grid.shape)
+
+
+def traversal_tensors(tr: Traversal):
+    """``(observations [T, N], controls [T-1, D_u], mask [T, N] or None, start pose [3])``."""
+    dtype = torch.get_default_dtype()
+    obs = torch.as_tensor(tr.observations, dtype=dtype)
+    ctl = torch.as_tensor(tr.controls, dtype=dtype)
+    mask = None if tr.obs_mask is None else torch.as_tensor(tr.obs_mask)
+    init = torch.zeros(3, dtype=dtype)
+    if tr.poses is not None:
+        init = torch.as_tensor(tr.poses[0], dtype=dtype)
+    return obs, ctl, mask, init
+
+
+def path_integration(traversal: Traversal, transition: Transition):
+    """Dead reckoning with a transition's mean from the start pose: ``[T, 3]`` (heading wrapped).
+
+    Transitions that need a scan get the *observed* scan (what a pretrained transition saw).
+    """
+    obs, ctl, _, z = traversal_tensors(traversal)
+    out = [z]
+    with torch.no_grad():
+        for t in range(ctl.shape[0]):
+            z = transition.mean(z, ctl[t], obs[t] if transition.needs_scan else None)
+            out.append(z)
+    poses = torch.stack(out)
+    poses[:, 2] = wrap_angle(poses[:, 2])
+    return poses.numpy().astype(np.float64)

@@ -1,0 +1,288 @@
+"""The SLAM configuration, made of component choices.
+
+A :class:`SLAMConfig` holds one object per component: the emission (and with it the map grid
+and, for the ray-cast LiDAR, scan insertion), the transition, the filter's weights, the
+training objective and its SVI schedule, the offline passes and the optional heading
+observation. Each component validates itself on construction, so an impossible combination
+cannot be written down. Named configurations live in :mod:`pyro_slam.slam.presets`;
+:func:`with_overrides` applies a nested dict of changes (the CLI's ``--config`` JSON).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field, fields
+
+EMISSIONS = ("mlp", "raycast", "image_mlp", "ray_camera")
+TRANSITIONS = ("kinematic", "learned")
+WEIGHTINGS = ("marginal", "shared", "tempered")
+ESTIMATES = ("forward", "cache")
+
+
+class ConfigError(ValueError):
+    """A configuration value is out of range or of the wrong type; the message names it."""
+
+
+def _positive(name: str, value, integer: bool = False, optional: bool = False) -> None:
+    if value is None and optional:
+        return
+    kind = "a positive integer" if integer else "a positive number"
+    ok_type = (
+        isinstance(value, int) and not isinstance(value, bool)
+        if integer
+        else isinstance(value, (int, float)) and not isinstance(value, bool)
+    )
+    if not ok_type or not math.isfinite(value) or value <= 0:
+        raise ConfigError(f"{name} must be {kind}, got {value!r}")
+
+
+def _choice(name: str, value, choices) -> None:
+    if value not in choices:
+        raise ConfigError(f"{name} must be one of {list(choices)}, got {value!r}")
+
+
+def _triple(name: str, value, optional: bool = False, positive: bool = True) -> None:
+    if value is None and optional:
+        return
+    ok = isinstance(value, (tuple, list)) and len(value) == 3
+    ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    ok = ok and all(math.isfinite(v) and (v > 0 if positive else v >= 0) for v in value)
+    if not ok:
+        raise ConfigError(f"{name} must be 3 positive numbers (x, y, heading), got {value!r}")
+
+
+@dataclass(frozen=True)
+class ScanInsertionConfig:
+    """Occupancy-grid scan insertion (ray-cast LiDAR only): each online scan's hits, placed from
+    the cloud's mean pose and joined into a polyline (neighbouring hits closer than ``gap``
+    form one wall), set ``q(M)``'s mean to ``occupancy`` and its scale to ``scale`` at grid
+    points no earlier scan hit; SVI then refines the map (:mod:`pyro_slam.slam.insertion`)."""
+
+    occupancy: float = 2.0
+    scale: float = 0.3
+    gap: float = 0.05
+
+    def __post_init__(self):
+        if not isinstance(self.occupancy, (int, float)) or not math.isfinite(self.occupancy):
+            raise ConfigError(f"emission.insert.occupancy must be a number, got {self.occupancy!r}")
+        _positive("emission.insert.scale", self.scale)
+        _positive("emission.insert.gap", self.gap)
+
+
+@dataclass(frozen=True)
+class EmissionConfig:
+    """The emission ``p(x_t | m_t)`` and the map grid it reads.
+
+    ``kind``: ``"mlp"`` (the paper's LiDAR chart + ``mu_E`` MLP), ``"raycast"`` (LiDAR ranges
+    volume-rendered through an occupancy map, with per-beam trust in the weights), ``"image_mlp"``
+    (the paper's visual row MLPs) or ``"ray_camera"`` (a pinhole camera through an occupancy and
+    albedo map). ``resolution``: grid spacing (world units); ``margin``: the grid's margin around
+    the walls; ``sigma``: the model's ``sigma_E``; ``insert``: scan insertion (``"raycast"``).
+    """
+
+    kind: str = "mlp"
+    resolution: float = 1 / 31
+    margin: float = 0.05
+    sigma: float = 0.1
+    insert: ScanInsertionConfig | None = None
+
+    def __post_init__(self):
+        _choice("emission.kind", self.kind, EMISSIONS)
+        _positive("emission.resolution", self.resolution)
+        if not (isinstance(self.margin, (int, float)) and 0 <= self.margin < math.inf):
+            raise ConfigError(f"emission.margin must be a number >= 0, got {self.margin!r}")
+        _positive("emission.sigma", self.sigma)
+        if self.insert is not None and self.kind != "raycast":
+            raise ConfigError(
+                "emission.insert writes LiDAR hits into an occupancy map: it needs "
+                f"emission.kind 'raycast', got {self.kind!r}"
+            )
+
+    @property
+    def observation(self) -> str:
+        """``"image"`` for the camera emissions, ``"lidar"`` otherwise."""
+        return "image" if self.kind in ("image_mlp", "ray_camera") else "lidar"
+
+
+@dataclass(frozen=True)
+class TransitionConfig:
+    """The transition ``p(z_{t+1} | z_t, u_t)``: ``kind`` ``"kinematic"`` (the control model's
+    kinematics with std ``sigma``) or ``"learned"`` (the shipped ``mu_T`` network and its own
+    ``sigma_T``). SLAM filters with ``sigma_T`` times ``scale``; with ``scale_trusted``, the
+    online filter moves from ``scale`` (where the cloud does not trust the map) to
+    ``scale_trusted`` (where it does)."""
+
+    kind: str = "kinematic"
+    sigma: tuple[float, float, float] = (5e-4, 5e-4, 8e-3)
+    scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    scale_trusted: tuple[float, float, float] | None = None
+
+    def __post_init__(self):
+        _choice("transition.kind", self.kind, TRANSITIONS)
+        _triple("transition.sigma", self.sigma)
+        _triple("transition.scale", self.scale)
+        _triple("transition.scale_trusted", self.scale_trusted, optional=True)
+        for f in ("sigma", "scale", "scale_trusted"):  # JSON gives lists: keep tuples
+            v = getattr(self, f)
+            if v is not None:
+                object.__setattr__(self, f, tuple(float(x) for x in v))
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """The SLAM particle filter: ``particles`` per step, the weights' ``weighting``
+    (:class:`~pyro_slam.inference.Weighting`), their emission std ``sigma`` (None: the model's
+    ``sigma_E``; the paper filters with a sharper one) and per-beam ``outlier_prob``."""
+
+    particles: int = 128
+    weighting: str = "marginal"
+    sigma: float | None = 0.05
+    outlier_prob: float = 0.0
+
+    def __post_init__(self):
+        _positive("filter.particles", self.particles, integer=True)
+        _choice("filter.weighting", self.weighting, WEIGHTINGS)
+        _positive("filter.sigma", self.sigma, optional=True)
+        p = self.outlier_prob
+        if not (isinstance(p, (int, float)) and not isinstance(p, bool) and 0 <= p < 1):
+            raise ConfigError(f"filter.outlier_prob must be in [0, 1), got {p!r}")
+
+
+@dataclass(frozen=True)
+class TrainingConfig:
+    """SVI on the particle-chunk ELBO (paper eq. 3): ``chunks`` chunks of ``chunk_length``
+    steps with ``particles`` particles each per SVI step, map learning rate ``lr`` (Adam); the
+    online sweep takes one SVI step every ``every`` steps. ``sigma``: the emission std of the
+    chunk filter's weights (None: the filter's)."""
+
+    particles: int = 16
+    chunk_length: int = 4
+    chunks: int = 4
+    lr: float = 0.02
+    every: int = 1
+    sigma: float | None = None
+
+    def __post_init__(self):
+        for name in ("particles", "chunk_length", "chunks", "every"):
+            _positive(f"training.{name}", getattr(self, name), integer=True)
+        _positive("training.lr", self.lr)
+        _positive("training.sigma", self.sigma, optional=True)
+
+
+@dataclass(frozen=True)
+class OfflineConfig:
+    """Offline SLAM after the online sweep: ``rounds`` rounds of ``svi_steps`` SVI steps on
+    chunks from anywhere in the traversal; the pose posterior ``estimate`` is ``"forward"`` (a
+    filter pass over the whole traversal after each round and at the end) or ``"cache"`` (the
+    paper's Appendix B-I: only the SVI chunks refresh the cache, and the final poses are
+    filtered in consecutive chunks, each started from the cache)."""
+
+    rounds: int = 2
+    svi_steps: int = 800
+    estimate: str = "forward"
+
+    def __post_init__(self):
+        for name in ("rounds", "svi_steps"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
+                raise ConfigError(f"offline.{name} must be an integer >= 0, got {v!r}")
+        _choice("offline.estimate", self.estimate, ESTIMATES)
+
+
+@dataclass(frozen=True)
+class HeadingConfig:
+    """The Manhattan-world heading observation (not the paper's model): each scan's straight
+    walls give its heading modulo a quarter turn wherever at least ``support`` wall segments
+    agree within ``sigma`` rad; the filter samples the heading conditioned on it with std
+    ``sigma`` (:mod:`pyro_slam.slam.heading`)."""
+
+    sigma: float = 1e-3
+    support: int = 2
+
+    def __post_init__(self):
+        _positive("heading.sigma", self.sigma)
+        if not (isinstance(self.support, int) and self.support >= 2):
+            raise ConfigError(f"heading.support must be an integer >= 2, got {self.support!r}")
+
+
+@dataclass(frozen=True)
+class SLAMConfig:
+    """A SLAM configuration: one choice per component, plus how the sensor is read
+    (every ``beam_stride``-th beam, readings clipped at ``range_clip``)."""
+
+    emission: EmissionConfig = field(default_factory=EmissionConfig)
+    transition: TransitionConfig = field(default_factory=TransitionConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    training: TrainingConfig = field(default_factory=TrainingConfig)
+    offline: OfflineConfig = field(default_factory=OfflineConfig)
+    heading: HeadingConfig | None = None
+    beam_stride: int = 1
+    range_clip: float | None = None
+
+    def __post_init__(self):
+        for name, cls in COMPONENTS.items():
+            value = getattr(self, name)
+            if not isinstance(value, cls) and not (value is None and name == "heading"):
+                raise ConfigError(f"{name} must be a {cls.__name__}, got {value!r}")
+        _positive("beam_stride", self.beam_stride, integer=True)
+        _positive("range_clip", self.range_clip, optional=True)
+
+    def to_dict(self) -> dict:
+        """Plain nested dict (JSON-ready; tuples as lists)."""
+        return _plain(dataclasses.asdict(self))
+
+
+COMPONENTS = {
+    "emission": EmissionConfig,
+    "transition": TransitionConfig,
+    "filter": FilterConfig,
+    "training": TrainingConfig,
+    "offline": OfflineConfig,
+    "heading": HeadingConfig,
+}
+NESTED = {"insert": ScanInsertionConfig}
+
+
+def _plain(v):
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v
+
+
+def _merge(obj, changes: dict, cls, where: str):
+    """``obj`` (an instance of ``cls`` or None) with the nested ``changes`` applied."""
+    if not isinstance(changes, dict):
+        raise ConfigError(f"{where or 'the configuration'} must be a JSON object, got {changes!r}")
+    names = {f.name for f in fields(cls)}
+    if unknown := sorted(set(changes) - names):
+        raise ConfigError(
+            f"unknown field{'s' if len(unknown) > 1 else ''} {', '.join(where + u for u in unknown)}"
+            f"; {cls.__name__} has {', '.join(sorted(names))}"
+        )
+    base = cls() if obj is None else obj
+    kw = {}
+    for k, v in changes.items():
+        sub = COMPONENTS.get(k) if cls is SLAMConfig else NESTED.get(k)
+        if sub is not None and isinstance(v, dict):
+            v = _merge(getattr(base, k), v, sub, f"{where}{k}.")
+        kw[k] = v
+    try:
+        return dataclasses.replace(base, **kw)
+    except TypeError as e:
+        raise ConfigError(f"{where or 'configuration'}: {e}") from e
+
+
+def with_overrides(config: SLAMConfig, changes: dict) -> SLAMConfig:
+    """``config`` with a nested dict of changes, e.g. ``{"filter": {"particles": 512}}`` or
+    ``{"heading": {"sigma": 0.002}}`` (a component that is None starts from its defaults;
+    ``{"heading": None}`` switches it off). Unknown fields and bad values raise
+    :class:`ConfigError` naming the field."""
+    return _merge(config, changes, SLAMConfig, "")
+
+
+def from_dict(d: dict) -> SLAMConfig:
+    """The configuration written by :meth:`SLAMConfig.to_dict`."""
+    return with_overrides(SLAMConfig(), d)

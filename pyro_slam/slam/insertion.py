@@ -1,0 +1,69 @@
+"""Occupancy-grid scan insertion: a warm start of ``q(M)`` for the ray-cast LiDAR emission.
+
+Each online scan's hits, placed from the pose estimate, are joined into a polyline (hits of
+neighbouring beams closer than ``gap`` are one wall, sampled at half a grid spacing) and the
+grid points nearest to it that no earlier scan hit get the mean ``occupancy`` and the scale
+``scale`` in ``q(M)``. SVI then refines the map. Readings at the sensor's range are misses and
+write nothing.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pyro
+import torch
+
+from .config import ScanInsertionConfig
+
+
+class ScanInserter:
+    """Writes scans into a :class:`~pyro_slam.model.MapGuide`'s mean and scale.
+
+    Args:
+        config: the :class:`~pyro_slam.slam.config.ScanInsertionConfig`.
+        model: the :class:`~pyro_slam.model.DVBFLM` (its grid and ray-cast emission).
+        guide: the :class:`~pyro_slam.model.MapGuide` whose parameters are written.
+    """
+
+    def __init__(self, config: ScanInsertionConfig, model, guide):
+        self.cfg, self.model, self.guide = config, model, guide
+        w, h, _ = model.grid.shape
+        self.inserted = torch.zeros((w, h), dtype=torch.bool)  # [w, h] hit by a scan
+
+    def hit_cells(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor):
+        """Grid points ``(i [P], j [P])`` nearest to the polyline of the hits of scan
+        ``x [B]`` (``valid [B]`` bool) placed from pose ``z [3]``."""
+        em, g = self.model.emission, self.model.grid
+        hit = (x < em.max_range * (1 - 1e-3)) & valid  # [B]
+        ang = z[2] + em.beam_angles.to(x.dtype)  # [B]
+        pts = z[:2] + x[:, None] * torch.stack([ang.cos(), ang.sin()], -1)  # [B, 2]
+        w, h, _ = g.shape
+        spacing = min(g.size[0] / (w - 1), g.size[1] / (h - 1))
+        nxt = torch.roll(torch.arange(x.shape[0]), -1)  # [B] the neighbouring beam
+        seg = hit & hit[nxt] & ((pts[nxt] - pts).norm(dim=-1) < self.cfg.gap)  # [B]
+        n = int(math.ceil(self.cfg.gap / (0.5 * spacing))) + 1
+        f = torch.linspace(0, 1, n, dtype=x.dtype)[:, None, None]  # [n, 1, 1]
+        on = pts[seg] + f * (pts[nxt][seg] - pts[seg])  # [n, S, 2] along joined pairs
+        p = torch.cat([pts[hit], on.reshape(-1, 2)])  # [P, 2]
+        c = [(p[:, k] - g.origin[k]) * ((m - 1) / g.size[k]) for k, m in enumerate((w, h))]
+        return tuple(ck.round().long().clamp(0, m - 1) for ck, m in zip(c, (w, h)))
+
+    def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor) -> None:
+        """Write scan ``x [B]`` (``valid [B]``) placed from pose ``z [3]`` where no scan hit yet."""
+        i, j = self.hit_cells(x, valid, z)
+        new = ~self.inserted[i, j]  # [P]
+        i, j = i[new], j[new]
+        loc, _ = self.guide.params()
+        with torch.no_grad():
+            loc[i, j, 0] = self.cfg.occupancy
+            # the store keeps the scale unconstrained (its log)
+            raw = dict(pyro.get_param_store().named_parameters())[f"{self.guide.prefix}_scale"]
+            raw[i, j, 0] = math.log(self.cfg.scale)
+        self.inserted[i, j] = True
+
+    def state_dict(self) -> dict:
+        return {"inserted": self.inserted.clone()}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.inserted.copy_(d["inserted"])

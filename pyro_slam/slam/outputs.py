@@ -1,0 +1,96 @@
+"""A SLAM run with its outputs: plots, trajectories (TUM), the posterior, metrics and a
+checkpoint, written into one folder (what ``pyro-slam slam`` and ``pyro-slam demo`` do)."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import metrics, plotting
+from ..data import DatasetError, Traversal, atomic_write
+from .build import path_integration
+from .config import SLAMConfig
+from .runner import SLAM
+
+
+def _write_trajectories(out: Path, traversal: Traversal, res: dict) -> None:
+    metrics.write_trajectory_tum(out / "trajectory_slam.tum", res["mean"], traversal.timestamps)
+    metrics.write_trajectory_tum(
+        out / "trajectory_path_integration.tum", res["path_integration"], traversal.timestamps
+    )
+    np.savez_compressed(
+        out / "posterior.npz",
+        pose_mean=res["mean"],
+        pose_std=res["std"],
+        map_loc=res["map_loc"],
+        map_scale=res["map_scale"],
+        path_integration=res["path_integration"],
+    )
+
+
+def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float, preset) -> dict:
+    report = {
+        "mode": mode,
+        "preset": preset,
+        "steps": traversal.num_steps,
+        "wall_time_s": wall,
+        "seconds_per_step": wall / traversal.num_steps,
+        "config": slam.cfg.to_dict(),
+        "metadata": {k: traversal.metadata.get(k) for k in ("source", "seed", "maze")},
+    }
+    if traversal.poses is not None:
+        report["slam"] = metrics.summary(res["mean"], traversal.poses)
+        report["path_integration"] = metrics.summary(res["path_integration"], traversal.poses)
+    if not traversal.walls.shape[0]:  # real log: how well the scans agree under each path
+        report["scan_consistency"] = {
+            "slam": metrics.scan_consistency(slam.tr, res["mean"]),
+            "path_integration": metrics.scan_consistency(slam.tr, res["path_integration"]),
+        }
+    return report
+
+
+def _plots(out: Path, slam: SLAM, traversal: Traversal, res: dict) -> None:
+    if traversal.poses is not None:
+        plotting.plot_errors(traversal, res, out / "error.png")
+    plotting.plot_slam(traversal, res, slam.model.grid, out / "slam.png")
+    if not traversal.walls.shape[0]:  # real log: map image from the reprojected scans
+        plotting.plot_scan_map(
+            slam.tr, res["mean"], out / "map.png", slam.model.grid, res["map_loc"],
+            others={"path integration": res["path_integration"]},
+        )  # fmt: skip
+
+
+def run_slam(
+    traversal: Traversal,
+    out: Path,
+    mode: str,
+    config: SLAMConfig,
+    emission=None,
+    transition=None,
+    resume: bool = False,
+    progress: bool = True,
+    seed: int = 0,
+    preset: str | None = None,
+) -> dict:
+    """SLAM on ``traversal`` writing plots, trajectories, metrics and a checkpoint into ``out``.
+    Returns the report written to ``metrics.json``."""
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = out / "checkpoint.pt"
+    slam = SLAM(traversal, config, transition, emission, checkpoint=ckpt, seed=seed)
+    if resume:
+        if not ckpt.is_file():
+            raise DatasetError(f"{ckpt}: no checkpoint to resume from")
+        slam.resume(ckpt)
+    t0 = time.perf_counter()
+    res = slam.run(mode, progress=progress)
+    wall = time.perf_counter() - t0
+    res["path_integration"] = path_integration(traversal, slam.model.transition)
+    _write_trajectories(out, traversal, res)
+    report = _report(slam, traversal, res, mode, wall, preset)
+    _plots(out, slam, traversal, res)
+    text = json.dumps(report, indent=2, default=float)
+    atomic_write(out / "metrics.json", lambda f: f.write(text.encode()))
+    return report

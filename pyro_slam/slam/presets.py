@@ -1,0 +1,189 @@
+"""Named SLAM configurations. Each preset is one :class:`Preset` object; the CLI takes
+``--preset NAME`` (plus ``--config`` overrides) and the benchmarks name the preset they ran.
+
+========================  ===============================================================
+``paper``                 the paper's model: pretrained LiDAR emission MLP, the shipped
+                          learned transition
+``raycast`` (default)     ray-cast LiDAR emission with occupancy scan insertion and
+                          beam-mixture weights
+``manhattan``             ``raycast`` plus the Manhattan-world heading observation (for
+                          noise-free sensors: it trusts every straight wall)
+``visual``                the paper's visual model (row MLPs)
+``visual-raycast``        the ray camera
+``visual-manhattan``      the ray camera plus the heading observation read from the frames
+``real``                  real laser logs (CARMEN, ROS): settings derived from the log
+========================  ===============================================================
+
+The figures of each are on the results page (``docs/results.md``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..data import Traversal
+from .config import (
+    EmissionConfig,
+    FilterConfig,
+    HeadingConfig,
+    OfflineConfig,
+    ScanInsertionConfig,
+    SLAMConfig,
+    TrainingConfig,
+    TransitionConfig,
+)
+
+DEFAULT = "raycast"
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A named configuration; ``adapt(traversal, config)``, if set, fills in the settings that
+    depend on the data (e.g. a real log's beam stride and odometry noise)."""
+
+    name: str
+    summary: str
+    config: SLAMConfig
+    adapt: Callable[[Traversal, SLAMConfig], SLAMConfig] | None = None
+
+    def for_traversal(self, traversal: Traversal | None = None) -> SLAMConfig:
+        """The configuration for ``traversal`` (``config`` itself when nothing depends on it)."""
+        if self.adapt is None or traversal is None:
+            return self.config
+        return self.adapt(traversal, self.config)
+
+
+def odometry_sigma(controls, trans_frac: float = 0.1, rot_frac: float = 0.1, floor=0.01):
+    """Transition std ``(x, y, heading)`` from a relative-odometry noise model.
+
+    Odometry errors grow with the motion (Thrun et al., Probabilistic Robotics, ch. 5.4): per
+    step, ``trans_frac`` of the RMS step length on x and y and ``rot_frac`` of the RMS heading
+    change plus ``rot_frac`` rad per metre of the RMS step on the heading, with a floor of
+    ``floor`` (units, rad) -- a fixed std, as :class:`~pyro_slam.model.KinematicTransition`
+    takes.
+    """
+    u = np.asarray(controls, dtype=np.float64)  # [T-1, D_u]
+    step = float(np.sqrt(np.mean(np.sum(u[:, :2] ** 2, axis=1)))) if len(u) else 0.0
+    turn = float(np.sqrt(np.mean(u[:, 2] ** 2))) if len(u) and u.shape[1] >= 3 else 0.0
+    s_xy = max(trans_frac * step, floor)
+    s_h = max(rot_frac * (turn + step), floor)
+    return (s_xy, s_xy, s_h)
+
+
+def adapt_real_log(
+    traversal: Traversal,
+    config: SLAMConfig,
+    *,
+    target_beams: int = 46,
+    range_quantile: float = 99.0,
+    odometry_noise: float = 0.1,
+) -> SLAMConfig:
+    """``config`` for a metric real log: every ``beam_stride``-th beam so that at most
+    ``target_beams`` remain (361 -> every 8th); readings clipped at the ``range_quantile``
+    percentile of the valid ones (rare long returns then do not set the emission's scale);
+    the kinematic ``sigma_T`` from :func:`odometry_sigma` with fraction ``odometry_noise``."""
+    stride = max(1, int(math.ceil(traversal.num_beams / target_beams)))
+    valid = traversal.valid_ranges()
+    clip = float(np.percentile(valid, range_quantile)) if valid.size else traversal.max_range
+    sigma = odometry_sigma(traversal.controls, odometry_noise, odometry_noise)
+    return replace(
+        config,
+        beam_stride=stride,
+        range_clip=round(clip, 2),
+        transition=replace(config.transition, sigma=sigma),
+    )
+
+
+# the shipped learned transition, filtered with its sigma_T scaled: a stiff heading keeps the
+# map's frontier from tilting it, more position noise lets revisits pull the position back; where
+# the map is established the heading gets its calibrated noise back
+SHIPPED_TRANSITION = TransitionConfig("learned", scale=(3.0, 3.0, 0.2), scale_trusted=(3.0, 3.0, 1.0))
+
+PAPER = SLAMConfig(
+    emission=EmissionConfig("mlp"),
+    transition=SHIPPED_TRANSITION,
+    filter=FilterConfig(weighting="shared"),
+    offline=OfflineConfig(estimate="cache"),
+)
+RAYCAST = replace(
+    PAPER,
+    emission=EmissionConfig("raycast", resolution=1 / 63, insert=ScanInsertionConfig()),
+    filter=FilterConfig(weighting="shared", outlier_prob=0.1),
+)
+MANHATTAN = replace(RAYCAST, heading=HeadingConfig(sigma=1e-3))
+VISUAL = SLAMConfig(
+    emission=EmissionConfig("image_mlp", resolution=1 / 24, margin=0.0),
+    transition=TransitionConfig("kinematic", scale=(0.6, 0.6, 0.15)),
+    filter=FilterConfig(sigma=0.1),
+    training=TrainingConfig(particles=8, chunks=16, lr=0.05),
+    offline=OfflineConfig(rounds=2, svi_steps=400),
+)
+VISUAL_RAYCAST = replace(
+    VISUAL, emission=EmissionConfig("ray_camera", resolution=1 / 63, margin=0.0)
+)
+VISUAL_MANHATTAN = replace(VISUAL_RAYCAST, heading=HeadingConfig(sigma=1e-3))
+REAL = SLAMConfig(
+    emission=EmissionConfig("mlp", resolution=0.5, margin=0.0, sigma=0.5),
+    filter=FilterConfig(weighting="tempered", sigma=1.0, outlier_prob=0.05),
+    training=TrainingConfig(chunks=8),
+)
+
+PRESETS: dict[str, Preset] = {
+    p.name: p
+    for p in (
+        Preset("paper", "the paper's model: pretrained emission MLP, learned transition", PAPER),
+        Preset("raycast", "ray-cast LiDAR emission with scan insertion (default)", RAYCAST),
+        Preset("manhattan", "raycast + Manhattan heading observation (noise-free LiDAR)", MANHATTAN),
+        Preset("visual", "the paper's visual model: row MLPs on camera frames", VISUAL),
+        Preset("visual-raycast", "ray camera on camera frames", VISUAL_RAYCAST),
+        Preset("visual-manhattan", "ray camera + heading observation from the frames", VISUAL_MANHATTAN),
+        Preset("real", "real laser logs (settings derived from the log)", REAL, adapt_real_log),
+    )
+}
+
+
+def get(name: str) -> Preset:
+    """The preset called ``name``; a clear error listing the names otherwise."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown preset {name!r}; presets: {', '.join(PRESETS)}") from None
+
+
+def describe() -> str:
+    """One line per preset (for ``--help``)."""
+    return "\n".join(f"{p.name}: {p.summary}" for p in PRESETS.values())
+
+
+
+
+def is_real_log(traversal: Traversal) -> bool:
+    """A metric log from a reader (no walls, robot-frame odometry), not a simulated maze."""
+    return not traversal.walls.shape[0] and (
+        traversal.metadata.get("control_model") == "odometry_delta"
+    )
+
+
+def default_for(traversal: Traversal | None = None) -> SLAMConfig:
+    """The default configuration for ``traversal``: the ``real`` preset for a real log, the
+    default preset otherwise."""
+    if traversal is not None and is_real_log(traversal):
+        return PRESETS["real"].for_traversal(traversal)
+    return PRESETS[DEFAULT].config
+
+
+__all__ = [
+    "DEFAULT",
+    "PRESETS",
+    "Preset",
+    "adapt_real_log",
+    "default_for",
+    "describe",
+    "get",
+    "is_real_log",
+    "odometry_sigma",
+]

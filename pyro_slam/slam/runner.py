@@ -1,0 +1,401 @@
+"""SLAM with DVBF-LM: online (sweep t = 1..T) and offline (all steps), with checkpoints.
+
+The estimator is the paper's: SVI (Adam) on the particle-chunk ELBO (eq. 3) for the map belief
+``q(M)`` (and, without a pretrained one, the emission network), with the particle filter as the
+pose guide and the asynchronous particle cache.
+
+* **online**: at every step the particle filter advances under the current map belief, its
+  particles enter the cache, and one SVI step (every ``training.every`` steps) runs on the newest
+  chunk plus random older chunks (replay), with the ELBO scaled to the steps seen so far.
+* **offline**: an online sweep, then ``offline.rounds`` rounds of SVI on random chunks from
+  anywhere in the traversal; the pose posterior is a filter pass over the whole traversal
+  (``offline.estimate="forward"``, also after each round) or, as in the paper's Appendix B-I
+  (``"cache"``), filtered in consecutive chunks each started from the cache.
+
+Every long loop shows a tqdm bar and writes atomic checkpoints from which :meth:`SLAM.resume`
+continues with the same random stream.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyro
+import torch
+from pyro.infer import SVI
+from pyro.optim import Adam
+from tqdm.auto import tqdm
+
+from .. import pretrained
+from ..data import Traversal, atomic_write
+from ..inference import (
+    ChunkBatch,
+    MapBelief,
+    ParticleCache,
+    ParticleChunkELBO,
+    ParticleFilter,
+    Particles,
+    Weighting,
+)
+from ..model import Emission, EmissionMLP, Transition
+from . import presets
+from .build import build_model, prepare_traversal, traversal_tensors
+from .config import SLAMConfig
+from .heading import heading_observations
+from .insertion import ScanInserter
+
+CACHE_PARTICLES = 50  # N, cached particles per step (paper III-D2)
+LR_EMISSION = 1e-3  # Adam's learning rate of an emission learned from scratch
+# the online filter's transition noise follows the cloud's trust in the map in these phases
+# (the online sweep, also the one offline SLAM starts from)
+TRUSTED_PHASES = ("online", "online-init")
+
+
+@dataclass
+class SLAMState:
+    """Everything a run needs to continue: written to and read from checkpoints."""
+
+    mode: str
+    phase: str = "online"  # online(-init) | offline-svi | offline-filter | offline-final | done
+    t: int = 0  # next time step (online) / next SVI step (offline)
+    round: int = 0
+    estimates: list = field(default_factory=list)  # per step [3]
+    stds: list = field(default_factory=list)
+    losses: list = field(default_factory=list)
+    # offline SLAM: the initial online sweep's pose means, per step [3]
+    sweep_estimates: list = field(default_factory=list)
+
+
+class SLAM:
+    """A SLAM run over one traversal.
+
+    Args:
+        traversal: the data (:class:`~pyro_slam.data.Traversal`).
+        config: a :class:`~pyro_slam.slam.config.SLAMConfig` (default: the default preset for
+            the traversal, :func:`pyro_slam.slam.presets.default_for`).
+        transition: a transition to use instead of the configured one (``transition.kind``
+            ``"learned"``: the shipped network).
+        emission: an emission instead of the configured kind's default (the shipped LiDAR MLP
+            where the sensor matches it; otherwise a new one).
+        learn_emission: whether SVI also learns the emission (default: only a new one; a given
+            or shipped emission is pretrained and stays frozen).
+        checkpoint: path of the checkpoint written every ``checkpoint_every`` steps.
+        seed: seeds Pyro and the run's own ``torch.Generator``.
+
+    Example::
+
+        tr = pyro_slam.data.load("traversal.npz")
+        slam = SLAM(tr, presets.get("raycast").config, checkpoint="run/ckpt.pt")
+        result = slam.run("online")          # dict: mean [T, 3], std [T, 3], losses, map
+    """
+
+    def __init__(
+        self,
+        traversal: Traversal,
+        config: SLAMConfig | None = None,
+        transition: Transition | None = None,
+        emission: Emission | EmissionMLP | None = None,
+        checkpoint: str | Path | None = None,
+        checkpoint_every: int = 1000,
+        seed: int = 0,
+        learn_emission: bool | None = None,
+    ):
+        self.cfg = presets.default_for(traversal) if config is None else config
+        if not (isinstance(checkpoint_every, int) and checkpoint_every > 0):
+            raise ValueError(f"checkpoint_every must be a positive integer, got {checkpoint_every!r}")
+        self.checkpoint_every, self.seed = checkpoint_every, seed
+        self.tr = prepare_traversal(traversal, self.cfg)
+        self.obs, self.ctl, self.mask, self.init_pose = traversal_tensors(self.tr)
+        self.T = self.obs.shape[0]
+        if transition is None and self.cfg.transition.kind == "learned":
+            transition = pretrained.transition_for(self.tr)
+        if emission is None:
+            emission = pretrained.emission_for(self.tr, self.cfg.emission.kind)
+        if learn_emission is None:
+            learn_emission = emission is None and self.cfg.emission.kind != "raycast"
+        pyro.clear_param_store()
+        pyro.set_rng_seed(seed)  # (after loading: building a network draws its initial weights)
+        self.gen = torch.Generator().manual_seed(seed)
+        self.model, self.guide = build_model(self.tr, self.cfg, transition, emission)
+        self.model.learn_emission = bool(learn_emission)
+        self.pf = self._filter(self.cfg.filter.sigma, self.cfg.filter.outlier_prob)
+        self.cache = ParticleCache(self.T, CACHE_PARTICLES)
+        self.headings = None
+        if self.cfg.heading is not None:
+            image = self.cfg.emission.observation == "image"
+            self.headings = heading_observations(self.tr, self.obs, self.mask, self.cfg.heading, image)
+        self.inserter = None
+        if self.cfg.emission.insert is not None:
+            self.inserter = ScanInserter(self.cfg.emission.insert, self.model, self.guide)
+        self.elbo = self._elbo()
+        lr = self.cfg.training.lr
+        self.optim = Adam(lambda name, _p: {"lr": lr if name.startswith("map") else LR_EMISSION})
+        self.svi = SVI(self.model.map_model, self.guide, self.optim, loss=self.elbo)
+        self.guide.params()  # create the map parameters now (checkpoints need them)
+        self.checkpoint = None if checkpoint is None else Path(checkpoint)
+        self.particles: Particles | None = None
+        self.state: SLAMState | None = None
+
+    def _filter(self, sigma, outlier_prob) -> ParticleFilter:
+        """A particle filter of the configured weighting with this emission std and outlier
+        probability (the ray-cast LiDAR emission trusts the map per beam)."""
+        w = Weighting(
+            self.cfg.filter.weighting,
+            sigma,
+            outlier_prob,
+            outlier_range=_largest_reading(self.tr),
+            per_beam=self.cfg.emission.kind == "raycast",
+        )
+        return ParticleFilter(self.model, w, generator=self.gen)
+
+    def _elbo(self) -> ParticleChunkELBO:
+        """The particle-chunk ELBO; its chunk filter weighs with ``training.sigma`` (default
+        the filter's) and no outlier mixture."""
+        tc = self.cfg.training
+        sigma = self.cfg.filter.sigma if tc.sigma is None else tc.sigma
+        return ParticleChunkELBO(
+            self._filter(sigma, 0.0), self.cache, self.obs, self.ctl, self.mask,
+            num_particles=tc.particles, headings=self.headings,
+        )  # fmt: skip
+
+    # --------------------------------------------------------------------------- helpers
+    def map_belief(self) -> MapBelief:
+        """The map belief the filter weighs with: mean and scale of ``q(M)`` (detached)."""
+        loc, scale = self.guide.params()
+        return MapBelief(loc.detach(), scale.detach())
+
+    def _svi_step(self, lo: int, hi: int, newest: int | None) -> float:
+        """One SVI step on chunks starting in ``[lo, hi]`` (plus the chunk at ``newest``)."""
+        n_rand = self.cfg.training.chunks - (newest is not None)
+        starts = torch.randint(lo, hi + 1, (n_rand,), generator=self.gen)
+        if newest is not None:
+            starts = torch.cat([torch.tensor([newest]), starts])
+        loss = self.svi.step(ChunkBatch(starts, self.cfg.training.chunk_length))
+        if not math.isfinite(loss):
+            raise FloatingPointError(f"SVI loss became {loss} (step t={self.state.t})")
+        return loss
+
+    def _valid(self, t: int) -> torch.Tensor:
+        """``[B]`` bool: the valid readings of step ``t``."""
+        if self.mask is None:
+            return torch.ones_like(self.obs[t], dtype=torch.bool)
+        return self.mask[t].bool()
+
+    def _filter_step(self, t: int, M: MapBelief) -> None:
+        x = self.obs[t]
+        m = None if self.mask is None else self.mask[t]
+        if t == 0:
+            z0 = self.init_pose + self.model.init_scale * torch.randn(
+                self.cfg.filter.particles, 3, generator=self.gen, dtype=self.obs.dtype
+            )
+            self.particles, _ = self.pf.init(z0, M, x, m, step=0)
+        else:
+            self.particles, _ = self.pf.step(
+                self.particles, M, x, self.ctl[t - 1], m, step=t,
+                sigma=self._transition_sigma(M), heading=self._heading(t),
+            )  # fmt: skip
+        self.cache.store(torch.tensor([t]), self.particles.batched(), self.gen)
+
+    def _heading(self, t: int):
+        """Step ``t``'s heading observation (None: off, or no walls agree)."""
+        if self.headings is None or torch.isnan(self.headings.value[t]):
+            return None
+        return self.headings.at(t)
+
+    def _transition_sigma(self, M: MapBelief):
+        """The filter's ``sigma_T`` for the next step (``None``: the model's). With
+        ``transition.scale_trusted``, in the online sweep, it moves linearly from the model's
+        (scaled by ``transition.scale``) to the one scaled by ``scale_trusted`` as the cloud's
+        trust in the map goes from 0 to 1: firm odometry at the frontier of the map, where a
+        young chart copies the last scans and misleads the filter, and loose odometry where the
+        map is established."""
+        tc = self.cfg.transition
+        active = self.state is None or self.state.phase in TRUSTED_PHASES
+        if tc.scale_trusted is None or not active:
+            return None
+        lo = self.model.transition.sigma  # [3], already scaled by transition.scale
+        hi = lo * (torch.tensor(tc.scale_trusted, dtype=lo.dtype) / torch.tensor(tc.scale))
+        trust = self.pf.cloud_trust(self.particles, M)  # []
+        return lo + trust * (hi - lo)
+
+    # --------------------------------------------------------------------------- phases
+    def _online(self, progress: bool):
+        st, L = self.state, self.cfg.training.chunk_length
+        bar = tqdm(total=self.T, initial=st.t, desc="online SLAM", disable=not progress)
+        while st.t < self.T:
+            t = st.t
+            with torch.no_grad():
+                self._filter_step(t, self.map_belief())
+            mean = self.particles.mean()
+            if st.phase == "online":
+                st.estimates.append(mean.tolist())
+                st.stds.append(self.particles.std().tolist())
+            else:  # offline SLAM's initial sweep: kept for diagnostics (result's "sweep_mean")
+                st.sweep_estimates.append(mean.tolist())
+            if self.inserter is not None:
+                self.inserter.insert(self.obs[t], self._valid(t), mean)
+            if t >= L - 1 and t % self.cfg.training.every == 0:
+                self.elbo.num_steps_seen = t + 1
+                st.losses.append(self._svi_step(0, t - L + 1, t - L + 1))
+            st.t += 1
+            bar.update(1)
+            if self.checkpoint and st.t % self.checkpoint_every == 0:
+                self.save(self.checkpoint)
+        bar.close()
+        self.elbo.num_steps_seen = self.T
+
+    def _filter_pass(self, progress: bool, desc: str):
+        """Filter the whole traversal under the map belief (refreshes the cache)."""
+        M = self.map_belief()
+        means, stds = [], []
+        with torch.no_grad():
+            for t in tqdm(range(self.T), desc=desc, disable=not progress, leave=False):
+                self._filter_step(t, M)
+                means.append(self.particles.mean().tolist())
+                stds.append(self.particles.std().tolist())
+        return means, stds
+
+    def _cache_pass(self, progress: bool, desc: str):
+        """Offline poses as the paper's Appendix B-I filters them: the traversal in consecutive
+        chunks of ``chunk_length`` steps, each started from its first step's cached particles
+        (categorical over the cache, plus 1e-3 noise) and filtered under the map belief; no
+        particles cross a chunk boundary and the cache is left as it is."""
+        M, L, K = self.map_belief(), self.cfg.training.chunk_length, self.cfg.filter.particles
+        means, stds = [], []
+        with torch.no_grad():
+            for s in tqdm(range(0, self.T, L), desc=desc, disable=not progress, leave=False):
+                for t in range(s, min(s + L, self.T)):
+                    m = None if self.mask is None else self.mask[t]
+                    if t == s:  # [K, 3] from the cache
+                        z0 = self.cache.propose(torch.tensor([s]), K, "categorical",
+                                                generator=self.gen)[0]  # fmt: skip
+                        self.particles, _ = self.pf.init(z0.to(self.obs.dtype), M, self.obs[t], m, step=t)
+                    else:
+                        self.particles, _ = self.pf.step(
+                            self.particles, M, self.obs[t], self.ctl[t - 1], m, step=t,
+                            sigma=self._transition_sigma(M), heading=self._heading(t),
+                        )  # fmt: skip
+                    means.append(self.particles.mean().tolist())
+                    stds.append(self.particles.std().tolist())
+        return means, stds
+
+    def _offline_round(self, progress: bool):
+        """One offline round: (a forward filter pass, then) ``offline.svi_steps`` SVI steps."""
+        st, L = self.state, self.cfg.training.chunk_length
+        if st.phase == "offline-filter":
+            if self.cfg.offline.estimate == "forward":  # "cache": only the SVI chunks refresh it
+                self._filter_pass(progress, f"filter pass {st.round + 1}")
+            st.phase, st.t = "offline-svi", 0
+        n = self.cfg.offline.svi_steps
+        bar = tqdm(total=n, initial=st.t, desc=f"offline SVI {st.round + 1}", disable=not progress)
+        while st.t < n:
+            st.losses.append(self._svi_step(0, self.T - L, None))
+            st.t += 1
+            bar.update(1)
+            if self.checkpoint and st.t % self.checkpoint_every == 0:
+                self.save(self.checkpoint)
+        bar.close()
+        st.round += 1
+        st.phase, st.t = "offline-filter", 0
+        if self.checkpoint:
+            self.save(self.checkpoint)
+
+    def _offline(self, progress: bool):
+        st = self.state
+        if st.phase == "online-init":
+            self._online(progress)
+            st.phase, st.t = "offline-svi", 0
+            if self.checkpoint:
+                self.save(self.checkpoint)
+        while st.round < self.cfg.offline.rounds:
+            self._offline_round(progress)
+        st.phase = "offline-final"
+        final = self._cache_pass if self.cfg.offline.estimate == "cache" else self._filter_pass
+        st.estimates, st.stds = final(progress, "final filter pass")
+
+    def run(self, mode: str = "online", progress: bool = True) -> dict:
+        """Run (or, after :meth:`resume`, continue) SLAM. Returns :meth:`result`."""
+        if mode not in ("online", "offline"):
+            raise ValueError(f"mode must be 'online' or 'offline', got {mode!r}")
+        if self.state is None:
+            self.state = SLAMState(mode, phase="online" if mode == "online" else "online-init")
+        elif self.state.phase == "done":  # resumed from the final checkpoint: nothing to redo
+            return self.result()
+        if mode == "online":
+            self._online(progress)
+        else:
+            self._offline(progress)
+        self.state.phase = "done"
+        if self.checkpoint:
+            self.save(self.checkpoint)
+        return self.result()
+
+    def result(self) -> dict:
+        """``mean``, ``std`` ``[T, 3]`` (pose posterior), ``losses``, ``map_loc``, ``map_scale``
+        ``[w, h, D_m]`` (``q(M)``) and, offline, the initial sweep's ``sweep_mean [T, 3]``."""
+        st = self.state
+        loc, scale = self.guide.params()
+        return {
+            "mean": np.asarray(st.estimates, dtype=np.float64).reshape(-1, 3),
+            "std": np.asarray(st.stds, dtype=np.float64).reshape(-1, 3),
+            "losses": np.asarray(st.losses),
+            "map_loc": loc.detach().numpy(),
+            "map_scale": scale.detach().numpy(),
+            "sweep_mean": np.asarray(st.sweep_estimates, dtype=np.float64).reshape(-1, 3),
+        }
+
+    # --------------------------------------------------------------------------- checkpoints
+    def state_dict(self) -> dict:
+        return {
+            "config": self.cfg.to_dict(),
+            "state": copy.deepcopy(self.state.__dict__),
+            "params": pyro.get_param_store().get_state(),
+            "optim": self.optim.get_state(),
+            "model": self.model.state_dict(),
+            "cache": self.cache.state_dict(),
+            "particles": None if self.particles is None else self.particles.__dict__,
+            "gen": self.gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "elbo_seen": self.elbo.num_steps_seen,
+            "inserter": None if self.inserter is None else self.inserter.state_dict(),
+        }
+
+    def save(self, path) -> None:
+        """Atomic checkpoint (temp file + rename)."""
+        buf = io.BytesIO()
+        torch.save(self.state_dict(), buf)
+        atomic_write(Path(path), lambda f: f.write(buf.getvalue()))
+
+    def resume(self, path) -> SLAM:
+        """Load a checkpoint written by :meth:`save`; :meth:`run` then continues from it."""
+        d = torch.load(path, weights_only=False)
+        pyro.get_param_store().set_state(d["params"])
+        self.model.load_state_dict(d["model"])
+        if self.model.learn_emission:
+            # the store now holds *loaded* tensors: make the emission network use (and SVI
+            # update) those, as it did before the checkpoint, not its own parameter copies
+            pyro.module("emission", self.model.emission, update_module_params=True)
+        self.guide.params()
+        self.optim.set_state(d["optim"])
+        self.cache.load_state_dict(d["cache"])
+        self.particles = None if d["particles"] is None else Particles(**d["particles"])
+        self.gen.set_state(d["gen"])
+        torch.set_rng_state(d["torch_rng"])
+        self.elbo.num_steps_seen = d["elbo_seen"]
+        if self.inserter is not None:
+            self.inserter.load_state_dict(d["inserter"])
+        self.state = SLAMState(**d["state"])
+        return self
+
+
+def _largest_reading(tr: Traversal) -> float:
+    """Largest valid observed reading: the width of the filter's uniform outlier density."""
+    obs = np.asarray(tr.observations, dtype=np.float64)
+    valid = obs if tr.obs_mask is None else obs[np.asarray(tr.obs_mask, dtype=bool)]
+    valid = valid[np.isfinite(valid)]
+    return float(valid.max()) if valid.size and valid.max() > 0 else 1.0

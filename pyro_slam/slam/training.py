@@ -1,0 +1,118 @@
+"""Fitting with known poses: pretraining an emission (:func:`pretrain_emission`) and mapping
+(:func:`fit_map`). Both maximise ``E_q(M)[log p(x_t | z_t, M)] - KL(q(M) || p(M)) / T`` on
+minibatches of time steps, with the poses ``z_t`` given."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from ..model import DVBFLM, Emission, EmissionMLP, LidarEmission
+from .build import build_model, traversal_tensors
+from .config import SLAMConfig
+
+
+def _map_params(model: DVBFLM):
+    """A fresh mean-field ``q(M)`` at the prior: ``loc``, ``log_scale`` ``[w, h, D_m]``."""
+    loc = torch.zeros(model.grid.shape, requires_grad=True)
+    log_scale = torch.zeros(model.grid.shape, requires_grad=True)
+    return loc, log_scale
+
+
+def _negative_elbo(model: DVBFLM, loc, log_scale, obs, mask, poses, idx, T: int):
+    """``-E_q[log p(x | z, M)]`` (one sample, mean over the steps ``idx``) ``+ KL / T``."""
+    q = torch.distributions.Normal(loc, log_scale.exp())
+    mean = model.emission_mean(q.rsample(), poses[idx])
+    ll = model.emission_log_prob(obs[idx], mean, None if mask is None else mask[idx])
+    prior = torch.distributions.Normal(0.0, 1.0)
+    return -ll.mean() + torch.distributions.kl_divergence(q, prior).sum() / T
+
+
+def pretrain_emission(
+    traversals,
+    config: SLAMConfig,
+    *,
+    emission: Emission | EmissionMLP | None = None,
+    steps: int = 2000,
+    batch_size: int = 256,
+    lr_map: float = 0.05,
+    lr_emission: float = 1e-3,
+    seed: int = 0,
+    progress: bool = True,
+) -> tuple[Emission | EmissionMLP, dict]:
+    """Fit ``mu_E`` on prepared traversals with ground-truth poses (one map belief per
+    traversal), starting from ``emission`` (default: a new one of ``config.emission.kind``).
+    The maps are discarded and the emission network is returned, to be reused (frozen) for
+    SLAM in new mazes."""
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    models, params, data = [], [], []
+    for tr in traversals:
+        m, _ = build_model(tr, config, emission=emission)
+        emission = m.emission
+        loc, log_scale = _map_params(m)
+        obs, _, mask, _ = traversal_tensors(tr)
+        models.append(m)
+        params += [loc, log_scale]
+        data.append((obs, mask, torch.as_tensor(tr.poses, dtype=obs.dtype), loc, log_scale))
+    opt = torch.optim.Adam(
+        [{"params": params, "lr": lr_map}, {"params": emission.parameters(), "lr": lr_emission}]
+    )
+    bar = tqdm(range(steps), desc="pretrain emission", disable=not progress)
+    for _ in bar:
+        loss = 0.0
+        for m, (obs, mask, poses, loc, log_scale) in zip(models, data):
+            T = obs.shape[0]
+            idx = torch.randint(T, (batch_size,), generator=gen)
+            loss = loss + _negative_elbo(m, loc, log_scale, obs, mask, poses, idx, T)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        bar.set_postfix(loss=f"{loss.item():.2f}")
+    with torch.no_grad():
+        m, (obs, mask, poses, loc, _) = models[0], data[0]
+        rmse = (m.emission_mean(loc, poses) - obs).pow(2).mean().sqrt().item()
+    if isinstance(emission, LidarEmission):  # the network (what the LiDAR checkpoints hold)
+        emission = emission.net
+    return emission, {"final_loss": loss.item(), "rmse_first_traversal": rmse}
+
+
+def fit_map(
+    traversal,
+    model: DVBFLM,
+    poses=None,
+    steps: int = 1000,
+    *,
+    batch_size: int = 256,
+    lr: float = 0.05,
+    seed: int = 0,
+    progress: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mapping with known poses: fit the mean-field ``q(M)`` with the emission frozen, by Adam
+    on minibatches of time steps, with the poses ``z_t`` given (default: the traversal's
+    ground truth; pass e.g. a SLAM posterior mean instead). Returns ``(loc, scale)`` of
+    ``q(M)``, each ``[w, h, D_m]`` (detached)."""
+    if poses is None:
+        if traversal.poses is None:
+            raise ValueError("fit_map needs poses (the traversal has no ground truth)")
+        poses = traversal.poses
+    gen = torch.Generator().manual_seed(seed)
+    obs, _, mask, _ = traversal_tensors(traversal)
+    z = torch.as_tensor(np.asarray(poses), dtype=obs.dtype)
+    loc, log_scale = _map_params(model)
+    opt = torch.optim.Adam([loc, log_scale], lr=lr)
+    for p in model.emission.parameters():
+        p.requires_grad_(False)
+    T = obs.shape[0]
+    try:
+        for _ in tqdm(range(steps), desc="fit map", disable=not progress):
+            idx = torch.randint(T, (min(batch_size, T),), generator=gen)
+            loss = _negative_elbo(model, loc, log_scale, obs, mask, z, idx, T)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    finally:
+        for p in model.emission.parameters():
+            p.requires_grad_(True)
+    return loc.detach(), log_scale.detach().exp()
