@@ -1,7 +1,7 @@
 """A tiny numpy stand-in for the simulator, for PF-net tests (no pymunk, no distractors).
 
 ``make_maze(seed, cells)`` builds a perfect maze of ``cells x cells`` cells in ``[0, 1]^2``;
-``StandInWorld`` implements the members :func:`pyro_slam.pfnet_data.generate` needs: it moves
+``StandInWorld`` implements the members :func:`pyro_slam.pfnet.data.generate` needs: it moves
 without physics (a move that would cross a wall stops short) and renders a LiDAR scan and a
 column-wise depth image by ray casting.
 """

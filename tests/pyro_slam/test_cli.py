@@ -8,7 +8,7 @@ import pytest
 from pyro_slam import cli
 
 TINY = json.dumps(
-    {"filter_particles": 16, "train_particles": 4, "chunks_per_batch": 2, "chunk_length": 4}
+    {"filter": {"particles": 16}, "training": {"particles": 4, "chunks": 2, "chunk_length": 4}}
 )
 
 
@@ -30,6 +30,9 @@ def test_slam_writes_outputs_and_metrics(traversal, tmp_path, capsys):
         assert (out / name).is_file(), name
     report = json.loads((out / "metrics.json").read_text())
     assert report["steps"] == 30 and report["mode"] == "online"
+    # the default preset, with the overrides applied
+    assert report["preset"] == "raycast" and report["config"]["filter"]["particles"] == 16
+    assert report["config"]["emission"]["kind"] == "raycast"
     s, p = report["slam"], report["path_integration"]
     # a 30-step run cannot drift far: both errors are small and finite
     assert 0 <= s["final_error"] < 0.2 and 0 <= p["final_error"] < 0.2
@@ -59,6 +62,9 @@ def test_bad_inputs_exit_2_with_message(traversal, tmp_path, capsys):
     assert "bad.npz" in capsys.readouterr().err
     rc = cli.main(["slam", str(traversal), "--out", str(tmp_path), "--config", '{"nope": 1}'])
     assert rc == 2 and "nope" in capsys.readouterr().err
+    bad_value = '{"filter": {"particles": -5}}'
+    rc = cli.main(["slam", str(traversal), "--out", str(tmp_path), "--config", bad_value])
+    assert rc == 2 and "filter.particles must be a positive integer" in capsys.readouterr().err
     rc = cli.main(["slam", str(traversal), "--out", str(tmp_path / "r"), "--resume"])
     assert rc == 2 and "checkpoint" in capsys.readouterr().err
 
@@ -76,35 +82,33 @@ def test_demo_end_to_end(tmp_path):
     assert report["slam"]["final_error"] < 1 / 6
 
 
-def test_shipped_slam_scales_the_learned_transition_and_freezes_the_emission():
-    import torch
+def test_slam_help_lists_the_presets(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["slam", "--help"])
+    out = capsys.readouterr().out
+    assert "--preset" in out
+    for name in ("paper", "raycast", "manhattan", "visual", "real"):
+        assert name in out
 
-    from simulators import simulate_traversal
 
-    tr = simulate_traversal("moderate-medium", steps=30, seed=3)
-    fitted = cli.load_transition(cli.PRETRAINED / cli.TRANSITION_FILE).sigma
-    slam = cli.shipped_slam(tr, seed=2)
-    scale = torch.tensor(cli.TRANSITION_SCALE, dtype=fitted.dtype)
-    torch.testing.assert_close(slam.model.transition.sigma, fitted * scale)
-    assert slam.cfg.learn_emission is False and slam.cfg.seed == 2
-    assert slam.cfg.weighting == "shared"
-    assert tuple(slam.cfg.transition_scale_trusted) == cli.TRANSITION_SCALE_TRUSTED
-    # overrides win over the defaults; the kinematic transition is not scaled
-    same = cli.shipped_slam(tr, transition_scale=(1.0, 1.0, 1.0))
-    torch.testing.assert_close(same.model.transition.sigma, fitted)
-    kin = cli.shipped_slam(tr, "kinematic")
-    torch.testing.assert_close(
-        kin.model.transition.sigma, torch.tensor(kin.cfg.transition_sigma, dtype=fitted.dtype)
-    )
-    with pytest.raises(ValueError, match="transition must be 'learned' or 'kinematic'"):
-        cli.shipped_slam(tr, "linear")
+def test_paper_preset_runs_the_pretrained_emission_mlp(traversal, tmp_path):
+    """``--preset paper``: the shipped emission MLP (a D_m = 10 chart map), the shipped learned
+    transition scaled as the preset says."""
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--preset", "paper", "--config", TINY]
+    assert cli.main(args) == 0
+    report = json.loads((out / "metrics.json").read_text())
+    assert report["preset"] == "paper" and report["config"]["emission"]["kind"] == "mlp"
+    assert report["config"]["transition"]["scale"] == [3.0, 3.0, 0.2]
+    assert np.load(out / "posterior.npz")["map_loc"].shape[-1] == 10
+    assert 0 <= report["slam"]["final_error"] < 0.2
 
 
 def test_slam_with_the_ray_emission_writes_an_occupancy_map(traversal, tmp_path, capsys):
-    """``--config '{"lidar_emission": "raycast"}'``: no emission network is loaded, the map
-    has one feature per cell, and asking for an emission network as well is an input error."""
+    """The default preset (ray-cast emission): no emission network is loaded, the map has one
+    feature per cell, and asking for an emission network as well is an input error."""
     out = tmp_path / "run"
-    cfg = json.dumps({**json.loads(TINY), "lidar_emission": "raycast"})
+    cfg = TINY
     assert cli.main(["slam", str(traversal), "--out", str(out), "--config", cfg]) == 0
     post = np.load(out / "posterior.npz")
     assert post["map_loc"].shape[-1] == 1 and (out / "slam.png").is_file()

@@ -10,7 +10,7 @@ import pytest
 import torch
 from scipy.stats import ortho_group
 
-from pyro_slam.exploration import (
+from pyro_slam.planning.exploration import (
     ExploreConfig,
     KnownObstacles,
     Mapper,
@@ -22,7 +22,7 @@ from pyro_slam.exploration import (
     run_agent,
 )
 from pyro_slam.model import MapGrid
-from pyro_slam.pema import ARSConfig, ars
+from pyro_slam.planning.pema import ARSConfig, ars
 
 
 @pytest.mark.parametrize("d", range(1, 21))
@@ -143,7 +143,7 @@ def test_run_agent_smoke():
 def test_kinematic_rollout_matches_step_by_step_loop():
     """The cumulative-sum rollout equals the step-by-step kinematics (rotate, move, add noise)
     for the same noise draws."""
-    from pyro_slam.exploration import kinematic_rollout
+    from pyro_slam.planning.exploration import kinematic_rollout
 
     torch.manual_seed(0)
     z0 = torch.tensor([0.3, 0.4, 0.5], dtype=torch.float64)

@@ -16,9 +16,11 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from pfnet_standin import StandInWorld, make_maze  # noqa: E402
 
-from pyro_slam import pfnet, pfnet_data, resampling  # noqa: E402
-from pyro_slam import pfnet_baselines as bl  # noqa: E402
-from pyro_slam.geometry import odometry_delta  # noqa: E402
+from pyro_slam import pfnet  # noqa: E402
+from pyro_slam.inference import resampling  # noqa: E402
+from pyro_slam.pfnet import data as pfnet_data  # noqa: E402
+from pyro_slam.pfnet import baselines as bl  # noqa: E402
+from pyro_slam.geometry import odometry_delta, wrap_angle  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
@@ -85,7 +87,7 @@ class OraclePF(pfnet.PFNet):
 
     def log_likelihood(self, batch, obs_feat, particles, t):
         d = particles - batch["poses"][:, t, None]
-        d = torch.cat([d[..., :2] / 0.01, pfnet.wrap_angle(d[..., 2:]) / 0.1], -1)
+        d = torch.cat([d[..., :2] / 0.01, wrap_angle(d[..., 2:]) / 0.1], -1)
         return -0.5 * (d**2).sum(-1)
 
 
