@@ -46,7 +46,9 @@ def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
     name = args.preset or ("real" if presets.is_real_log(traversal) else presets.DEFAULT)
     preset = presets.get(name)
     if getattr(args, "odometry_noise", None) is not None and preset.adapt is presets.adapt_real_log:
-        config = presets.adapt_real_log(traversal, preset.config, odometry_noise=args.odometry_noise)
+        config = presets.adapt_real_log(
+            traversal, preset.config, odometry_noise=args.odometry_noise
+        )
     else:
         config = preset.for_traversal(traversal)
     if args.config:
@@ -64,7 +66,8 @@ def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
 
 
 def _print_report(report: dict, out: Path) -> None:
-    line = f"slam ({report['preset']}, {report['mode']}): T={report['steps']} {report['wall_time_s']:.0f}s"
+    line = f"slam ({report['preset']}, {report['mode']}): T={report['steps']}"
+    line += f" {report['wall_time_s']:.0f}s"
     if "slam" in report:
         s, p = report["slam"], report["path_integration"]
         line += (
@@ -87,7 +90,11 @@ def cmd_simulate(args) -> int:
         args.maze, args.steps, args.seed, images=args.images, distractors=args.distractors
     )
     out = tr.save(args.out)
-    plot = None if args.no_plot else plot_traversal(tr, args.plot or Path(args.out).with_suffix(".png"))
+    plot = (
+        None
+        if args.no_plot
+        else plot_traversal(tr, args.plot or Path(args.out).with_suffix(".png"))
+    )
     dead = integrate_controls(tr.poses[0], tr.controls)
     drift = float(np.linalg.norm(dead[-1, :2] - tr.poses[-1, :2]))
     print(
@@ -234,7 +241,8 @@ def _add_simulate(sub) -> None:
 def _add_slam(sub) -> None:
     s = sub.add_parser(
         "slam", help="run DVBF-LM SLAM on a traversal (.npz, CARMEN, ROS bag)",
-        epilog="presets:\n" + presets.describe(), formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="presets:\n" + presets.describe(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
     s.add_argument("traversal", type=Path)
     s.add_argument("--mode", choices=["online", "offline"], default="online")
@@ -296,12 +304,21 @@ def _add_navigate(sub) -> None:
     p.add_argument("--inverse-steps", type=int, default=1000, help="ELBO steps of q(z|x)")
     p.add_argument("--inverse-sleep-steps", type=int, default=3000, help="sleep steps of q(z|x)")
     p.add_argument("--planner", choices=["learned", "ground_truth"], default="learned")
-    p.add_argument("--map", choices=["known_poses", "slam"], default="known_poses",
-                   help="q(M) fitted at the true poses, or at an online SLAM run's pose means")
+    p.add_argument(
+        "--map",
+        choices=["known_poses", "slam"],
+        default="known_poses",
+        help="q(M) fitted at the true poses, or at an online SLAM run's pose means",
+    )
     p.add_argument("--traversal-steps", type=int, default=3000)
     p.add_argument("--fit-steps", type=int, default=1500)
-    p.add_argument("--emission-steps", type=int, default=0, help="fit the emission on the "
-                   "mapping traversal for this many steps (0: the shipped one, frozen)")
+    p.add_argument(
+        "--emission-steps",
+        type=int,
+        default=0,
+        help="fit the emission on the "
+        "mapping traversal for this many steps (0: the shipped one, frozen)",
+    )
     p.add_argument("--n-world", type=int, default=20, help="world directions of a fitted emission")
     p.add_argument("--max-expansions", type=int, default=3000)
     p.add_argument("--noise", action="store_true", help="execute with actuation noise")

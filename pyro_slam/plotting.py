@@ -170,9 +170,10 @@ def plot_navigation(
     title: str = "",
     inferred=None,
 ) -> Path:
-    """``result``: a :class:`~pyro_slam.planning.PlanResult`. Left: the plan over the map belief (predicted nearest range per position); right: the
-    executed trajectory in the simulator with the true walls. ``inferred``: the goal inferred
-    from an observation target (drawn as a cross; ``goal`` is then the true target)."""
+    """``result``: a :class:`~pyro_slam.planning.PlanResult`. Left: the plan over the map belief
+    (predicted nearest range per position); right: the executed trajectory in the simulator
+    with the true walls. ``inferred``: the goal inferred from an observation target (drawn as a
+    cross; ``goal`` is then the true target)."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 5))
     n = 80
     xs = (np.arange(n) + 0.5) / n * maze.side

@@ -75,30 +75,8 @@ def simulate_traversal(
             world.step(controls[t])
     toured = None
     if tour is not None:
-        tour = np.asarray(tour, dtype=np.float64).reshape(-1, 2)
-        seen = np.linalg.norm(np.asarray(poses)[None, :, :2] - tour[:, None], axis=2).min(1)
-        missed = tour[seen > tour_skip]  # [P', 2]
-        guide = TourDriver(maze, missed)
-        for _ in range(max_tour_steps):
-            u = guide.act(world.pose)
-            if u is None:
-                break
-            controls.append(u)
-            world.step(u)
-            poses.append(world.pose)
-            obs.append(world.lidar())
-        if not guide.done:
-            warnings.warn(
-                f"tour: {len(guide.reached)} of {len(missed)} points reached "
-                f"within max_tour_steps={max_tour_steps}",
-                stacklevel=2,
-            )
-        toured = {
-            "points": missed.tolist(),
-            "reached": len(guide.reached),
-            "steps": len(poses) - steps,
-            "skip": tour_skip,
-        }
+        toured = _drive_tour(world, maze, tour, tour_skip, max_tour_steps, poses, obs, controls)
+        toured["steps"] = len(poses) - steps
     obs, poses = np.array(obs), np.array(poses)
     controls = np.array(controls).reshape(-1, 2)
     frames = None
@@ -106,7 +84,48 @@ def simulate_traversal(
         frames = Camera(maze.walls, maze.corridor_width, world.distractor_segments, camera).render(
             poses
         )
-    metadata = {
+    metadata = _metadata(maze, world, agent, seed, noise_seed, lidar, camera if images else None,
+                         driver, distractors, toured)  # fmt: skip
+    return Traversal(
+        observations=obs.astype(np.float32),
+        controls=controls,
+        walls=maze.walls,
+        beam_angles=lidar.beam_angles,
+        max_range=lidar.max_range,
+        poses=poses,
+        images=frames,
+        metadata=metadata,
+    )
+
+
+def _drive_tour(world, maze, tour, skip: float, max_steps: int, poses, obs, controls) -> dict:
+    """Drive a :class:`TourDriver` from the world's pose through the points of ``tour [P, 2]``
+    that the path ``poses`` did not pass within ``skip``, appending to ``poses``, ``obs`` and
+    ``controls``; returns the tour's record for the metadata."""
+    tour = np.asarray(tour, dtype=np.float64).reshape(-1, 2)
+    seen = np.linalg.norm(np.asarray(poses)[None, :, :2] - tour[:, None], axis=2).min(1)
+    missed = tour[seen > skip]  # [P', 2]
+    guide = TourDriver(maze, missed)
+    for _ in range(max_steps):
+        u = guide.act(world.pose)
+        if u is None:
+            break
+        controls.append(u)
+        world.step(u)
+        poses.append(world.pose)
+        obs.append(world.lidar())
+    if not guide.done:
+        warnings.warn(
+            f"tour: {len(guide.reached)} of {len(missed)} points reached "
+            f"within max_tour_steps={max_steps}",
+            stacklevel=3,
+        )
+    return {"points": missed.tolist(), "reached": len(guide.reached), "skip": skip}
+
+
+def _metadata(maze, world, agent, seed, noise_seed, lidar, camera, driver, distractors, toured):
+    """The traversal's metadata: simulator, seeds, maze, sensors, noise, driver, tour."""
+    return {
         "simulator": "simulators (pymunk maze)",
         "simulator_version": SIMULATOR_VERSION,
         "seed": int(seed),
@@ -124,7 +143,7 @@ def simulate_traversal(
             "max_range": lidar.max_range,
             "method": lidar.method,
         },
-        "camera": camera.to_dict() if images else None,
+        "camera": None if camera is None else camera.to_dict(),
         "noise": world.noise.to_dict(),
         "control_model": "rotate_forward",
         "agent": {"radius": AGENT_RADIUS, "clearance": world.clearance},
@@ -135,13 +154,3 @@ def simulate_traversal(
         "coverage": agent.coverage(),
         "tour": toured,
     }
-    return Traversal(
-        observations=obs.astype(np.float32),
-        controls=controls,
-        walls=maze.walls,
-        beam_angles=lidar.beam_angles,
-        max_range=lidar.max_range,
-        poses=poses,
-        images=frames,
-        metadata=metadata,
-    )

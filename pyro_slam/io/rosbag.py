@@ -16,6 +16,8 @@ import os
 from pathlib import Path
 
 import numpy as np
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
 
 from pyro_slam.data import Traversal
 from pyro_slam.io.common import ParseError, build_traversal, poses_at, sentinel_max_range, wrap
@@ -49,6 +51,50 @@ def _connections(reader, path: Path, topic: str | None, msgtype: str, required: 
     return conns
 
 
+def _read_messages(reader, path: Path, scans, odoms):
+    """The scans' ranges ``[T] x [B]`` and stamps, the first scan message, and the odometry
+    poses ``[N] x [3]`` and stamps, in bag order."""
+    ranges, times, first = [], [], None
+    odom_pose, odom_time = [], []
+    for conn, bag_ns, raw in reader.messages(connections=scans + odoms):
+        msg = reader.deserialize(raw, conn.msgtype)
+        if conn.msgtype == ODOMETRY:
+            p = msg.pose.pose
+            odom_pose.append([p.position.x, p.position.y, _yaw(p.orientation)])
+            odom_time.append(_stamp(msg, bag_ns))
+            continue
+        if first is None:
+            first = msg
+        config = (len(msg.ranges), msg.angle_min, msg.angle_increment)
+        if config != (len(first.ranges), first.angle_min, first.angle_increment):
+            raise ParseError(
+                path, None, f"scan {len(ranges)} on {conn.topic}: beams (n, angle_min, "
+                f"increment) = {config} differ from the first scan's"
+            )  # fmt: skip
+        ranges.append(np.asarray(msg.ranges, dtype=np.float64))
+        times.append(_stamp(msg, bag_ns))
+    return ranges, times, first, odom_pose, odom_time
+
+
+def _sensor(first, ranges: np.ndarray, max_range: float | None) -> tuple[dict, float]:
+    """The sensor's metadata and its maximum range (argument, ``range_max`` or sentinel)."""
+    sensor = {
+        "type": LASER_SCAN,
+        "frame_id": first.header.frame_id,
+        "num_beams_raw": int(ranges.shape[1]),
+        "range_min": float(first.range_min),
+        "angle_min": float(first.angle_min),
+        "angle_increment": float(first.angle_increment),
+    }
+    if max_range is not None:
+        sensor["max_range_source"] = "argument"
+    elif math.isfinite(first.range_max) and first.range_max > 0:
+        max_range, sensor["max_range_source"] = float(first.range_max), "LaserScan.range_max"
+    else:
+        max_range, sensor["max_range_source"] = sentinel_max_range(ranges)
+    return sensor, max_range
+
+
 def read_rosbag(
     path: str | os.PathLike,
     scan_topic: str | None = None,
@@ -69,9 +115,6 @@ def read_rosbag(
     Raises:
         ParseError: unreadable bag, missing / ambiguous topics, inconsistent scans, no scans.
     """
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such bag")
@@ -83,46 +126,14 @@ def read_rosbag(
     try:
         scans = _connections(reader, path, scan_topic, LASER_SCAN, required=True)
         odoms = _connections(reader, path, odom_topic, ODOMETRY, required=False)
-        ranges, times, first = [], [], None
-        odom_pose, odom_time = [], []
-        for conn, bag_ns, raw in reader.messages(connections=scans + odoms):
-            msg = reader.deserialize(raw, conn.msgtype)
-            if conn.msgtype == ODOMETRY:
-                p = msg.pose.pose
-                odom_pose.append([p.position.x, p.position.y, _yaw(p.orientation)])
-                odom_time.append(_stamp(msg, bag_ns))
-                continue
-            if first is None:
-                first = msg
-            config = (len(msg.ranges), msg.angle_min, msg.angle_increment)
-            if config != (len(first.ranges), first.angle_min, first.angle_increment):
-                raise ParseError(
-                    path, None, f"scan {len(ranges)} on {conn.topic}: beams (n, angle_min, "
-                    f"increment) = {config} differ from the first scan's"
-                )  # fmt: skip
-            ranges.append(np.asarray(msg.ranges, dtype=np.float64))
-            times.append(_stamp(msg, bag_ns))
+        ranges, times, first, odom_pose, odom_time = _read_messages(reader, path, scans, odoms)
     finally:
         reader.close()
     if not ranges:
         raise ParseError(path, None, f"no messages on {scans[0].topic}")
-
     ranges = np.stack(ranges)  # [T, B]
     times = np.asarray(times)  # [T]
-    sensor = {
-        "type": LASER_SCAN,
-        "frame_id": first.header.frame_id,
-        "num_beams_raw": int(ranges.shape[1]),
-        "range_min": float(first.range_min),
-        "angle_min": float(first.angle_min),
-        "angle_increment": float(first.angle_increment),
-    }
-    if max_range is not None:
-        sensor["max_range_source"] = "argument"
-    elif math.isfinite(first.range_max) and first.range_max > 0:
-        max_range, sensor["max_range_source"] = float(first.range_max), "LaserScan.range_max"
-    else:
-        max_range, sensor["max_range_source"] = sentinel_max_range(ranges)
+    sensor, max_range = _sensor(first, ranges, max_range)
     meta = {"source": "rosbag", "file": str(path), "scan_topic": scans[0].topic, "sensor": sensor}
     if odom_pose:
         odom, gap = poses_at(times, np.asarray(odom_time), np.asarray(odom_pose), pairing)
@@ -136,15 +147,5 @@ def read_rosbag(
         meta.update(odom_topic=None, odometry_source="none (no Odometry topic): zero controls")
     meta["counts"] = {"scans": len(times), "odometry": len(odom_pose)}
     angles = wrap(first.angle_min + first.angle_increment * np.arange(ranges.shape[1]))
-    return build_traversal(
-        ranges,
-        angles,
-        max_range,
-        odom,
-        odom,
-        times,
-        None,
-        meta,
-        beam_stride=beam_stride,
-        min_range=float(first.range_min),
-    )
+    return build_traversal(ranges, angles, max_range, odom, odom, times, None, meta,
+                           beam_stride=beam_stride, min_range=float(first.range_min))  # fmt: skip

@@ -363,5 +363,3 @@ class RayImageEmission(RayEmission):
         wall = (a / (1.0 + depth / self.log_fog.exp())).unsqueeze(-2)  # [..., 1, C]
         img = cover * wall + (1.0 - cover) * self.background.unsqueeze(-1)  # [..., rows, C]
         return img.flatten(-2)
-
-

@@ -11,11 +11,11 @@
 the Pyro model (:meth:`DVBFLM.model`), the SMCFilter model (:class:`FilterModel`) and the fast
 differentiable particle filter (:mod:`pyro_slam.inference`) all evaluate the *same* factors.
 
-The sensor enters only through the :class:`~pyro_slam.model.emissions.Emission` (``mu_E`` as a function
-of chart and pose, with the observation flattened to ``[..., N]``): a
+The sensor enters only through the :class:`~pyro_slam.model.emissions.Emission` (``mu_E`` as a
+function of chart and pose, with the observation flattened to ``[..., N]``): a
 :class:`~pyro_slam.model.emissions.LidarEmission` (range profile rotated to the beams) or an
-:class:`~pyro_slam.model.emissions.ImageEmission` (chart rotated and cropped to the camera's view, then
-row-wise MLPs). Model, guide, filter and ELBO are the same for both.
+:class:`~pyro_slam.model.emissions.ImageEmission` (chart rotated and cropped to the camera's
+view, then row-wise MLPs). Model, guide, filter and ELBO are the same for both.
 """
 
 from __future__ import annotations

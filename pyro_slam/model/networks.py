@@ -11,8 +11,6 @@ observation read-outs and :mod:`pyro_slam.model.model` into distributions.
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 

@@ -5,7 +5,8 @@ Two interchangeable choices (paper III-B, Appendix B-B), both :class:`Transition
 * :class:`KinematicTransition` -- engineered: the simulator's kinematics (rotate, then move along
   the heading) or a robot-frame odometry increment; optionally stops short of walls that the
   model's predicted scan shows ahead (used by the planner).
-* :class:`LearnedTransition` -- the 6 x 256 ReLU MLP of :class:`~pyro_slam.model.networks.TransitionMLP`,
+* :class:`LearnedTransition` -- the 6 x 256 ReLU MLP of
+  :class:`~pyro_slam.model.networks.TransitionMLP`,
   pretrained on a held-out maze with ground-truth poses and scans (:func:`pretrain_transition`).
 
 ``mean(z, u, scan)`` takes the emission mean ``mu_E(m_t)`` read in the body frame (``[..., B]``),

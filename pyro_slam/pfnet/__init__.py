@@ -3,15 +3,15 @@ observation model (:mod:`.model`), its baselines (:mod:`.baselines`) and data (:
 
 from . import baselines, data, model
 from .model import (
-    GaussianTransition,
     INIT_STD,
+    METRE,
+    GaussianTransition,
     ImageEncoder,
     LidarEncoder,
     LocallyConnected,
-    METRE,
     MapEncoder,
-    ObsModelConfig,
     ObservationModel,
+    ObsModelConfig,
     PFNet,
     ScanTopDown,
     TrainConfig,

@@ -37,6 +37,7 @@ from .model import (
     LidarEncoder,
     ObsModelConfig,
     PFNet,
+    evaluate,
     local_map_crops,
 )
 

@@ -28,7 +28,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
-
 from tqdm.auto import tqdm
 
 import simulators

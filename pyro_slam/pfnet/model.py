@@ -49,7 +49,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
-
 from tqdm.auto import tqdm, trange
 
 from ..geometry import odometry_delta, wrap_angle

@@ -10,7 +10,6 @@ from dataclasses import replace
 
 import numpy as np
 import torch
-
 from scipy.optimize import minimize
 
 from simulators import LidarConfig, World, raycast, simulate_traversal
@@ -21,6 +20,7 @@ from ..pretrained import EMISSION_FILE, PRETRAINED, load_emission
 from ..slam import SLAMConfig, build_model, fit_map, pretrain_emission
 from ..slam.build import LAYERS, LIDAR_HIDDEN, MAP_DIM
 from .planner import SAFETY_DELTA, inside_scan
+
 
 # --------------------------------------------------------------------------- environments
 class LearnedEnv:
@@ -165,6 +165,7 @@ class GroundTruthEnv:
         Entries with ``diffs`` below ~1e-6 are exact look-alikes, perceptual aliasing that no
         inverse model reading this one scan can resolve.
         """
+
         def diff(z, x):  # float64, no torch round trip
             r = raycast(self.maze.walls, z[None, :2], z[2] + self.lidar.beam_angles[None],
                         self.lidar.max_range)  # fmt: skip

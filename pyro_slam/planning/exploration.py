@@ -422,6 +422,97 @@ def exploration_ratio(positions, side: float, tiles: int) -> float:
     return len({(int(a), int(b)) for a, b in ij}) / tiles**2
 
 
+class _Episode:
+    """One agent in one maze: the world, its mapper, the policy's state and the data of the
+    current block of steps (see :func:`run_agent`)."""
+
+    def __init__(self, scale_name: str, policy: str, cfg: ExploreConfig, maze_seed: int, pema):
+        if policy not in ("mi", "random", "pema"):
+            raise ValueError(f"unknown policy {policy!r}")
+        self.policy, self.cfg, self.pema = policy, cfg, pema
+        self.scale = SCALES[scale_name]
+        self.world = World(make_maze(scale_name, maze_seed), seed=maze_seed + 1000 * cfg.seed)
+        lid = self.world.lidar_config
+        grid = scale_grid(self.scale, cfg.map_dim)
+        self.mapper = Mapper(grid, lid.beam_angles, lid.max_range,
+                             replace(cfg, seed=cfg.seed + maze_seed))  # fmt: skip
+        self.gen = torch.Generator().manual_seed(cfg.seed * 7919 + maze_seed)
+        self.rng = np.random.default_rng(cfg.seed * 7919 + maze_seed)
+        self.state = pema.initial_state() if policy == "pema" else None
+        self.mis: list[float] = []
+        self.poses, self.scans, self.flushed = [], [], 0
+        self.ctl, self.k, self.replans = None, 0, 0
+
+    def plan(self) -> np.ndarray:
+        """The candidate plan of highest MI from the current pose: controls ``[H, 2]``."""
+        pose, cfg = self.world.pose, self.cfg
+        cands = generate_candidates(self.mapper, pose, cfg, self.gen)
+        # MI of the belief-consistent rollout: moves into known obstacles do not move
+        eff, _ = known_obstacles(self.mapper).effective_controls(pose, cands.numpy())
+        eff = torch.as_tensor(eff, dtype=cands.dtype)
+        vals = [mutual_information(self.mapper, c, pose, cfg) for c in eff]
+        best = int(np.argmax(vals))
+        self.mis.append(float(vals[best]))
+        return cands[best].numpy()
+
+    def flush(self) -> None:
+        """Hand the block's data not yet given to the mapper over to it."""
+        if len(self.poses) > self.flushed:
+            self.mapper.add(
+                np.array(self.poses[self.flushed :]), np.array(self.scans[self.flushed :])
+            )
+            self.flushed = len(self.poses)
+
+    def _mi_control(self) -> np.ndarray:
+        cfg = self.cfg
+        u = self.ctl[self.k] if self.k < len(self.ctl) else np.array([0.0, cfg.step_length])
+        self.k += 1
+        if cfg.block_radius > 0 and self.replans < cfg.max_replans:
+            # the next planned move runs into an observed obstacle (the current scan included):
+            # the rest of this open-loop plan is void, replan from here
+            scan = self.scans[-1] if self.scans else self.world.lidar()
+            pts = observed_endpoints(np.array([self.world.pose]), np.array([scan]),
+                                     self.mapper.beam_angles, self.mapper.max_range)  # fmt: skip
+            _, b = KnownObstacles(pts, cfg.block_radius).effective_controls(
+                self.world.pose, u[None]
+            )
+            if b[0]:
+                self.flush()
+                self.ctl, self.k, self.replans = self.plan(), 1, self.replans + 1
+                u = self.ctl[0]
+        return u
+
+    def control(self) -> np.ndarray:
+        """The policy's next control ``[2]``."""
+        if self.policy == "mi":
+            return self._mi_control()
+        if self.policy == "random":
+            return np.array([self.rng.uniform(-self.cfg.max_turn, self.cfg.max_turn),
+                             self.cfg.step_length])  # fmt: skip
+        scan_now = self.scans[-1] if self.scans else self.world.lidar()
+        u, self.state = self.pema.act(scan_now, self.state)
+        return u
+
+    def block(self, n: int) -> list:
+        """Execute ``n`` steps (MI: from a new plan); returns the poses reached."""
+        if self.policy == "mi":
+            self.ctl, self.k, self.replans = self.plan(), 0, 0
+        self.poses, self.scans, self.flushed = [], [], 0
+        for _ in range(n):
+            u = self.control()
+            hits = self.world.collisions
+            self.world.step(u)
+            self.poses.append(self.world.pose)
+            self.scans.append(self.world.lidar())
+            blocked = self.world.collisions > hits
+            if self.policy == "mi" and blocked and self.replans < self.cfg.max_replans:
+                # blocked: the rest of this open-loop plan is void; replan from here with the
+                # data so far (no SVI until the block ends)
+                self.flush()
+                self.ctl, self.k, self.replans = self.plan(), 0, self.replans + 1
+        return self.poses
+
+
 def run_agent(
     scale_name: str,
     policy: str,
@@ -434,87 +525,25 @@ def run_agent(
     """Run one agent for ``steps`` steps in the maze ``make_maze(scale_name, maze_seed)``.
 
     ``policy``: ``"mi"`` (Algorithm 1), ``"random"`` (rotation ~ U(-max_turn, max_turn)) or
-    ``"pema"`` (``pema_policy``, a :class:`~pyro_slam.pema.PEMAPolicy` with its weights).
-    Every block of ``cfg.execute_steps`` steps (default ``cfg.horizon``: the whole plan, as in
-    Algorithm 1; fewer is receding-horizon control): append the executed data,
+    ``"pema"`` (``pema_policy``, a :class:`~pyro_slam.planning.pema.PEMAPolicy` with its
+    weights). Every block of ``cfg.execute_steps`` steps (default ``cfg.horizon``: the whole
+    plan, as in Algorithm 1; fewer is receding-horizon control): append the executed data,
     ``cfg.train_steps`` SVI steps, record infogain and exploration ratio. Returns curves and the
     true path. ``progress``: ``True`` prints each block, a tqdm bar is advanced by the executed
     steps.
     """
-    scale = SCALES[scale_name]
-    maze = make_maze(scale_name, maze_seed)
-    world = World(maze, seed=maze_seed + 1000 * cfg.seed)
-    grid = scale_grid(scale, cfg.map_dim)
-    lid = world.lidar_config
-    mapper = Mapper(grid, lid.beam_angles, lid.max_range, replace(cfg, seed=cfg.seed + maze_seed))
-    gen = torch.Generator().manual_seed(cfg.seed * 7919 + maze_seed)
-    rng = np.random.default_rng(cfg.seed * 7919 + maze_seed)
+    ep = _Episode(scale_name, policy, cfg, maze_seed, pema_policy)
+    world, mapper, scale = ep.world, ep.mapper, ep.scale
     path = [world.pose]
     mapper.add(world.pose[None], world.lidar()[None])
     ratio0 = exploration_ratio(np.array(path), scale.side, scale.tiles)
     curve = {"steps": [0], "infogain": [0.0], "ratio": [ratio0]}
-    mis, state = [], None
-    if policy == "pema":
-        state = pema_policy.initial_state()
     done = 0
-
-    def plan():
-        cands = generate_candidates(mapper, world.pose, cfg, gen)
-        # MI of the belief-consistent rollout: moves into known obstacles do not move
-        eff, _ = known_obstacles(mapper).effective_controls(world.pose, cands.numpy())
-        eff = torch.as_tensor(eff, dtype=cands.dtype)
-        vals = [mutual_information(mapper, c, world.pose, cfg) for c in eff]
-        best = int(np.argmax(vals))
-        mis.append(float(vals[best]))
-        return cands[best].numpy()
-
     while done < steps:
         n = min(cfg.execute_steps or cfg.horizon, cfg.horizon, steps - done)
-        if policy == "mi":
-            ctl, k, replans = plan(), 0, 0
-        poses, scans, flushed = [], [], 0
-        for _ in range(n):
-            if policy == "mi":
-                u = ctl[k] if k < len(ctl) else np.array([0.0, cfg.step_length])
-                k += 1
-                if cfg.block_radius > 0 and replans < cfg.max_replans:
-                    # the next planned move runs into an observed obstacle (the current scan
-                    # included): the rest of this open-loop plan is void, replan from here
-                    here = (
-                        np.array([world.pose]),
-                        np.array([scans[-1] if scans else world.lidar()]),
-                    )
-                    pts = observed_endpoints(*here, mapper.beam_angles, mapper.max_range)
-                    eff, b = KnownObstacles(pts, cfg.block_radius).effective_controls(
-                        world.pose, u[None]
-                    )
-                    if b[0]:
-                        if len(poses) > flushed:
-                            mapper.add(np.array(poses[flushed:]), np.array(scans[flushed:]))
-                            flushed = len(poses)
-                        ctl, k, replans = plan(), 1, replans + 1
-                        u = ctl[0]
-            elif policy == "random":
-                u = np.array([rng.uniform(-cfg.max_turn, cfg.max_turn), cfg.step_length])
-            elif policy == "pema":
-                scan_now = scans[-1] if scans else world.lidar()
-                u, state = pema_policy.act(scan_now, state)
-            else:
-                raise ValueError(f"unknown policy {policy!r}")
-            hits = world.collisions
-            world.step(u)
-            poses.append(world.pose)
-            scans.append(world.lidar())
-            if policy == "mi" and world.collisions > hits and replans < cfg.max_replans:
-                # blocked: the rest of this open-loop plan is void; replan from here with the
-                # data so far (no SVI until the block ends)
-                mapper.add(np.array(poses[flushed:]), np.array(scans[flushed:]))
-                flushed = len(poses)
-                ctl, k, replans = plan(), 0, replans + 1
+        path += ep.block(n)
         done += n
-        path += poses
-        if len(poses) > flushed:
-            mapper.add(np.array(poses[flushed:]), np.array(scans[flushed:]))
+        ep.flush()
         mapper.train(cfg.train_steps)
         curve["steps"].append(done)
         curve["infogain"].append(mapper.infogain())
@@ -523,7 +552,7 @@ def run_agent(
             progress.update(n)
         elif progress:
             print(f"{policy} {scale_name} step {done}: {curve['ratio'][-1]:.3f}", flush=True)
-    curve["mi"] = mis
+    curve["mi"] = ep.mis
     curve["collisions"] = int(world.collisions)
     curve["path"] = np.array(path).tolist()
     return curve

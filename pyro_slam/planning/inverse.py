@@ -53,7 +53,6 @@ import torch
 from pyro.infer import SVI, Trace_ELBO
 from pyro.optim import Adam
 from torch import nn
-
 from tqdm import tqdm
 
 from ..metrics import heading_error  # noqa: F401 (re-exported)

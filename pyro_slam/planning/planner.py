@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-
 SAFETY_MU, SAFETY_DELTA, SAFETY_SIGMA = 1e4, 0.03, 1e2
 
 
@@ -205,5 +204,3 @@ def segments_cross(path_xy: np.ndarray, walls: np.ndarray) -> bool:
     o1, o2 = orient(a, b, c), orient(a, b, d)
     o3, o4 = orient(c, d, a), orient(c, d, b)
     return bool(np.any((o1 * o2 < 0) & (o3 * o4 < 0)))
-
-

@@ -259,7 +259,8 @@ def _merge(obj, changes: dict, cls, where: str):
     names = {f.name for f in fields(cls)}
     if unknown := sorted(set(changes) - names):
         raise ConfigError(
-            f"unknown field{'s' if len(unknown) > 1 else ''} {', '.join(where + u for u in unknown)}"
+            f"unknown field{'s' if len(unknown) > 1 else ''} "
+            f"{', '.join(where + u for u in unknown)}"
             f"; {cls.__name__} has {', '.join(sorted(names))}"
         )
     base = cls() if obj is None else obj

@@ -101,7 +101,9 @@ def adapt_real_log(
 # the shipped learned transition, filtered with its sigma_T scaled: a stiff heading keeps the
 # map's frontier from tilting it, more position noise lets revisits pull the position back; where
 # the map is established the heading gets its calibrated noise back
-SHIPPED_TRANSITION = TransitionConfig("learned", scale=(3.0, 3.0, 0.2), scale_trusted=(3.0, 3.0, 1.0))
+SHIPPED_TRANSITION = TransitionConfig(
+    "learned", scale=(3.0, 3.0, 0.2), scale_trusted=(3.0, 3.0, 1.0)
+)
 
 PAPER = SLAMConfig(
     emission=EmissionConfig("mlp"),
@@ -137,10 +139,14 @@ PRESETS: dict[str, Preset] = {
     for p in (
         Preset("paper", "the paper's model: pretrained emission MLP, learned transition", PAPER),
         Preset("raycast", "ray-cast LiDAR emission with scan insertion (default)", RAYCAST),
-        Preset("manhattan", "raycast + Manhattan heading observation (noise-free LiDAR)", MANHATTAN),
+        Preset(
+            "manhattan", "raycast + Manhattan heading observation (noise-free LiDAR)", MANHATTAN
+        ),
         Preset("visual", "the paper's visual model: row MLPs on camera frames", VISUAL),
         Preset("visual-raycast", "ray camera on camera frames", VISUAL_RAYCAST),
-        Preset("visual-manhattan", "ray camera + heading observation from the frames", VISUAL_MANHATTAN),
+        Preset(
+            "visual-manhattan", "ray camera + heading observation from the frames", VISUAL_MANHATTAN
+        ),
         Preset("real", "real laser logs (settings derived from the log)", REAL, adapt_real_log),
     )
 }
@@ -157,8 +163,6 @@ def get(name: str) -> Preset:
 def describe() -> str:
     """One line per preset (for ``--help``)."""
     return "\n".join(f"{p.name}: {p.summary}" for p in PRESETS.values())
-
-
 
 
 def is_real_log(traversal: Traversal) -> bool:

@@ -107,7 +107,9 @@ class SLAM:
     ):
         self.cfg = presets.default_for(traversal) if config is None else config
         if not (isinstance(checkpoint_every, int) and checkpoint_every > 0):
-            raise ValueError(f"checkpoint_every must be a positive integer, got {checkpoint_every!r}")
+            raise ValueError(
+                f"checkpoint_every must be a positive integer, got {checkpoint_every!r}"
+            )
         self.checkpoint_every, self.seed = checkpoint_every, seed
         self.tr = prepare_traversal(traversal, self.cfg)
         self.obs, self.ctl, self.mask, self.init_pose = traversal_tensors(self.tr)
@@ -128,7 +130,9 @@ class SLAM:
         self.headings = None
         if self.cfg.heading is not None:
             image = self.cfg.emission.observation == "image"
-            self.headings = heading_observations(self.tr, self.obs, self.mask, self.cfg.heading, image)
+            self.headings = heading_observations(
+                self.tr, self.obs, self.mask, self.cfg.heading, image
+            )
         self.inserter = None
         if self.cfg.emission.insert is not None:
             self.inserter = ScanInserter(self.cfg.emission.insert, self.model, self.guide)
@@ -274,7 +278,9 @@ class SLAM:
                     if t == s:  # [K, 3] from the cache
                         z0 = self.cache.propose(torch.tensor([s]), K, "categorical",
                                                 generator=self.gen)[0]  # fmt: skip
-                        self.particles, _ = self.pf.init(z0.to(self.obs.dtype), M, self.obs[t], m, step=t)
+                        self.particles, _ = self.pf.init(
+                            z0.to(self.obs.dtype), M, self.obs[t], m, step=t
+                        )
                     else:
                         self.particles, _ = self.pf.step(
                             self.particles, M, self.obs[t], self.ctl[t - 1], m, step=t,
