@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
 from pathlib import Path
 
@@ -35,11 +37,49 @@ from .planning import GroundTruthEnv, execute, free_grid, learned_env, lookalike
 from .planning.inverse import fit_inverse
 from .plotting import plot_navigation
 from .slam import SLAM, ConfigError, SLAMConfig, presets, with_overrides
-from .slam.outputs import run_slam
+from .slam.outputs import prepare_out_dir, run_slam
 from .slam.training import pretrain_emission
 
 
 # ----------------------------------------------------------------------------------- helpers
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line naming the option (``prog: error: ...``), exit status 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _number(kind, low: float, inclusive: bool = True):
+    """An argparse type: ``kind`` (int or float), finite, at least (or above) ``low``."""
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {kind.__name__}, got {text!r}") from None
+        if not math.isfinite(value) or value < low or (value == low and not inclusive):
+            bound = f">= {low:g}" if inclusive else f"> {low:g}"
+            raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
+        return value
+
+    parse.__name__ = kind.__name__
+    return parse
+
+
+COUNT = _number(int, 0)  # 0 or more
+POSITIVE = _number(int, 1)
+FINITE = _number(float, -math.inf)
+
+
+def _read(args) -> Traversal:
+    """The input traversal (``--lenient``: a log's malformed lines are skipped and counted)."""
+    kw = {"lenient": True} if getattr(args, "lenient", False) else {}
+    path = Path(args.traversal)
+    if kw and path.suffix.lower() == ".npz":
+        raise DatasetError(f"{path}: --lenient applies to text logs, not .npz data sets")
+    return read_any(path, **kw)
+
+
 def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
     """The preset named by ``--preset`` (default: ``real`` for a real log, else the default
     preset) for this traversal, with the ``--config`` JSON overrides (a string or a file)."""
@@ -84,17 +124,35 @@ def _print_report(report: dict, out: Path) -> None:
 
 
 # ----------------------------------------------------------------------------------- commands
+DEMO_INPUTS = ("traversal.npz", "traversal.png")
+
+
+def _writable(path: Path, what: str) -> None:
+    """Refuse an output path that cannot be written (before any work is done)."""
+    if path.is_dir():
+        raise DatasetError(f"{what} {path}: is a folder, not a file")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        probe = path.parent / f".write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise DatasetError(f"{what} {path}: cannot write there ({e.strerror or e})") from None
+
+
 def cmd_simulate(args) -> int:
-    """Simulate a traversal, save it (``.npz``) and a plot of it; print a one-line summary."""
+    """Simulate a traversal, save it (``.npz``) and a plot of it; print a one-line summary.
+    Both outputs are checked first and written atomically, so a failure loses no file."""
+    out = Path(args.out)
+    plot_path = None if args.no_plot else Path(args.plot or out.with_suffix(".png"))
+    _writable(out, "--out")
+    if plot_path is not None:
+        _writable(plot_path, "--plot")
     tr = simulate_traversal(
         args.maze, args.steps, args.seed, images=args.images, distractors=args.distractors
     )
-    out = tr.save(args.out)
-    plot = (
-        None
-        if args.no_plot
-        else plot_traversal(tr, args.plot or Path(args.out).with_suffix(".png"))
-    )
+    plot = None if plot_path is None else plot_traversal(tr, plot_path)
+    out = tr.save(out)
     dead = integrate_controls(tr.poses[0], tr.controls)
     drift = float(np.linalg.norm(dead[-1, :2] - tr.poses[-1, :2]))
     print(
@@ -108,7 +166,8 @@ def cmd_simulate(args) -> int:
 
 def cmd_slam(args) -> int:
     torch.manual_seed(args.seed)
-    tr = read_any(args.traversal)
+    prepare_out_dir(args.out, args.resume, args.overwrite)
+    tr = _read(args)
     if args.steps:
         tr = tr.slice(0, min(args.steps, tr.num_steps))
     name, config = _config(args, tr)
@@ -147,7 +206,10 @@ def cmd_demo(args) -> int:
     """Simulate the default maze, run SLAM with the default preset, write plots and metrics."""
     torch.manual_seed(args.seed)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    prepare_out_dir(out, args.resume, args.overwrite, keep=DEMO_INPUTS)
+    if args.overwrite:
+        for name in DEMO_INPUTS:
+            (out / name).unlink(missing_ok=True)
     tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
     tr.save(out / "traversal.npz")
     plot_traversal(tr, out / "traversal.png")
@@ -228,11 +290,11 @@ def cmd_navigate(args) -> int:
 def _add_simulate(sub) -> None:
     p = sub.add_parser("simulate", help="simulate a maze traversal and save it as .npz")
     p.add_argument("--maze", default="moderate-medium", choices=sorted(SCALES), help="maze scale")
-    p.add_argument("--steps", type=int, default=3000, help="number of time steps T")
-    p.add_argument("--seed", type=int, default=1, help="seeds maze, noise and driver")
+    p.add_argument("--steps", type=POSITIVE, default=3000, help="number of time steps T")
+    p.add_argument("--seed", type=COUNT, default=1, help="seeds maze, noise and driver")
     p.add_argument("--out", type=Path, default=Path("traversal.npz"), help="output .npz")
     p.add_argument("--images", action="store_true", help="also render 32x24 camera frames")
-    p.add_argument("--distractors", type=int, default=0, help="boxes not in the floor map")
+    p.add_argument("--distractors", type=COUNT, default=0, help="boxes not in the floor map")
     p.add_argument("--plot", type=Path, default=None, help="output PNG (default: next to --out)")
     p.add_argument("--no-plot", action="store_true", help="do not write a PNG")
     p.set_defaults(func=cmd_simulate)
@@ -247,8 +309,8 @@ def _add_slam(sub) -> None:
     s.add_argument("traversal", type=Path)
     s.add_argument("--mode", choices=["online", "offline"], default="online")
     s.add_argument("--out", type=Path, default=Path("run"))
-    s.add_argument("--steps", type=int, default=0, help="use only the first N steps")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--steps", type=COUNT, default=0, help="use only the first N steps (0: all)")
+    s.add_argument("--seed", type=COUNT, default=0)
     s.add_argument(
         "--preset", choices=list(presets.PRESETS), default=None,
         help=f"named configuration (default: {presets.DEFAULT}; 'real' for real laser logs)",
@@ -260,8 +322,12 @@ def _add_slam(sub) -> None:
     s.add_argument("--transition", help="a pretrained LearnedTransition .pt (default: the "
                    "preset's: the shipped one for transition.kind 'learned')")  # fmt: skip
     s.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    s.add_argument("--overwrite", action="store_true", help="replace the run in a non-empty OUT")
+    s.add_argument("--lenient", action="store_true",
+                   help="text logs: skip malformed lines (counted in metrics.json) instead of "
+                   "stopping at the first")  # fmt: skip
     s.add_argument(
-        "--odometry-noise", type=float,
+        "--odometry-noise", type=_number(float, 0.0, inclusive=False),
         help="real logs: transition std as this fraction of the RMS odometry step (default 0.1)",
     )  # fmt: skip
     s.set_defaults(func=cmd_slam)
@@ -271,19 +337,20 @@ def _add_pretrain_and_demo(sub) -> None:
     t = sub.add_parser("pretrain", help="pretrain emission + transition on a held-out maze")
     t.add_argument("--out", type=Path, default=pretrained.PRETRAINED)
     t.add_argument("--maze", default="moderate-medium")
-    t.add_argument("--seed", type=int, default=100)
-    t.add_argument("--steps", type=int, default=6000)
-    t.add_argument("--emission-steps", type=int, default=3000)
-    t.add_argument("--transition-epochs", type=int, default=30)
+    t.add_argument("--seed", type=COUNT, default=100)
+    t.add_argument("--steps", type=POSITIVE, default=6000)
+    t.add_argument("--emission-steps", type=POSITIVE, default=3000)
+    t.add_argument("--transition-epochs", type=POSITIVE, default=30)
     t.set_defaults(func=cmd_pretrain)
     d = sub.add_parser("demo", help="simulate the default maze and run SLAM (plots + metrics)")
     d.add_argument("--out", type=Path, default=Path("out"))
     d.add_argument("--maze", default="moderate-medium")
-    d.add_argument("--steps", type=int, default=3000)
-    d.add_argument("--seed", type=int, default=1)
+    d.add_argument("--steps", type=POSITIVE, default=3000)
+    d.add_argument("--seed", type=COUNT, default=1)
     d.add_argument("--mode", choices=["online", "offline"], default="online")
     d.add_argument("--preset", choices=list(presets.PRESETS), default=presets.DEFAULT)
-    d.add_argument("--resume", action="store_true")
+    d.add_argument("--resume", action="store_true", help="continue the demo run in OUT")
+    d.add_argument("--overwrite", action="store_true", help="replace the demo run in OUT")
     d.set_defaults(func=cmd_demo)
 
 
@@ -292,17 +359,17 @@ def _add_navigate(sub) -> None:
         "navigate", help="plan with hybrid A* in the learned model and execute in the simulator"
     )
     p.add_argument("--maze", default="moderate-medium")
-    p.add_argument("--maze-seed", type=int, default=1001)
-    p.add_argument("--start", type=float, nargs=3, default=None, help="x y heading")
-    p.add_argument("--goal", type=float, nargs=2, default=None, help="x y")
+    p.add_argument("--maze-seed", type=COUNT, default=1001)
+    p.add_argument("--start", type=FINITE, nargs=3, default=None, help="x y heading")
+    p.add_argument("--goal", type=FINITE, nargs=2, default=None, help="x y")
     p.add_argument(
-        "--target-scan-from-pose", type=float, nargs=3, default=None, metavar=("X", "Y", "H"),
+        "--target-scan-from-pose", type=FINITE, nargs=3, default=None, metavar=("X", "Y", "H"),
         help="observation target: render the simulator's scan at this pose and infer the goal "
         "with the inverse model q(z|x) (with --planner ground_truth the truth's own inverse, "
         "GroundTruthEnv.places); overrides --goal",
     )  # fmt: skip
-    p.add_argument("--inverse-steps", type=int, default=1000, help="ELBO steps of q(z|x)")
-    p.add_argument("--inverse-sleep-steps", type=int, default=3000, help="sleep steps of q(z|x)")
+    p.add_argument("--inverse-steps", type=POSITIVE, default=1000, help="ELBO steps of q(z|x)")
+    p.add_argument("--inverse-sleep-steps", type=COUNT, default=3000, help="sleep steps of q(z|x)")
     p.add_argument("--planner", choices=["learned", "ground_truth"], default="learned")
     p.add_argument(
         "--map",
@@ -310,25 +377,27 @@ def _add_navigate(sub) -> None:
         default="known_poses",
         help="q(M) fitted at the true poses, or at an online SLAM run's pose means",
     )
-    p.add_argument("--traversal-steps", type=int, default=3000)
-    p.add_argument("--fit-steps", type=int, default=1500)
+    p.add_argument("--traversal-steps", type=POSITIVE, default=3000)
+    p.add_argument("--fit-steps", type=POSITIVE, default=1500)
     p.add_argument(
         "--emission-steps",
-        type=int,
+        type=COUNT,
         default=0,
         help="fit the emission on the "
         "mapping traversal for this many steps (0: the shipped one, frozen)",
     )
-    p.add_argument("--n-world", type=int, default=20, help="world directions of a fitted emission")
-    p.add_argument("--max-expansions", type=int, default=3000)
+    p.add_argument(
+        "--n-world", type=_number(int, 20), default=20, help="world directions of a fitted emission"
+    )
+    p.add_argument("--max-expansions", type=POSITIVE, default=3000)
     p.add_argument("--noise", action="store_true", help="execute with actuation noise")
     p.add_argument("--out", type=Path, default=Path("navigate.png"))
     p.set_defaults(func=cmd_navigate)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="pyro-slam", description=__doc__.split("\n")[0])
-    sub = p.add_subparsers(dest="command", required=True)
+    p = _Parser(prog="pyro-slam", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for add in (_add_simulate, _add_slam, _add_pretrain_and_demo, _add_navigate):
         add(sub)
     return p

@@ -160,12 +160,25 @@ OPTIONAL_FIELDS = ("poses", "obs_mask", "images", "timestamps")
 REQUIRED_FIELDS = ("observations", "controls", "walls", "beam_angles", "max_range")
 
 
+def _file_mode() -> int:
+    """The permissions of a new file under the process's umask (usually 0644)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+MAX_MAGNITUDE = 1e6  # |coordinate| or range beyond this is corrupt data, not a world
+MAX_LOAD_BYTES = 1 << 30  # a data set's arrays, uncompressed, at most (1 GiB)
+
+
 def atomic_write(path: Path, write) -> None:
-    """Call ``write(fileobj)`` on a temporary file next to ``path``, then rename it into place."""
+    """Call ``write(fileobj)`` on a temporary file next to ``path``, then rename it into place:
+    a failure leaves any previous ``path`` as it was. The file gets the usual permissions."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, _file_mode())
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
@@ -177,7 +190,9 @@ def atomic_write(path: Path, write) -> None:
         raise
 
 
-def _float_array(src: str, name: str, value, ndim: int) -> np.ndarray:
+def _float_array(src: str, name: str, value, ndim: int, limit: float = MAX_MAGNITUDE):
+    """``value`` as a numeric array of ``ndim`` dims with finite entries of magnitude at most
+    ``limit``; :class:`DatasetError` naming the field otherwise."""
     arr = np.asarray(value)
     if arr.dtype.kind not in "fiu":
         raise DatasetError(f"{src}: field '{name}' must be numeric, got dtype {arr.dtype}")
@@ -186,6 +201,12 @@ def _float_array(src: str, name: str, value, ndim: int) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         bad = np.argwhere(~np.isfinite(arr))[0].tolist()
         raise DatasetError(f"{src}: field '{name}' has a non-finite value at index {bad}")
+    if arr.size and np.abs(arr).max() > limit:
+        bad = np.argwhere(np.abs(arr) > limit)[0].tolist()
+        raise DatasetError(
+            f"{src}: field '{name}' has the implausible value {arr[tuple(bad)]:g} at index {bad} "
+            f"(|value| > {limit:g})"
+        )
     return arr
 
 
@@ -203,8 +224,11 @@ def validate(tr: Traversal, src: str = "traversal") -> Traversal:
     max_range = np.asarray(tr.max_range)
     if max_range.shape != () or max_range.dtype.kind not in "fiu":
         raise DatasetError(f"{src}: field 'max_range' must be a number, got {tr.max_range!r}")
-    if not np.isfinite(max_range) or max_range <= 0:
-        raise DatasetError(f"{src}: field 'max_range' must be positive, got {tr.max_range}")
+    if not np.isfinite(max_range) or not 0 < max_range <= MAX_MAGNITUDE:
+        raise DatasetError(
+            f"{src}: field 'max_range' must be positive and at most {MAX_MAGNITUDE:g}, "
+            f"got {tr.max_range}"
+        )
     mask = tr.obs_mask
     if mask is not None:
         mask = np.asarray(mask)
@@ -214,6 +238,11 @@ def validate(tr: Traversal, src: str = "traversal") -> Traversal:
                 f"got {mask.dtype} {mask.shape}"
             )
     valid = obs if mask is None else obs[mask]
+    if not np.any(valid < max_range):
+        raise DatasetError(
+            f"{src}: field 'observations' has no valid reading: every reading is masked or at "
+            f"the sensor's range {float(max_range):g}"
+        )
     if valid.size and valid.min() < 0:
         t, b = np.argwhere((obs < 0) & (True if mask is None else mask))[0].tolist()
         raise DatasetError(
@@ -228,7 +257,7 @@ def validate(tr: Traversal, src: str = "traversal") -> Traversal:
     walls = _float_array(src, "walls", tr.walls, 2)
     if walls.shape[1:] != (4,):
         raise DatasetError(f"{src}: field 'walls' must have shape (W, 4), got {walls.shape}")
-    angles = _float_array(src, "beam_angles", tr.beam_angles, 1)
+    angles = _float_array(src, "beam_angles", tr.beam_angles, 1, limit=4 * np.pi)
     if angles.shape != (B,):
         raise DatasetError(
             f"{src}: field 'beam_angles' must have shape ({B},) to match {B} observation beams, "
@@ -281,6 +310,33 @@ def _check_member_count(path: Path, n: int) -> None:
         raise zipfile.BadZipFile(f"central directory lists {n} of {declared} members")
 
 
+def _check_sizes(src: str, archive: zipfile.ZipFile) -> None:
+    """Refuse, before anything is decompressed or allocated, a data set whose members would
+    unpack to more than :data:`MAX_LOAD_BYTES` or whose array headers declare more data than
+    the member holds (a zip bomb, a forged ``.npy`` header)."""
+    total = 0
+    for info in archive.infolist():
+        total += info.file_size
+        if total > MAX_LOAD_BYTES:
+            raise DatasetError(
+                f"{src}: unpacks to more than {MAX_LOAD_BYTES / 2**30:g} GiB "
+                f"(member {info.filename!r} declares {info.file_size} bytes); refused"
+            )
+        if not info.filename.endswith(".npy"):
+            continue
+        with archive.open(info) as fh:
+            version = np.lib.format.read_magic(fh)
+            read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                    else np.lib.format.read_array_header_2_0)  # fmt: skip
+            shape, _, dtype = read(fh, max_header_size=10000)
+        declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
+        if declared > info.file_size:
+            raise DatasetError(
+                f"{src}: field {info.filename[:-4]!r} declares shape {shape} of {dtype} "
+                f"({declared} bytes) but holds {info.file_size} bytes; refused"
+            )
+
+
 def load(path: str | os.PathLike) -> Traversal:
     """Read and validate a traversal written by :meth:`Traversal.save`."""
     path = Path(path)
@@ -298,7 +354,10 @@ def load(path: str | os.PathLike) -> Traversal:
         if isinstance(f, np.lib.npyio.NpzFile):  # not a bare .npy array
             with f:
                 _check_member_count(path, len(f.files))
+                _check_sizes(src, f.zip)
                 data = {k: f[k] for k in f.files}
+    except DatasetError:
+        raise
     except (*unreadable, ValueError, KeyError) as e:
         raise DatasetError(f"{src}: not a readable .npz dataset ({type(e).__name__}: {e})") from e
     if data is None:

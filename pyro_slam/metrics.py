@@ -8,9 +8,11 @@ anchored at the known start pose.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
-from .data import Traversal
+from .data import Traversal, atomic_write
 
 
 def localisation_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
@@ -164,7 +166,7 @@ def write_trajectory_tum(path, poses: np.ndarray, stamps: np.ndarray | None = No
         [stamps, p[:, 0], p[:, 1], np.zeros(len(p)), np.zeros(len(p)), np.zeros(len(p)),
          np.sin(h), np.cos(h)]
     )  # fmt: skip
-    np.savetxt(path, rows, fmt="%.9f")
+    atomic_write(Path(path), lambda f: np.savetxt(f, rows, fmt="%.9f"))
 
 
 def scan_points(traversal: Traversal, poses: np.ndarray, max_range: float | None = None):

@@ -6,6 +6,7 @@ All functions write a PNG (matplotlib, Agg backend) and return its path.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import matplotlib
@@ -17,13 +18,15 @@ import torch  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
 from . import metrics  # noqa: E402
+from .data import atomic_write  # noqa: E402
 
 
 def _save(fig, path) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=120, bbox_inches="tight", format=path.suffix.lstrip(".") or "png")
     plt.close(fig)
+    atomic_write(path, lambda f: f.write(buf.getvalue()))
     return path
 
 

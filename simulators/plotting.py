@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import matplotlib
@@ -11,7 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
-from pyro_slam.data import Traversal  # noqa: E402
+from pyro_slam.data import Traversal, atomic_write  # noqa: E402
 
 
 def plot_traversal(traversal: Traversal, path_png, scan_step: int | None = None) -> Path:
@@ -53,9 +54,10 @@ def plot_traversal(traversal: Traversal, path_png, scan_step: int | None = None)
     name = traversal.metadata.get("maze", {}).get("name", "")
     ax.set_title(f"{name} traversal, T={len(poses)}, scan at t={t}")
     path_png = Path(path_png)
-    path_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path_png, dpi=120, bbox_inches="tight")
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=120, bbox_inches="tight", format="png")
     plt.close(fig)
+    atomic_write(path_png, lambda f: f.write(buf.getvalue()))
     return path_png
 
 

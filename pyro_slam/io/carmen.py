@@ -53,7 +53,9 @@ SCAN_MESSAGES = ("FLASER", "ROBOTLASER1")
 FOV_PARAMS = ("laser_front_laser_fov",)  # degrees
 MAX_RANGE_PARAMS = ("robot_front_laser_max", "laser_front_laser_max_range")  # metres
 MAX_REASONS = 5  # skip reasons kept in metadata
-MAX_ABS = 1e15  # |pose| / |timestamp| beyond this is corruption, not a robot (keeps maths finite)
+MAX_ABS = 1e15  # |timestamp| / config values beyond this are corruption (keeps maths finite)
+MAX_COORD = 1e6  # |pose| in metres: a robot 1000 km from its origin is a corrupt line
+MAX_TIME_STEP_BACK = 1.0  # s: scan stamps may jitter back this much (clamped), not more
 
 
 @dataclass
@@ -89,13 +91,14 @@ class CarmenLog:
 # --- line parsers: tokens -> record, raising ValueError(reason) ------------------------------
 
 
-def _fields(tokens: list[str], start: int, n: int, what: str) -> np.ndarray:
-    """``n`` finite floats from ``tokens[start:]`` (``what`` names them in errors)."""
+def _fields(tokens: list[str], start: int, n: int, what: str, limit: float = MAX_ABS) -> np.ndarray:
+    """``n`` finite floats from ``tokens[start:]`` with ``|v| <= limit`` (``what`` names them
+    in errors)."""
     vals = np.array([parse_float(t) for t in tokens[start : start + n]])
     if not np.all(np.isfinite(vals)):
         raise ValueError(f"non-finite value in {what}: {' '.join(tokens[start : start + n])}")
-    if np.any(np.abs(vals) > MAX_ABS):
-        raise ValueError(f"value out of range (|v| > {MAX_ABS:g}) in {what}")
+    if np.any(np.abs(vals) > limit):
+        raise ValueError(f"value out of range (|v| > {limit:g}) in {what}")
     return vals
 
 
@@ -124,7 +127,7 @@ def parse_flaser(tokens: list[str], line: int) -> Scan:
             f"(n readings + 6 pose + 3 time/host), got {len(tokens)}"
         )
     ranges = parse_floats(tokens[2 : 2 + n])
-    poses = _fields(tokens, 2 + n, 6, "poses")
+    poses = _fields(tokens, 2 + n, 6, "poses", MAX_COORD)
     time = _fields(tokens, 8 + n, 1, "ipc_timestamp")[0]
     return Scan("FLASER", line, ranges, poses[:3], poses[3:], float(time))
 
@@ -142,7 +145,7 @@ def parse_robotlaser1(tokens: list[str], line: int) -> Scan:
     _expect_len(tokens, n + k + 24, f"ROBOTLASER1 with {n} readings and {k} remissions")
     ranges = parse_floats(tokens[9 : 9 + n])
     parse_floats(tokens[10 + n : 10 + n + k])
-    rest = _fields(tokens, 10 + n + k, 11, "poses / velocities")  # laser, robot, 5 more
+    rest = _fields(tokens, 10 + n + k, 11, "poses / velocities", MAX_COORD)  # laser, robot, 5 more
     time = _fields(tokens, 21 + n + k, 1, "ipc_timestamp")[0]
     laser, robot = rest[:3], rest[3:6]
     config = (head[0], head[2], head[3], float(wrap(laser[2] - robot[2])))
@@ -151,7 +154,7 @@ def parse_robotlaser1(tokens: list[str], line: int) -> Scan:
 
 def parse_odom(tokens: list[str]) -> tuple[np.ndarray, float]:
     _expect_len(tokens, 10, "ODOM")
-    vals = _fields(tokens, 1, 3, "pose")
+    vals = _fields(tokens, 1, 3, "pose", MAX_COORD)
     return vals, float(_fields(tokens, 7, 1, "ipc_timestamp")[0])
 
 
@@ -165,7 +168,8 @@ def _open_lines(source) -> tuple[str, Iterable[str], bool]:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such CARMEN log")
         opener = gzip.open if path.suffix == ".gz" else open
-        return str(path), opener(path, "rt", encoding="utf-8", errors="replace"), True
+        # utf-8-sig: a byte-order mark is not part of the first line's message name
+        return str(path), opener(path, "rt", encoding="utf-8-sig", errors="replace"), True
     return "<lines>", source, False
 
 
@@ -189,7 +193,7 @@ def parse_carmen(source, *, lenient: bool = False, name: str | None = None) -> C
     last_scan: Scan | None = None  # the scan still waiting for its first ODOM
     try:
         for lineno, raw in enumerate(lines, start=1):
-            tokens = raw.split()
+            tokens = (raw.lstrip("\ufeff") if lineno == 1 else raw).split()
             if not tokens:
                 log.ignored["blank"] += 1
                 continue
@@ -302,6 +306,19 @@ def _odometry_from_odom_lines(log: CarmenLog, scans: list[Scan], method: str):
     return start, end, info
 
 
+def _check_time_order(source: str, scans: list[Scan]) -> None:
+    """Refuse scans whose timestamps run backwards by more than a jitter (odometry would be
+    paired with the wrong scans), naming the line."""
+    times = np.array([s.time for s in scans])  # [T]
+    back = np.maximum.accumulate(times) - times  # [T] how far each stamp lies behind the last
+    if back.size and back.max() > MAX_TIME_STEP_BACK:
+        i = int(np.argmax(back > MAX_TIME_STEP_BACK))
+        raise ParseError(
+            source, scans[i].line, f"timestamp {times[i]:.6f} is {back[i]:.3f} s earlier than an "
+            "earlier scan's: the scans are not in time order"
+        )  # fmt: skip
+
+
 def carmen_to_traversal(
     log: CarmenLog,
     *,
@@ -317,6 +334,7 @@ def carmen_to_traversal(
     scans = [s for s in log.scans if s.kind == kind]
     if not scans:
         raise ParseError(log.source, None, "no scans (FLASER / ROBOTLASER1 lines) in the log")
+    _check_time_order(log.source, scans)
     ranges = np.stack([s.ranges for s in scans])  # [T, n]
     n = ranges.shape[1]
     sensor: dict = {"type": kind, "num_beams_raw": n}

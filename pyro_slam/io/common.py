@@ -154,12 +154,15 @@ def poses_at(times: np.ndarray, stamps: np.ndarray, poses: np.ndarray, method: s
 # --- ranges and assembly ------------------------------------------------------------------
 
 
+MAX_RANGE = 1e6  # a reading beyond this (metres) is corrupt, never a return
+
+
 def sentinel_max_range(ranges: np.ndarray, min_count: int = 2, min_fraction: float = 1e-3):
     """Guess the sensor's "no return" value from the data: the largest finite reading if it
     repeats (at least ``min_count`` times and ``min_fraction`` of the readings, e.g. 81.91 m in
     mit-csail.clf). Otherwise the largest reading rounded up to the next metre (+1 m), so that no
     real return is masked. Returns ``(max_range, how)``."""
-    finite = ranges[np.isfinite(ranges) & (ranges > 0)]
+    finite = ranges[np.isfinite(ranges) & (ranges > 0) & (ranges <= MAX_RANGE)]
     if finite.size == 0:
         return 1.0, "default (no valid reading)"
     top = float(finite.max())

@@ -569,7 +569,10 @@ def train(
     optimizer = torch.optim.RMSprop([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
     start = 0
     if checkpoint is not None and resume and Path(checkpoint).exists():
-        state = torch.load(checkpoint, weights_only=False)
+        try:  # tensors and plain data only: a file can never run code
+            state = torch.load(checkpoint, weights_only=True)
+        except Exception as e:
+            raise ValueError(f"{checkpoint}: not a PF-net training checkpoint ({e})") from None
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         start = state["epoch"]

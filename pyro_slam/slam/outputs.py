@@ -4,6 +4,7 @@ checkpoint, written into one folder (what ``pyro-slam slam`` and ``pyro-slam dem
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
@@ -15,20 +16,53 @@ from .build import path_integration
 from .config import SLAMConfig
 from .runner import SLAM
 
+# what a run writes into its folder (an --overwrite run removes these first)
+OUTPUTS = ("checkpoint.pt", "metrics.json", "posterior.npz", "slam.png", "error.png", "map.png",
+           "trajectory_slam.tum", "trajectory_path_integration.tum")  # fmt: skip
+
+
+def prepare_out_dir(out: Path, resume: bool = False, overwrite: bool = False,
+                    keep: tuple[str, ...] = ()) -> None:  # fmt: skip
+    """Make ``out`` ready for a run, before any work: a writable folder that holds no other
+    run's results. A non-empty folder is refused unless ``resume`` (continue the run in it) or
+    ``overwrite`` (remove its run outputs first; other files stay); ``keep``: files this
+    command wrote there itself."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"--out {out}: exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise DatasetError(f"--out {out}: cannot write there ({e.strerror or e})") from None
+    present = sorted(
+        p.name for p in out.iterdir() if not p.name.startswith(".") and p.name not in keep
+    )
+    if resume:
+        if not (out / "checkpoint.pt").is_file():
+            raise DatasetError(f"{out / 'checkpoint.pt'}: no checkpoint to resume from")
+    elif present and not overwrite:
+        shown = ", ".join(present[:4]) + (", ..." if len(present) > 4 else "")
+        raise DatasetError(
+            f"--out {out}: not empty ({shown}); use --resume to continue the run in it, "
+            "--overwrite to replace it, or another folder"
+        )
+    elif overwrite:
+        for name in OUTPUTS:
+            (out / name).unlink(missing_ok=True)
+
 
 def _write_trajectories(out: Path, traversal: Traversal, res: dict) -> None:
     metrics.write_trajectory_tum(out / "trajectory_slam.tum", res["mean"], traversal.timestamps)
     metrics.write_trajectory_tum(
         out / "trajectory_path_integration.tum", res["path_integration"], traversal.timestamps
     )
-    np.savez_compressed(
-        out / "posterior.npz",
-        pose_mean=res["mean"],
-        pose_std=res["std"],
-        map_loc=res["map_loc"],
-        map_scale=res["map_scale"],
-        path_integration=res["path_integration"],
-    )
+    arrays = {k: res[v] for k, v in (("pose_mean", "mean"), ("pose_std", "std"),
+              ("map_loc", "map_loc"), ("map_scale", "map_scale"),
+              ("path_integration", "path_integration"))}  # fmt: skip
+    atomic_write(out / "posterior.npz", lambda f: np.savez_compressed(f, **arrays))
 
 
 def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float, preset) -> dict:
@@ -75,14 +109,12 @@ def run_slam(
     seed: int = 0,
     preset: str | None = None,
 ) -> dict:
-    """SLAM on ``traversal`` writing plots, trajectories, metrics and a checkpoint into ``out``.
-    Returns the report written to ``metrics.json``."""
-    out.mkdir(parents=True, exist_ok=True)
-    ckpt = out / "checkpoint.pt"
+    """SLAM on ``traversal`` writing plots, trajectories, metrics and a checkpoint into the
+    folder ``out`` (made ready by :func:`prepare_out_dir` first). Returns the report written to
+    ``metrics.json``."""
+    ckpt = Path(out) / "checkpoint.pt"
     slam = SLAM(traversal, config, transition, emission, checkpoint=ckpt, seed=seed)
     if resume:
-        if not ckpt.is_file():
-            raise DatasetError(f"{ckpt}: no checkpoint to resume from")
         slam.resume(ckpt)
     t0 = time.perf_counter()
     res = slam.run(mode, progress=progress)

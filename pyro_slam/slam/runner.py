@@ -19,7 +19,6 @@ continues with the same random stream.
 from __future__ import annotations
 
 import copy
-import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +31,7 @@ from pyro.optim import Adam
 from tqdm.auto import tqdm
 
 from .. import pretrained
-from ..data import Traversal, atomic_write
+from ..data import Traversal
 from ..inference import (
     ChunkBatch,
     MapBelief,
@@ -43,7 +42,7 @@ from ..inference import (
     Weighting,
 )
 from ..model import Emission, EmissionMLP, Transition
-from . import presets
+from . import checkpoint, presets
 from .build import build_model, prepare_traversal, traversal_tensors
 from .config import SLAMConfig
 from .heading import heading_observations
@@ -330,6 +329,11 @@ class SLAM:
             raise ValueError(f"mode must be 'online' or 'offline', got {mode!r}")
         if self.state is None:
             self.state = SLAMState(mode, phase="online" if mode == "online" else "online-init")
+        elif self.state.mode != mode:
+            raise checkpoint.CheckpointError(
+                f"the resumed run is an {self.state.mode} run, not {mode}: resume it with mode "
+                f"{self.state.mode!r} or start a new run"
+            )
         elif self.state.phase == "done":  # resumed from the final checkpoint: nothing to redo
             return self.result()
         if mode == "online":
@@ -356,15 +360,24 @@ class SLAM:
         }
 
     # --------------------------------------------------------------------------- checkpoints
+    def fingerprint(self) -> dict:
+        """What a checkpoint of this run belongs to: the data, the configuration, the seed."""
+        data = checkpoint.data_fingerprint(self.obs, self.ctl, self.mask, self.init_pose,
+                                           torch.as_tensor(self.tr.beam_angles))  # fmt: skip
+        return {"data": data, "config": self.cfg.to_dict(), "seed": self.seed}
+
     def state_dict(self) -> dict:
+        """Everything :meth:`resume` needs: tensors and plain data only."""
+        p = self.particles
         return {
-            "config": self.cfg.to_dict(),
+            "format": checkpoint.FORMAT,
+            "fingerprint": {**self.fingerprint(), "mode": self.state.mode},
             "state": copy.deepcopy(self.state.__dict__),
-            "params": pyro.get_param_store().get_state(),
+            "params": checkpoint.param_store_state(),
             "optim": self.optim.get_state(),
             "model": self.model.state_dict(),
             "cache": self.cache.state_dict(),
-            "particles": None if self.particles is None else self.particles.__dict__,
+            "particles": None if p is None else {"z": p.z, "logw": p.logw, "scan": p.scan},
             "gen": self.gen.get_state(),
             "torch_rng": torch.get_rng_state(),
             "elbo_seen": self.elbo.num_steps_seen,
@@ -373,14 +386,22 @@ class SLAM:
 
     def save(self, path) -> None:
         """Atomic checkpoint (temp file + rename)."""
-        buf = io.BytesIO()
-        torch.save(self.state_dict(), buf)
-        atomic_write(Path(path), lambda f: f.write(buf.getvalue()))
+        checkpoint.write(path, self.state_dict())
 
     def resume(self, path) -> SLAM:
-        """Load a checkpoint written by :meth:`save`; :meth:`run` then continues from it."""
-        d = torch.load(path, weights_only=False)
-        pyro.get_param_store().set_state(d["params"])
+        """Load a checkpoint written by :meth:`save` for this data, configuration and seed
+        (:class:`~pyro_slam.slam.checkpoint.CheckpointError` otherwise); :meth:`run` then
+        continues from it."""
+        d = checkpoint.read(path)
+        checkpoint.check(path, d["fingerprint"], self.fingerprint())
+        try:
+            self._load(d)
+        except (KeyError, TypeError, ValueError, RuntimeError) as e:
+            raise checkpoint.CheckpointError(f"{path}: damaged checkpoint ({e})") from None
+        return self
+
+    def _load(self, d: dict) -> None:
+        checkpoint.load_param_store(d["params"])
         self.model.load_state_dict(d["model"])
         if self.model.learn_emission:
             # the store now holds *loaded* tensors: make the emission network use (and SVI
@@ -392,11 +413,10 @@ class SLAM:
         self.particles = None if d["particles"] is None else Particles(**d["particles"])
         self.gen.set_state(d["gen"])
         torch.set_rng_state(d["torch_rng"])
-        self.elbo.num_steps_seen = d["elbo_seen"]
+        self.elbo.num_steps_seen = int(d["elbo_seen"])
         if self.inserter is not None:
             self.inserter.load_state_dict(d["inserter"])
         self.state = SLAMState(**d["state"])
-        return self
 
 
 def _largest_reading(tr: Traversal) -> float:

@@ -43,13 +43,16 @@ def traversal_fields(draw, min_steps=1):
     )
     if draw(st.booleans()):
         fields["obs_mask"] = draw(hnp.arrays(np.bool_, (T, B)))
+        fields["obs_mask"][0, 0] = True
+    # a data set needs at least one valid reading below the sensor's range
+    fields["observations"][0, 0] = min(fields["observations"][0, 0], fields["max_range"] / 2)
     return fields
 
 
 def base(**changes):
     """A small valid traversal's fields, with ``changes``."""
     fields = dict(
-        observations=np.ones((3, 2)),
+        observations=np.full((3, 2), 0.5),
         controls=np.zeros((2, 2)),
         walls=np.zeros((1, 4)),
         beam_angles=np.zeros(2),
@@ -215,7 +218,7 @@ def test_empty_sequences(obs, pattern):
 
 
 def test_validate_names_the_source():
-    tr = Traversal(np.ones((2, 1)), np.zeros((1, 2)), np.zeros((0, 4)), np.zeros(1), 1.0)
+    tr = Traversal(np.full((2, 1), 0.5), np.zeros((1, 2)), np.zeros((0, 4)), np.zeros(1), 1.0)
     tr.controls = np.zeros((5, 2))
     with pytest.raises(DatasetError, match=r"^my-log: field 'controls'"):
         validate(tr, "my-log")

@@ -1,0 +1,109 @@
+"""SLAM checkpoints: tensors and plain data only (read with ``torch.load(weights_only=True)``,
+so a file can never run code), written atomically, and stamped with what they belong to.
+
+A checkpoint records a fingerprint of the data the run filters (a hash of the prepared
+observations, controls, mask, beam angles and start pose), the configuration, the seed and the
+mode. :func:`check` refuses a checkpoint whose fingerprint differs and names what differs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import warnings
+from pathlib import Path
+
+import pyro
+import torch
+from pyro.distributions import constraints
+
+from ..data import atomic_write
+
+FORMAT = 2
+
+
+class CheckpointError(ValueError):
+    """A checkpoint cannot be read, or belongs to another run; the message says which."""
+
+
+def data_fingerprint(*tensors) -> str:
+    """A SHA-256 of the tensors' dtypes, shapes and bytes (None entries count as absent)."""
+    h = hashlib.sha256()
+    for t in tensors:
+        if t is None:
+            h.update(b"none")
+            continue
+        t = torch.as_tensor(t).detach().contiguous().cpu()
+        h.update(f"{t.dtype}{tuple(t.shape)}".encode())
+        h.update(t.numpy().tobytes())
+    return h.hexdigest()[:32]
+
+
+def param_store_state() -> dict:
+    """The Pyro param store's unconstrained values (tensors only)."""
+    return {
+        k: v.detach().clone().requires_grad_() for k, v in pyro.get_param_store().named_parameters()
+    }
+
+
+def load_param_store(params: dict) -> None:
+    """Put unconstrained ``params`` into the param store, keeping the registered constraints."""
+    ps = pyro.get_param_store()
+    current = ps.get_state()["constraints"]
+    ps.set_state(
+        {
+            "params": dict(params),
+            "constraints": {k: current.get(k, constraints.real) for k in params},
+        }
+    )
+
+
+def write(path, state: dict) -> None:
+    """Atomic ``torch.save`` (temp file + rename)."""
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    atomic_write(Path(path), lambda f: f.write(buf.getvalue()))
+
+
+def read(path) -> dict:
+    """A checkpoint's contents; :class:`CheckpointError` for anything that is not one (code in
+    a pickle is refused by ``weights_only=True`` and never runs)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no checkpoint to resume from")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # (pickle-protocol notes on foreign files)
+            d = torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as e:  # torch raises many types for truncated, corrupt or unsafe files
+        if "Weights only load failed" in str(e):
+            why = "it holds objects other than tensors and plain data; nothing in it was run"
+        else:
+            why = str(e).strip().splitlines()[0][:160] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{path}: not a pyro-slam checkpoint ({why})") from None
+    if not isinstance(d, dict) or d.get("format") != FORMAT or "fingerprint" not in d:
+        raise CheckpointError(f"{path}: not a pyro-slam checkpoint (format {FORMAT} expected)")
+    return d
+
+
+def _diff(a, b, where: str = "") -> list[str]:
+    """Dotted names of the entries where the nested dicts ``a`` and ``b`` differ."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for k in sorted(set(a) | set(b)):
+            out += _diff(a.get(k), b.get(k), f"{where}{k}.")
+        return out
+    return [] if a == b else [f"{where[:-1]} ({a!r} in the checkpoint, {b!r} now)"]
+
+
+def check(path, saved: dict, expected: dict) -> None:
+    """Raise :class:`CheckpointError` naming every field of the fingerprint that differs."""
+    problems = []
+    if saved.get("data") != expected["data"]:
+        problems.append("the data set (another traversal, length or sensor preparation)")
+    problems += [f"config {d}" for d in _diff(saved.get("config"), expected["config"])]
+    for key in ("seed", "mode"):
+        if key in saved and key in expected and saved[key] != expected[key]:
+            problems.append(f"{key} ({saved[key]!r} in the checkpoint, {expected[key]!r} now)")
+    if problems:
+        raise CheckpointError(f"{path}: belongs to another run; differs in " + "; ".join(problems))
