@@ -216,11 +216,11 @@ def test_transition_scale_scales_a_copy_of_sigma_t(traversal):
             TransitionConfig(scale=bad)
 
 
-@pytest.mark.parametrize("train_sigma", [None, 0.1])
-def test_elbo_chunk_filter_sigma(traversal, train_sigma):
+@pytest.mark.parametrize("training_sigma", [None, 0.1])
+def test_elbo_chunk_filter_sigma(traversal, training_sigma):
     # the ELBO's chunk filter weighs with filter.sigma unless training.sigma overrides it (e.g.
     # with the model's own sigma_E = 0.1)
-    slam = make_slam(traversal, {"filter": {"sigma": 0.02}, "training": {"sigma": train_sigma}})
+    slam = make_slam(traversal, {"filter": {"sigma": 0.02}, "training": {"sigma": training_sigma}})
     t = 5
     true = torch.as_tensor(traversal.poses, dtype=slam.cache.z.dtype)
     slam.cache.z[:] = true.unsqueeze(1)  # every cached particle at the true pose
@@ -229,7 +229,7 @@ def test_elbo_chunk_filter_sigma(traversal, train_sigma):
     with torch.no_grad():
         ev = slam.elbo.chunk_log_evidence(M, ChunkBatch(torch.tensor([t]), 1))
         scan = slam.model.emission_mean(M, true[t])
-        sigma = 0.02 if train_sigma is None else train_sigma
+        sigma = 0.02 if training_sigma is None else training_sigma
         expected = slam.model.emission_log_prob(slam.obs[t], scan, sigma=sigma)
     assert slam.pf.weighting.sigma == 0.02
     assert slam.elbo.pf.weighting.sigma == sigma and slam.elbo.pf.weighting.outlier_prob == 0
