@@ -136,7 +136,7 @@ def test_online_run_is_finite_and_tracks_the_path(traversal):
     assert res["map_scale"][~far].min() < 0.9 and np.abs(res["map_loc"][~far]).max() > 0.1
 
 
-def test_offline_run(traversal):
+def test_offline_run_refines_the_online_sweep(traversal):
     slam = make_slam(traversal)
     res = slam.run("offline", progress=False)
     T = traversal.num_steps
@@ -217,7 +217,9 @@ def test_transition_scale_scales_a_copy_of_sigma_t(traversal):
 
 
 @pytest.mark.parametrize("training_sigma", [None, 0.1])
-def test_elbo_chunk_filter_sigma(traversal, training_sigma):
+def test_elbo_chunk_filter_weighs_with_the_filter_sigma_unless_training_sets_one(
+    traversal, training_sigma
+):
     # the ELBO's chunk filter weighs with filter.sigma unless training.sigma overrides it (e.g.
     # with the model's own sigma_E = 0.1)
     slam = make_slam(traversal, {"filter": {"sigma": 0.02}, "training": {"sigma": training_sigma}})
@@ -274,7 +276,7 @@ def test_an_emission_with_a_finer_world_profile_reads_the_traversals_beams(trave
         load_emission(PRETRAINED / EMISSION_FILE, wide)
 
 
-def test_bad_mode(traversal):
+def test_unknown_run_mode_is_rejected(traversal):
     with pytest.raises(ValueError, match="mode must be"):
         make_slam(traversal).run("sideways", progress=False)
 
