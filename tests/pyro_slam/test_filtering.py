@@ -1,11 +1,11 @@
-"""The particle filter of :mod:`pyro_slam.filtering` against an exact Kalman filter, its failure
+"""The particle filter of :mod:`pyro_slam.inference` against an exact Kalman filter, its failure
 mode, resampling, weight normalisation and dtypes.
 
-The filter only needs five things of its ``model``: ``emission_mean(M, z)``,
-``emission_log_prob(x, mean, mask, sigma)``, ``transition.mean(z, u, scan)``,
-``transition.sigma`` and ``init_scale``. :class:`LinearGaussian` provides them for a 3-D random
-walk with drift observed through a linear map ``x = H z + noise`` (``H`` is passed where DVBF-LM
-passes the map ``M``), reusing DVBF-LM's own emission log-density and :class:`Transition` base.
+The filter only needs four things of its ``model``: ``emission_mean(M, z)``,
+``sigma_emission``, ``transition`` (``mean(z, u, scan)`` and ``sigma``) and ``init_scale``.
+:class:`LinearGaussian` provides them for a 3-D random walk with drift observed through a linear
+map ``x = H z + noise`` (``H`` is passed where DVBF-LM passes the map ``M``), reusing DVBF-LM's
+:class:`Transition` base; DVBF-LM's own emission log-density gives the expected weights.
 """
 
 from __future__ import annotations
@@ -15,11 +15,15 @@ import math
 import pytest
 import torch
 
-from pyro_slam import resampling
-from pyro_slam.filtering import HeadingObservation, ParticleCache, ParticleFilter, Particles
-from pyro_slam.model import DVBFLM
-from pyro_slam.resampling import ParticleFilterFailed
-from pyro_slam.transitions import Transition
+from pyro_slam.inference import (
+    HeadingObservation,
+    ParticleCache,
+    ParticleFilter,
+    ParticleFilterFailed,
+    Particles,
+    resampling,
+)
+from pyro_slam.model import DVBFLM, Transition
 
 Q = (0.2, 0.15, 0.1)  # transition std per pose dimension
 R = 0.5  # observation std
@@ -38,7 +42,7 @@ class RandomWalk(Transition):
 class LinearGaussian:
     """Duck-typed stand-in for :class:`DVBFLM`: linear-Gaussian emission ``x ~ N(M z, R^2)``."""
 
-    emission_log_prob = DVBFLM.emission_log_prob  # the very function the filter uses on DVBF-LM
+    emission_log_prob = DVBFLM.emission_log_prob  # DVBF-LM's emission log-density
 
     def __init__(self, dtype):
         self.sigma_emission = R
@@ -125,93 +129,6 @@ def test_log_evidence_and_means_match_kalman(dtype):
     assert (spread < 0.25 * kf_std).all()  # MC error << posterior spread
 
 
-def rts_means(h, x, u, z0):
-    """Exact smoothed means ``E[z_t | x_{0:T-1}]`` ``[T, 3]`` (Rauch-Tung-Striebel, float64)."""
-    h, x, u, m = (a.to(torch.float64) for a in (h, x, u, z0))
-    P = torch.diag(torch.tensor(S0, dtype=torch.float64) ** 2)
-    Qm = torch.diag(torch.tensor(Q, dtype=torch.float64) ** 2)
-    Rm = R**2 * torch.eye(h.shape[0], dtype=torch.float64)
-    ms, Ps = [], []
-    for t in range(x.shape[0]):
-        if t:
-            m, P = m + u[t - 1], P + Qm
-        K = P @ h.T @ torch.linalg.inv(h @ P @ h.T + Rm)
-        m, P = m + K @ (x[t] - h @ m), (torch.eye(3, dtype=torch.float64) - K @ h) @ P
-        ms.append(m)
-        Ps.append(P)
-    out = [ms[-1]]
-    for t in range(x.shape[0] - 2, -1, -1):  # random walk: the predicted cov is P_t + Q
-        G = Ps[t] @ torch.linalg.inv(Ps[t] + Qm)
-        out.insert(0, ms[t] + G @ (out[0] - ms[t] - u[t]))
-    return torch.stack(out)
-
-
-def test_fixed_lag_smoothing_matches_rts():
-    """``history = L`` keeps each particle's ancestors of the last ``L`` steps through
-    resampling: at the last step, :meth:`Particles.smoothed` (their mean under the current
-    weights) is the exact smoother's mean ``E[z_{T-1-lag} | x_{0:T-1}]``, not the filtering
-    mean of that step."""
-    h, x, u, z0 = simulate(torch.float64)
-    model, L = LinearGaussian(torch.float64), 3
-    g = torch.Generator().manual_seed(1)
-    pf = ParticleFilter(model, generator=g, history=L)
-    reps, K = 32, 2000
-    z = z0 + model.init_scale * torch.randn(reps, K, 3, generator=g, dtype=torch.float64)
-    p, _ = pf.init(z, h, x[0])
-    assert p.past is None
-    filt = [p.mean()]
-    for t in range(1, T):
-        p, _ = pf.step(p, h, x[t], u[t - 1], step=t)
-        assert p.past.shape == (reps, K, min(t, L), 3)
-        filt.append(p.mean())
-    rts, kf = rts_means(h, x, u, z0), kalman(h, x, u, z0)[0]
-    assert torch.allclose(p.smoothed(0), p.mean())
-    for lag in range(1, L + 1):
-        est = p.smoothed(lag)  # [reps, 3]
-        err = (est.mean(0) - rts[T - 1 - lag]).abs()
-        se = est.std(0) / math.sqrt(reps)
-        assert (err < 4 * se + 0.005).all(), (lag, err, se)
-        # the smoother is not the filtering mean (they differ by up to 0.2 here)
-        assert err.max() < 0.1 * (rts[T - 1 - lag] - kf[T - 1 - lag]).abs().max()
-        assert torch.allclose(torch.stack(filt)[T - 1 - lag].mean(0), kf[T - 1 - lag], atol=0.05)
-    with pytest.raises(ValueError, match="smoothed"):
-        p.smoothed(L + 1)
-    with pytest.raises(ValueError, match="history"):
-        ParticleFilter(model, history=-1)
-
-
-def test_linearised_proposal_is_exact_for_a_linear_emission(monkeypatch):
-    """With a linear-Gaussian emission the linearised proposal is the optimal one. With a sharp
-    likelihood (R = 0.05, far below the transition noise) the bootstrap filter degenerates; the
-    linearised one keeps most of its particles, and its log-evidence is far closer to Kalman's."""
-    monkeypatch.setitem(globals(), "R", 0.05)
-    reps, K = 64, 100
-    out = {}
-    for proposal in ("bootstrap", "linearised"):
-        ess = []
-        model = LinearGaussian(torch.float64)
-        g = torch.Generator().manual_seed(0)
-        pf = ParticleFilter(model, generator=g, proposal=proposal, proposal_gate=math.inf)
-        h, x, u, z0 = simulate(torch.float64)
-        z = z0 + model.init_scale * torch.randn(reps, K, 3, generator=g, dtype=torch.float64)
-        p, ev = pf.init(z, h, x[0])
-        for t in range(1, T):
-            p, inc = pf.step(p, h, x[t], u[t - 1], step=t)
-            ev = ev + inc
-            ess.append(resampling.ess(p.logw).mean())
-        out[proposal] = (ev - kalman(h, x, u, z0)[2], torch.stack(ess).mean(), p.mean())
-    (boot, boot_ess, _), (lin, lin_ess, mean) = out["bootstrap"], out["linearised"]
-    assert boot_ess < 10 and lin_ess > 50  # measured 4.3 and 70 of K = 100
-    assert lin.abs().mean() < 0.5 * boot.abs().mean()  # measured 1.0 and 4.0 nats
-    assert lin.std() < 0.5 * boot.std()  # measured 1.3 and 3.6
-    kf_mean = kalman(h, x, u, z0)[0][-1]
-    assert (mean.mean(0) - kf_mean).abs().max() < 0.01  # measured posterior std ~0.04
-    with pytest.raises(ValueError, match="proposal"):
-        ParticleFilter(LinearGaussian(torch.float64), proposal="oracle")
-    with pytest.raises(ValueError, match="tempered"):
-        ParticleFilter(LinearGaussian(torch.float64), proposal="linearised", weighting="tempered")
-
-
 def test_heading_observation_matches_kalman_with_an_extra_heading_row():
     """A :class:`HeadingObservation` ``y_t`` (std ``sigma_o``, far from the wrap) is a linear
     observation of the heading, so the filter that samples it by the exact heading proposal
@@ -261,9 +178,6 @@ def test_heading_observation_matches_kalman_with_an_extra_heading_row():
         outs.append(pf.step(p, h, x[1], u[0], step=1, heading=heading))
     torch.testing.assert_close(outs[0][0].z, outs[1][0].z)
     torch.testing.assert_close(outs[0][1], outs[1][1])
-    with pytest.raises(ValueError, match="bootstrap"):
-        lin = ParticleFilter(model, proposal="linearised")
-        lin.step(p, h, x[1], u[0], step=1, heading=HeadingObservation(y[1].expand(reps), so))
 
 
 def test_run_matches_kalman_and_reports_posterior_std():

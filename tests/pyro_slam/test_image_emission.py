@@ -3,14 +3,24 @@
 import math
 
 import numpy as np
+import pyro
 import pytest
 import torch
 
-from pyro_slam.filtering import ChunkBatch
-from pyro_slam.model import DVBFLM, MapGrid
-from pyro_slam.networks import ImageEmission
-from pyro_slam.slam import SLAM, SLAMConfig, prepare_traversal
-from pyro_slam.transitions import KinematicTransition
+from pyro_slam.inference import ChunkBatch
+from pyro_slam.model import DVBFLM, ImageEmission, KinematicTransition, MapGrid
+from pyro_slam.slam import (
+    SLAM,
+    EmissionConfig,
+    FilterConfig,
+    OfflineConfig,
+    SLAMConfig,
+    TrainingConfig,
+    prepare_traversal,
+)
+from pyro_slam.slam import (
+    image_traversal as prepare_images,
+)
 
 ROWS, COLS, BINS = 6, 8, 16
 
@@ -87,34 +97,36 @@ def image_traversal(steps=40):
     return simulate_traversal("moderate-medium", steps=steps, seed=3, images=True)
 
 
-CFG = dict(
-    observation="image",
-    image_bins=8,
-    map_resolution=1 / 6,
-    emission_hidden=16,
-    emission_layers=2,
-    filter_particles=16,
-    train_particles=4,
-    cache_particles=8,
-    chunks_per_batch=2,
-    offline_init="odometry",
-    offline_rounds=1,
-    offline_svi_steps=4,
+CFG = SLAMConfig(
+    emission=EmissionConfig("image_mlp", resolution=1 / 6),
+    filter=FilterConfig(particles=16),
+    training=TrainingConfig(particles=4, chunks=2),
+    offline=OfflineConfig(rounds=1, svi_steps=4),
 )
+
+
+def small_slam(tr) -> SLAM:
+    """SLAM with the test configuration and a small visual emission (8 angular bins, 2 x 16
+    row networks, initial weights from seed 0) that it learns."""
+    prep = prepare_images(tr)
+    torch.manual_seed(0)
+    rows, cols = prep.metadata["image_shape"]
+    em = ImageEmission(8, rows, cols, hidden=16, layers=2, column_angles=prep.beam_angles[:cols])
+    return SLAM(tr, CFG, emission=em, learn_emission=True)
 
 
 def test_prepared_image_traversal():
     tr = image_traversal(5)
-    prep = prepare_traversal(tr, SLAMConfig(observation="image"))
+    image = SLAMConfig(emission=EmissionConfig("image_mlp"))
+    prep = prepare_traversal(tr, image)
     assert prep.observations.shape == (5, 24 * 32)
     np.testing.assert_array_equal(prep.observations[2].reshape(24, 32), tr.images[2])
     assert prep.metadata["image_shape"] == [24, 32]
-    assert prepare_traversal(prep, SLAMConfig(observation="image")) is prep
+    assert prepare_traversal(prep, image) is prep
 
 
 def test_gradients_reach_map_and_emission_through_particle_elbo():
-    torch.manual_seed(0)
-    slam = SLAM(image_traversal(), SLAMConfig(**CFG))
+    slam = small_slam(image_traversal())
     assert isinstance(slam.model.emission, ImageEmission)
     slam._filter_pass(False, "fill cache")
     loss = slam.elbo.differentiable_loss(
@@ -122,8 +134,6 @@ def test_gradients_reach_map_and_emission_through_particle_elbo():
     )
     assert torch.isfinite(loss)
     loss.backward()
-    import pyro
-
     store = pyro.get_param_store()
     g_map = store["map_loc"].grad
     assert g_map is not None and torch.isfinite(g_map).all() and g_map.abs().sum() > 0
@@ -133,8 +143,10 @@ def test_gradients_reach_map_and_emission_through_particle_elbo():
 
 
 def test_tiny_visual_slam_run_is_finite():
-    slam = SLAM(image_traversal(), SLAMConfig(**CFG))
+    slam = small_slam(image_traversal())
+    assert slam.model.learn_emission
     res = slam.run("offline", progress=False)
     assert res["mean"].shape == (40, 3) and np.isfinite(res["mean"]).all()
-    assert np.isfinite(res["losses"]).all() and len(res["losses"]) == 4
+    # the online sweep's SVI steps (from step chunk_length - 1 on), then 4 offline ones
+    assert np.isfinite(res["losses"]).all() and len(res["losses"]) == 40 - 4 + 1 + 4
     assert res["map_loc"].shape[-1] == 8 * 24

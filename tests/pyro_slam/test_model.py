@@ -13,18 +13,26 @@ from pyro import poutine
 from pyro.infer import SVI, Predictive, SMCFilter
 from pyro.optim import Adam
 
-from pyro_slam.filtering import (
+from pyro_slam.inference import (
     ChunkBatch,
     ParticleCache,
     ParticleChunkELBO,
     ParticleFilter,
     Particles,
+    Weighting,
 )
-from pyro_slam.guide import BootstrapGuide, MapGuide
-from pyro_slam.model import DVBFLM, FilterModel, MapGrid
-from pyro_slam.networks import EmissionMLP, rotate_scan
-from pyro_slam.slam import SLAMConfig, build_model
-from pyro_slam.transitions import KinematicTransition
+from pyro_slam.model import (
+    DVBFLM,
+    BootstrapGuide,
+    EmissionMLP,
+    FilterModel,
+    KinematicTransition,
+    MapGrid,
+    MapGuide,
+    rotate_scan,
+)
+from pyro_slam.model.networks import Softsign
+from pyro_slam.slam import EmissionConfig, SLAMConfig, build_model
 from simulators import simulate_traversal
 
 B = 8  # beams
@@ -200,7 +208,15 @@ def test_rotate_scan_interpolates_world_profile():
 
 
 # ------------------------------------------------------------------------- gradients
-CFG = SLAMConfig(map_resolution=0.25 / 6, map_dim=3, emission_hidden=16, emission_layers=2)
+CFG = SLAMConfig(emission=EmissionConfig(resolution=0.25 / 6))
+MAP_DIM, HIDDEN, LAYERS = 3, 16, 2  # a small emission MLP
+
+
+def small_model(tr):
+    """The DVBF-LM SLAM builds for ``tr`` with a small emission MLP (weights from torch's
+    global random stream)."""
+    emission = EmissionMLP(MAP_DIM, max(tr.num_beams, 20), HIDDEN, LAYERS, scale=tr.max_range)
+    return build_model(tr, CFG, emission=emission)
 
 
 @pytest.fixture(scope="module")
@@ -210,7 +226,7 @@ def small_traversal():
 
 def elbo_setup(tr, dtype=torch.float32, ess_threshold=0.5, seed=0):
     torch.manual_seed(seed)
-    model, guide = build_model(tr, CFG)
+    model, guide = small_model(tr)
     model.to(dtype)
     obs = torch.as_tensor(tr.observations, dtype=dtype)
     ctl = torch.as_tensor(tr.controls, dtype=dtype)
@@ -237,7 +253,7 @@ def test_gradients_flow_into_map_and_emission(small_traversal):
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
         assert p.grad.abs().sum() > 0, name
     emission_params = {n: p for n, p in store.named_parameters() if n.startswith("emission$$$")}
-    assert len(emission_params) == 2 * (CFG.emission_layers + 1)
+    assert len(emission_params) == 2 * (LAYERS + 1)
     module = dict(model.emission.named_parameters())
     for name, p in emission_params.items():
         assert p is module[name.split("$$$")[1]]  # the store holds the module's own tensors
@@ -377,8 +393,6 @@ def test_smcfilter_on_learned_map_agrees_with_particle_filter(small_traversal):
 
 
 def test_bf16_filtering_matches_fp32_and_softsign_in_place_matches(small_traversal):
-    from pyro_slam.networks import Softsign
-
     x = torch.randn(7, 5)
     with torch.no_grad():
         torch.testing.assert_close(Softsign()(x.clone()), torch.nn.functional.softsign(x))
@@ -390,7 +404,7 @@ def test_bf16_filtering_matches_fp32_and_softsign_in_place_matches(small_travers
     out = {}
     for name, dt in (("fp32", None), ("bf16", torch.bfloat16)):
         pf = ParticleFilter(
-            model, generator=torch.Generator().manual_seed(0), sigma_emission=0.2,
+            model, Weighting(sigma=0.2), generator=torch.Generator().manual_seed(0),
             autocast_dtype=dt,
         )  # fmt: skip
         out[name] = pf.run(M, obs, ctl, poses[0], 200)

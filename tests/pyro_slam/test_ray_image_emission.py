@@ -1,20 +1,52 @@
-"""The geometric camera read-out :class:`~pyro_slam.networks.RayImageEmission`."""
+"""The geometric camera read-out :class:`~pyro_slam.model.RayImageEmission`."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
+import pyro
 import pytest
 import torch
 
-from pyro_slam.filtering import ChunkBatch
-from pyro_slam.networks import RayEmission, RayImageEmission
-from pyro_slam.slam import SLAM, SLAMConfig, build_model, prepare_traversal
+from pyro_slam.geometry import wrap_angle
+from pyro_slam.inference import ChunkBatch, MapBelief, ParticleFilter
+from pyro_slam.model import MapGrid, RayEmission, RayImageEmission
+from pyro_slam.slam import (
+    SLAM,
+    ConfigError,
+    EmissionConfig,
+    FilterConfig,
+    HeadingConfig,
+    OfflineConfig,
+    SLAMConfig,
+    TrainingConfig,
+    build_model,
+    prepare_traversal,
+)
+from pyro_slam.slam import (
+    image_traversal as prepare_images,
+)
 from simulators import simulate_traversal
 from simulators.camera import CEILING_ALBEDO, FLOOR_ALBEDO, Camera, CameraConfig
 
-CFG = dict(observation="image", image_emission="raycast", map_resolution=1 / 63)
+CFG = SLAMConfig(emission=EmissionConfig("ray_camera", resolution=1 / 63))
+# a small SLAM run of the ray camera
+SMALL = replace(
+    CFG,
+    filter=FilterConfig(particles=16),
+    training=TrainingConfig(particles=4, chunks=2),
+    offline=OfflineConfig(rounds=1, svi_steps=4),
+)
+
+
+def ray_camera(tr, samples: int = 48, bins: int = 8) -> RayImageEmission:
+    """The ray camera for ``tr``'s frames: ``samples`` points per ray, ``bins`` albedo
+    directions per cell."""
+    prep = prepare_images(tr)
+    rows, cols = prep.metadata["image_shape"]
+    return RayImageEmission(prep.beam_angles[:cols], rows, prep.max_range, samples, bins)
 
 
 @pytest.fixture(scope="module")
@@ -25,8 +57,8 @@ def image_traversal():
 def oracle(tr, albedo: float = 0.6):
     """The model with the simulator camera's constants, a wall map of uniform ``albedo`` and the
     same scene rendered by the simulator with every wall face at that albedo."""
-    prep = prepare_traversal(tr, SLAMConfig(**CFG))
-    model, _ = build_model(prep, SLAMConfig(**CFG))
+    prep = prepare_traversal(tr, CFG)
+    model, _ = build_model(prep, CFG)
     em = model.emission
     cam_cfg, w = CameraConfig(), tr.metadata["maze"]["corridor_width"]
     cam = Camera(tr.walls, w, None, cam_cfg)
@@ -46,8 +78,11 @@ def oracle(tr, albedo: float = 0.6):
 
 
 def test_shapes_and_config_wiring(image_traversal):
-    prep = prepare_traversal(image_traversal, SLAMConfig(**CFG))
-    model, guide = build_model(prep, SLAMConfig(**CFG, ray_albedo_bins=4))
+    prep = prepare_traversal(image_traversal, CFG)
+    assert CFG.emission.observation == "image" and prep.metadata["image_shape"] == [24, 32]
+    model, _ = build_model(prep, CFG)
+    assert isinstance(model.emission, RayImageEmission) and model.emission.map_dim == 9
+    model, guide = build_model(prep, CFG, emission=ray_camera(image_traversal, bins=4))
     em = model.emission
     assert isinstance(em, RayImageEmission)
     assert em.map_dim == 5 and guide.shape == (*model.grid.cells, 5)
@@ -56,8 +91,8 @@ def test_shapes_and_config_wiring(image_traversal):
     assert em.focal == pytest.approx(16.0, rel=1e-6)
     z = torch.as_tensor(image_traversal.poses[:6], dtype=torch.float32).reshape(2, 3, 3)
     assert model.emission_mean(torch.zeros(guide.shape), z).shape == (2, 3, 24 * 32)
-    with pytest.raises(ValueError, match="image_emission"):
-        build_model(prep, SLAMConfig(**{**CFG, "image_emission": "nerf"}))
+    with pytest.raises(ConfigError, match="emission.kind must be one of"):
+        EmissionConfig("nerf")
 
 
 def test_oracle_map_reproduces_simulated_images(image_traversal):
@@ -90,8 +125,6 @@ def test_turning_by_one_column_shifts_the_rays_by_one_column(image_traversal):
 
 def test_albedo_is_read_at_the_ray_direction():
     # one wall cell seen from the west (ray heading east, bin 0) and from the east (bin 4)
-    from pyro_slam.model import MapGrid
-
     grid = MapGrid((41, 41), 1 + 8, (0.0, 0.0), (1.0, 1.0))
     occ = RayEmission.wall_map(grid, torch.tensor([[0.5, 0.0, 0.5, 1.0]]))
     alb = torch.zeros(41, 41, 8)
@@ -108,19 +141,13 @@ def test_albedo_is_read_at_the_ray_direction():
 
 def test_gradients_reach_occupancy_albedo_and_camera_constants(image_traversal):
     torch.manual_seed(0)
-    cfg = SLAMConfig(
-        **CFG, filter_particles=16, train_particles=4, cache_particles=8, chunks_per_batch=2,
-        offline_init="odometry", offline_rounds=1, offline_svi_steps=4,
-    )  # fmt: skip
-    slam = SLAM(image_traversal, cfg)
+    slam = SLAM(image_traversal, SMALL)
     slam._filter_pass(False, "fill cache")
     loss = slam.elbo.differentiable_loss(
         slam.model.map_model, slam.guide, ChunkBatch(torch.tensor([0, 20]), 4)
     )
     assert torch.isfinite(loss)
     loss.backward()
-    import pyro
-
     g = pyro.get_param_store()["map_loc"].grad
     assert g is not None and torch.isfinite(g).all()
     assert g[..., 0].abs().sum() > 0 and g[..., 1:].abs().sum() > 0
@@ -130,13 +157,12 @@ def test_gradients_reach_occupancy_albedo_and_camera_constants(image_traversal):
     res = slam.run("offline", progress=False)
     assert res["mean"].shape == (60, 3) and np.isfinite(res["mean"]).all()
     assert res["map_loc"].shape[-1] == 9
+    assert len(res["losses"]) == 60 - 4 + 1 + 4  # the online sweep's SVI steps, then 4 offline
 
 
 def test_trust_reads_the_occupancy_at_the_pose_not_the_wall_albedo(image_traversal):
-    from pyro_slam.filtering import MapBelief, ParticleFilter
-
-    prep = prepare_traversal(image_traversal, SLAMConfig(**CFG))
-    model, guide = build_model(prep, SLAMConfig(**CFG))
+    prep = prepare_traversal(image_traversal, CFG)
+    model, guide = build_model(prep, CFG)
     assert model.emission.trust_features == 1
     # occupancy mapped everywhere (std 0.1), albedo only where rays stop: still the prior's std
     scale = torch.ones(guide.shape)
@@ -149,30 +175,32 @@ def test_trust_reads_the_occupancy_at_the_pose_not_the_wall_albedo(image_travers
     # an emission that reads every feature of the chart (the default) would see var 0.89
     model.emission.trust_features = None
     assert float(ParticleFilter(model).trust(z, belief).max()) < 0.12
-    # per-ray trust (beam_trust=True) likewise reads the occupancy where each ray stops
+    # per-ray trust (the beam variance) likewise reads the occupancy where each ray stops
     var = model.emission.beam_variance(model.grid, belief.loc, belief.scale, z)  # [5, 32]
     assert var.shape == (5, 32)
     torch.testing.assert_close(var, torch.full((5, 32), 0.01))
 
 
-def test_wall_heading_from_images(image_traversal):
-    """``wall_heading`` on camera frames: the walls' edges give each frame's heading modulo
+def test_heading_observation_from_images(image_traversal, monkeypatch):
+    """The heading observation on camera frames: the walls' edges give each frame's heading modulo
     pi / 2 (``geometry.image_wall_direction``), and the online filter's heading stays at the
     truth where the same run without it drifts."""
-    from pyro_slam.geometry import wrap_angle
-
     tr = image_traversal
-    base = dict(**CFG, filter_particles=32, train_particles=4, cache_particles=4, ray_samples=24)
-    slam = SLAM(tr, SLAMConfig(**base, wall_heading=1e-3))
+    # the run the measured numbers below come from keeps 4 particles per step in the cache
+    monkeypatch.setattr("pyro_slam.slam.runner.CACHE_PARTICLES", 4)
+    base = replace(CFG, filter=FilterConfig(particles=32), training=TrainingConfig(particles=4))
+    on = replace(base, heading=HeadingConfig(sigma=1e-3))
+    slam = SLAM(tr, on, emission=ray_camera(tr, samples=24), learn_emission=True)
     value = slam.headings.value  # [T] -heading modulo pi / 2, nan: no walls agree
     seen = ~value.isnan()
     assert float(seen.double().mean()) > 0.8
     r = torch.remainder(torch.as_tensor(tr.poses[:, 2]) - value + math.pi / 4, math.pi / 2)
     assert float((r[seen] - math.pi / 4).abs().max()) < 1e-3
     err = {}
-    for wh in (None, 1e-3):
-        res = SLAM(tr, SLAMConfig(**base, wall_heading=wh)).run("online", progress=False)
-        err[wh] = wrap_angle(torch.as_tensor(res["mean"][:, 2] - tr.poses[:, 2])).abs()  # [T]
-    assert float(err[1e-3][seen].max()) < 0.005  # measured 0.0022
+    for name, cfg in (("off", base), ("on", on)):
+        slam = SLAM(tr, cfg, emission=ray_camera(tr, samples=24), learn_emission=True)
+        res = slam.run("online", progress=False)
+        err[name] = wrap_angle(torch.as_tensor(res["mean"][:, 2] - tr.poses[:, 2])).abs()  # [T]
+    assert float(err["on"][seen].max()) < 0.005  # measured 0.0022
     # frames 50-54 see no two agreeing wall segments: the heading drifts there, then recovers
-    assert float(err[None].max()) > 3 * float(err[1e-3].max())  # measured 0.082 vs 0.0145
+    assert float(err["off"].max()) > 3 * float(err["on"].max())  # measured 0.082 vs 0.0145

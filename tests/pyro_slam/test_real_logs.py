@@ -1,5 +1,5 @@
 """DVBF-LM on metric real-log traversals: beam subsampling, range clipping, odometry noise, the
-real-log config, scan consistency, and ``pyro-slam slam LOG.clf`` end to end (synthetic room)."""
+``real`` preset, scan consistency, and ``pyro-slam slam LOG.clf`` end to end (synthetic room)."""
 
 from __future__ import annotations
 
@@ -8,19 +8,25 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from pyro_slam import cli, metrics
 from pyro_slam.data import Traversal
 from pyro_slam.io import write_carmen
 from pyro_slam.io.common import relative
+from pyro_slam.model import EmissionMLP
 from pyro_slam.slam import (
     SLAM,
     SLAMConfig,
     build_model,
-    odometry_sigma,
     prepare_traversal,
-    real_log_config,
+    presets,
+    with_overrides,
 )
+from pyro_slam.slam.presets import odometry_sigma
+
+# a light filter and SVI batch for the short logs here
+SMALL = {"filter": {"particles": 16}, "training": {"particles": 4, "chunk_length": 4, "chunks": 2}}
 
 ROOM = (0.0, 0.0, 10.0, 6.0)  # x0 y0 x1 y1, metres
 
@@ -87,12 +93,14 @@ def test_odometry_sigma_scales_with_motion():
     assert odometry_sigma(np.zeros((5, 3)), floor=0.01) == (0.01, 0.01, 0.01)
 
 
-def test_real_log_config_and_model_sizes():
+def test_real_preset_adapts_to_the_log_and_sizes_the_model():
     tr, poses = room_log()
-    cfg = real_log_config(tr, seed=3)
-    assert cfg.beam_stride == 8 and cfg.map_resolution == 0.5 and cfg.seed == 3
+    cfg = presets.get("real").for_traversal(tr)
+    assert cfg.beam_stride == 8 and cfg.emission.resolution == 0.5
     assert cfg.range_clip == pytest.approx(np.percentile(tr.valid_ranges(), 99), abs=0.01)
-    assert real_log_config(tr, beam_stride=4).beam_stride == 4  # overrides win
+    assert cfg.transition.sigma == pytest.approx(odometry_sigma(tr.controls, 0.1, 0.1))
+    assert with_overrides(cfg, {"beam_stride": 4}).beam_stride == 4  # overrides win
+    assert presets.adapt_real_log(tr, cfg, target_beams=100).beam_stride == 4
     prepared = prepare_traversal(tr, cfg)
     assert prepared.num_beams == 46
     model, _ = build_model(prepared, cfg)
@@ -109,11 +117,10 @@ def test_real_log_config_and_model_sizes():
 
 def test_slam_runs_on_subsampled_metric_log():
     tr, _ = room_log(T=12)
-    cfg = real_log_config(
-        tr, map_dim=4, emission_hidden=16, emission_layers=2, filter_particles=16,
-        train_particles=4, cache_particles=4, chunk_length=4, chunks_per_batch=2,
-    )  # fmt: skip
-    slam = SLAM(tr, cfg)
+    cfg = with_overrides(presets.get("real").for_traversal(tr), SMALL)
+    torch.manual_seed(0)
+    emission = EmissionMLP(4, 46, hidden=16, layers=2, scale=cfg.range_clip)
+    slam = SLAM(tr, cfg, emission=emission, learn_emission=True)
     assert slam.obs.shape == (12, 46) and slam.mask.shape == (12, 46)
     res = slam.run("online", progress=False)
     assert res["mean"].shape == (12, 3) and np.isfinite(res["mean"]).all()
@@ -138,21 +145,20 @@ def test_scan_consistency_prefers_the_true_poses():
 def test_cli_slam_on_carmen_log(tmp_path, capsys):
     tr, poses = room_log(T=14)
     log = write_carmen(tr, tmp_path / "room.clf")
-    tiny = json.dumps(
-        {"map_dim": 4, "emission_hidden": 16, "emission_layers": 2, "filter_particles": 16,
-         "train_particles": 4, "cache_particles": 4, "chunk_length": 4, "chunks_per_batch": 2}
-    )  # fmt: skip
     out = tmp_path / "run"
     rc = cli.main(
-        ["slam", str(log), "--out", str(out), "--config", tiny, "--odometry-noise", "0.2"]
-    )
+        ["slam", str(log), "--out", str(out), "--config", json.dumps(SMALL), "--odometry-noise",
+         "0.2"]
+    )  # fmt: skip
     assert rc == 0
     for name in ("metrics.json", "map.png", "slam.png", "trajectory_slam.tum", "posterior.npz"):
         assert (out / name).is_file(), name
     report = json.loads((out / "metrics.json").read_text())
-    assert report["config"]["beam_stride"] == 8 and report["config"]["map_resolution"] == 0.5
+    config = report["config"]
+    assert report["preset"] == "real" and config["beam_stride"] == 8
+    assert config["emission"]["resolution"] == 0.5 and config["filter"]["particles"] == 16
     sigma = odometry_sigma(tr.controls, 0.2, 0.2)
-    np.testing.assert_allclose(report["config"]["transition_sigma"], sigma, rtol=1e-4)
+    np.testing.assert_allclose(config["transition"]["sigma"], sigma, rtol=1e-4)
     assert report["scan_consistency"]["slam"]["mean"] >= 0
     assert "scan consistency" in capsys.readouterr().out
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -16,28 +15,37 @@ import pytest
 import torch
 
 import pyro_slam.data
-import pyro_slam.filtering
-from pyro_slam import resampling
+from pyro_slam.inference import ChunkBatch, MapBelief, ParticleFilter, Particles, Weighting
 from pyro_slam.metrics import localisation_error
-from pyro_slam.slam import SLAM, SLAMConfig, path_integration
-from pyro_slam.transitions import KinematicTransition
+from pyro_slam.model import EmissionMLP, KinematicTransition
+from pyro_slam.pretrained import EMISSION_FILE, PRETRAINED, load_emission
+from pyro_slam.slam import (
+    SLAM,
+    ConfigError,
+    EmissionConfig,
+    FilterConfig,
+    OfflineConfig,
+    SLAMConfig,
+    SLAMState,
+    TrainingConfig,
+    TransitionConfig,
+    path_integration,
+    with_overrides,
+)
 from simulators import simulate_traversal
+from simulators.world import LidarConfig
 
 REPO = Path(__file__).resolve().parents[2]
 STEPS = 24
-CFG = dict(
-    map_resolution=0.25 / 6,
-    map_dim=4,
-    emission_hidden=16,
-    emission_layers=2,
-    filter_particles=32,
-    train_particles=8,
-    cache_particles=8,
-    chunk_length=4,
-    chunks_per_batch=4,
-    checkpoint_every=7,
-    offline_rounds=2,
-    offline_svi_steps=5,
+CHUNK_LENGTH = 4
+CHECKPOINT_EVERY = 7
+# the small emission network the tests learn (the shipped one is 10 -> 4 x 256 -> 20)
+MAP_DIM, HIDDEN, LAYERS = 4, 16, 2
+CONFIG = SLAMConfig(
+    emission=EmissionConfig(resolution=0.25 / 6),
+    filter=FilterConfig(particles=32),
+    training=TrainingConfig(particles=8, chunk_length=CHUNK_LENGTH, chunks=4),
+    offline=OfflineConfig(rounds=2, svi_steps=5),
 )
 
 
@@ -46,8 +54,27 @@ def traversal():
     return simulate_traversal("simple-small", steps=STEPS, seed=0)
 
 
-def config(**kw):
-    return SLAMConfig(**{**CFG, **kw})
+def config(changes: dict | None = None) -> SLAMConfig:
+    """The test configuration with nested ``changes`` (:func:`with_overrides`)."""
+    return with_overrides(CONFIG, changes or {})
+
+
+def small_emission(tr, seed: int = 0, n_world: int | None = None) -> EmissionMLP:
+    """A small emission MLP for ``tr``'s LiDAR, its initial weights drawn from ``seed``."""
+    torch.manual_seed(seed)
+    n_world = max(tr.num_beams, 20) if n_world is None else n_world
+    return EmissionMLP(MAP_DIM, n_world, hidden=HIDDEN, layers=LAYERS, scale=tr.max_range)
+
+
+def make_slam(tr, changes: dict | None = None, *, seed: int = 0, **kw) -> SLAM:
+    """A SLAM run of the test configuration that learns a small emission MLP (the ray-cast
+    emission has nothing to learn and is built by SLAM)."""
+    cfg = config(changes)
+    kw.setdefault("checkpoint_every", CHECKPOINT_EVERY)
+    if cfg.emission.kind == "mlp" and "emission" not in kw:
+        kw["emission"] = small_emission(tr, seed)
+        kw["learn_emission"] = True
+    return SLAM(tr, cfg, seed=seed, **kw)
 
 
 def emission_params(slam):
@@ -83,13 +110,13 @@ def crash_after_save(slam: SLAM, n: int):
 # ------------------------------------------------------------------------------ runs
 def test_online_run_is_finite_and_tracks_the_path(traversal):
     tr = traversal
-    slam = SLAM(tr, config())
+    slam = make_slam(tr)
     res = slam.run("online", progress=False)
     T = tr.num_steps
     assert res["mean"].shape == (T, 3) and res["std"].shape == (T, 3)
     assert res["map_loc"].shape == res["map_scale"].shape == slam.model.grid.shape
     # one SVI step per step from t = chunk_length - 1 on
-    assert len(res["losses"]) == T - CFG["chunk_length"] + 1
+    assert len(res["losses"]) == T - CHUNK_LENGTH + 1
     for key in ("mean", "std", "losses", "map_loc", "map_scale"):
         assert np.isfinite(res[key]).all(), key
     assert (res["std"] > 0).all() and (res["std"][:, :2] < 0.02).all()
@@ -109,13 +136,13 @@ def test_online_run_is_finite_and_tracks_the_path(traversal):
     assert res["map_scale"][~far].min() < 0.9 and np.abs(res["map_loc"][~far]).max() > 0.1
 
 
-def test_offline_run(traversal):
-    slam = SLAM(traversal, config())
+def test_offline_run_refines_the_online_sweep(traversal):
+    slam = make_slam(traversal)
     res = slam.run("offline", progress=False)
     T = traversal.num_steps
     assert res["mean"].shape == (T, 3) and np.isfinite(res["mean"]).all()
     # online sweep, then 2 rounds of 5 SVI steps
-    assert len(res["losses"]) == T - CFG["chunk_length"] + 1 + 2 * 5
+    assert len(res["losses"]) == T - CHUNK_LENGTH + 1 + 2 * 5
     assert np.isfinite(res["losses"]).all()
     assert localisation_error(res["mean"], traversal.poses).max() < 0.03
     assert slam.state.phase == "done" and slam.state.round == 2
@@ -123,14 +150,14 @@ def test_offline_run(traversal):
     sweep = res["sweep_mean"]
     assert sweep.shape == (T, 3) and not np.array_equal(sweep, res["mean"])
     assert localisation_error(sweep, traversal.poses).max() < 0.03
-    assert SLAM(traversal, config()).run("online", False)["sweep_mean"].shape == (0, 3)
+    assert make_slam(traversal).run("online", False)["sweep_mean"].shape == (0, 3)
 
 
 def test_offline_estimate_cache_filters_chunks_from_the_cached_particles(traversal):
-    """``offline_estimate="cache"`` (paper B-I): each chunk restarts from the cache, so a pose
+    """``offline.estimate="cache"`` (paper B-I): each chunk restarts from the cache, so a pose
     the cache holds far from the truth shows up at that chunk's steps and nowhere else."""
-    L = CFG["chunk_length"]
-    slam = SLAM(traversal, config(offline_rounds=0, offline_estimate="cache"))
+    L = CHUNK_LENGTH
+    slam = make_slam(traversal, {"offline": {"rounds": 0, "estimate": "cache"}})
     run_ = slam._cache_pass
     shift = torch.tensor([0.03, 0.0, 0.0])
 
@@ -153,174 +180,49 @@ def test_offline_estimate_cache_filters_chunks_from_the_cached_particles(travers
     np.testing.assert_allclose(res["mean"][::L, :2], starts[:, :2], atol=5e-3)
     assert torch.equal(slam.cache.z, before[0])
     # with SVI rounds, only their chunks refresh the cache: no whole-traversal filter pass
-    slam = SLAM(traversal, config(offline_estimate="cache"))
+    slam = make_slam(traversal, {"offline": {"estimate": "cache"}})
     slam._filter_pass = None  # would raise if called
     res = slam.run("offline", progress=False)
     assert slam.state.round == 2 and localisation_error(res["mean"], traversal.poses).max() < 0.03
-    with pytest.raises(ValueError, match="offline_estimate must be 'forward' or 'cache'"):
-        SLAM(traversal, config(offline_estimate="smooth"))
-
-
-def test_heading_jump_gives_a_fraction_of_the_particles_a_wide_heading_noise(traversal):
-    slam = SLAM(traversal, config(heading_jump=(0.25, 0.3), filter_particles=4000))
-    assert slam._heading_jumps(None, 0) is not None
-    sigma = slam._heading_jumps(None, 0)  # [K, 3]
-    base = slam.model.transition.sigma
-    jumped = sigma[:, 2] == 0.3
-    assert sigma.shape == (4000, 3) and abs(float(jumped.float().mean()) - 0.25) < 0.03
-    torch.testing.assert_close(sigma[~jumped], base.expand(int((~jumped).sum()), 3))
-    assert (sigma[jumped, :2] == base[:2]).all()
-    assert SLAM(traversal, config())._heading_jumps(None, 0) is None  # off by default
-    for bad in ((1.5, 0.3), (0.1, 0.0), (0.1,)):
-        with pytest.raises(ValueError, match="heading_jump must be"):
-            SLAM(traversal, config(heading_jump=bad))
-
-
-def test_heading_jump_age_allows_jumps_only_on_cells_mapped_long_enough_ago(traversal):
-    slam = SLAM(traversal, config(heading_jump=(1.0, 0.3), heading_jump_age=100))
-    with torch.no_grad():
-        slam._filter_step(0, slam.map_mean(0))
-    cell = slam._mean_cell()
-    assert slam._heading_jumps(None, 10**6) is None  # an unmapped cell: no revisit
-    slam.first_seen[cell] = 50.0
-    assert slam._heading_jumps(None, 149) is None  # mapped 99 steps ago: still the frontier
-    sigma = slam._heading_jumps(None, 150)  # [K, 3], a revisit: every particle jumps (p = 1)
-    assert sigma.shape == (slam.cfg.filter_particles, 3) and (sigma[:, 2] == 0.3).all()
-    slam.first_seen.fill_(float("inf"))
-    slam.first_seen[cell[0] + 2 :, :] = 0.0  # old cells elsewhere do not count
-    assert slam._heading_jumps(None, 10**6) is None
-    with pytest.raises(ValueError, match="heading_jump_age must be >= 0"):
-        SLAM(traversal, config(heading_jump_age=-1))
+    msg = r"offline.estimate must be one of \['forward', 'cache'\], got 'smooth'"
+    with pytest.raises(ConfigError, match=msg):
+        config({"offline": {"estimate": "smooth"}})
 
 
 def test_same_seed_same_result_other_seed_differs(traversal):
     # (runs share Pyro's global param store: a SLAM is built when the previous one is done)
-    a = SLAM(traversal, config())
+    a = make_slam(traversal)
     ra = a.run("online", False)
-    b = SLAM(traversal, config())
+    b = make_slam(traversal)
     assert_same_run(a, ra, b, b.run("online", False))
-    c = SLAM(traversal, config(seed=1)).run("online", False)
+    c = make_slam(traversal, seed=1).run("online", False)
     assert not np.array_equal(c["mean"], ra["mean"])
-
-
-def test_pin_cache_learns_the_map_at_the_given_poses(traversal):
-    slam = SLAM(traversal, config())
-    shifted = traversal.poses + np.array([0.05, 0.0, 0.0])
-    slam.pin_cache(shifted, noise=1e-3)
-    res = slam.run("offline", progress=False)
-    # every store (online sweep, chunk refreshes, offline passes) kept the pinned poses
-    dev = slam.cache.z.numpy() - shifted[:, None].astype(np.float32)
-    assert slam.cache.filled.all() and np.abs(dev).max() < 6e-3 and dev.std() > 5e-4
-    # the filter still ran on its own: its estimates are not the pinned poses
-    assert np.abs(res["mean"][:, 0] - shifted[:, 0]).mean() > 1e-3
-    T = traversal.num_steps
-    msg = re.escape(f"pin_cache needs poses of shape ({T}, 3), got ({T - 1}, 3)")
-    with pytest.raises(ValueError, match=msg):
-        slam.pin_cache(shifted[:-1])
-
-
-@pytest.mark.parametrize("weighting", ["marginal", "tempered", "predictive"])
-def test_revisit_gating_before_any_revisit_is_path_integration(traversal, weighting):
-    # every cell is younger than the gap: the map may not weigh particles, so the filter is a
-    # transition-driven cloud (finite, near-flat weights -- no -inf from a zero trust)
-    slam = SLAM(traversal, config(revisit_gap=10_000, weighting=weighting))
-    res = slam.run("online", progress=False)
-    assert np.isfinite(res["mean"]).all() and np.isfinite(res["losses"]).all()
-    K = slam.particles.num_particles
-    if weighting != "predictive":  # "predictive" scores unusable charts by the prior predictive
-        assert resampling.ess(slam.particles.logw) > 0.9 * K
-
-
-def test_revisit_radius_trusts_the_map_by_distance_to_old_positions(traversal):
-    slam = SLAM(traversal, config(revisit_gap=5, revisit_radius=0.02))
-    res = slam.run("online", progress=False)
-    assert np.isfinite(res["mean"]).all()
-    np.testing.assert_allclose(slam.track.numpy(), res["mean"][:, :2], atol=1e-6)
-    here = slam.particles.mean()[:2]
-    # the cloud sits on a position estimated >= 5 steps before t: full trust
-    slam.track[:] = here + torch.tensor([3.0, 0.0])
-    slam.track[10] = here
-    assert slam.map_mean(16).trust == pytest.approx(1.0)
-    assert slam.map_mean(15).trust == pytest.approx(0.01)  # step 10 is too recent (gap 5)
-    slam.track[10] = here + torch.tensor([0.0, 0.02])  # one radius away
-    assert slam.map_mean(16).trust == pytest.approx(math.exp(-0.5), rel=1e-4)
-    assert slam.map_mean(2).trust == 0.01  # nothing old enough yet: path integration
-    assert slam.map_mean().trust == 1.0  # offline passes: the whole map
-    with pytest.raises(ValueError, match="revisit_radius must be > 0, got 0.0"):
-        SLAM(traversal, config(revisit_radius=0.0))
 
 
 def test_transition_scale_scales_a_copy_of_sigma_t(traversal):
     tran = KinematicTransition((5e-4, 5e-4, 8e-3))
-    slam = SLAM(traversal, config(transition_scale=(3.0, 3.0, 0.2)), transition=tran)
+    slam = make_slam(traversal, {"transition": {"scale": [3.0, 3.0, 0.2]}}, transition=tran)
     torch.testing.assert_close(slam.model.transition.sigma, torch.tensor([1.5e-3, 1.5e-3, 1.6e-3]))
     torch.testing.assert_close(tran.sigma, torch.tensor([5e-4, 5e-4, 8e-3]))  # not changed
     # the filter's particles spread by the scaled sigma: heading spread shrinks 5x
     z = torch.zeros(4000, 3)
-    p = slam.pf.propagate(pyro_slam.filtering.Particles(z, torch.zeros(4000)), torch.zeros(2))
+    p = slam.pf.propagate(Particles(z, torch.zeros(4000)), torch.zeros(2))
     spread = p - slam.model.transition.mean(z, torch.zeros(1, 2))
     np.testing.assert_allclose(spread.std(0).numpy(), [1.5e-3, 1.5e-3, 1.6e-3], rtol=0.06)
-    same = SLAM(traversal, config(), transition=tran)
+    same = make_slam(traversal, transition=tran)
     assert same.model.transition is tran  # factors of 1: the transition as given
     for bad in [(1.0, 1.0), (1.0, 0.0, 1.0)]:
-        with pytest.raises(ValueError, match="transition_scale must be 3 positive factors"):
-            SLAM(traversal, config(transition_scale=bad))
+        with pytest.raises(ConfigError, match="transition.scale must be 3 positive numbers"):
+            TransitionConfig(scale=bad)
 
 
-def test_newest_svi_steps_train_on_the_newest_chunk_only(traversal):
-    T, L = traversal.num_steps, CFG["chunk_length"]
-    slam = SLAM(traversal, config(newest_svi_steps=2))
-    batches = []
-    step = slam.svi.step
-    slam.svi.step = lambda batch: batches.append(batch.starts.tolist()) or step(batch)
-    res = slam.run("online", progress=False)
-    assert len(res["losses"]) == T - L + 1  # the regular steps are unchanged
-    assert len(batches) == 3 * (T - L + 1)
-    # each time step t: one regular batch (newest chunk first), then two of the newest alone
-    assert batches[1] == batches[2] == [0] and batches[-1] == [T - L]
-    assert len(batches[-3]) == CFG["chunks_per_batch"] and batches[-3][0] == T - L
-    with pytest.raises(ValueError, match="newest_svi_steps must be >= 0, got -1"):
-        SLAM(traversal, config(newest_svi_steps=-1))
-
-
-def test_write_lag_learns_the_map_only_from_old_enough_steps(traversal):
-    T, L = traversal.num_steps, CFG["chunk_length"]
-    slam = SLAM(traversal, config(write_lag=5))
-    seen = []
-    step = slam._svi_step
-    slam._svi_step = lambda lo, hi, newest: seen.append((hi, newest)) or step(lo, hi, newest)
-    res = slam.run("online", progress=False)
-    # one SVI step per time step t >= write_lag + L - 1, on chunks ending <= t - write_lag
-    assert len(res["losses"]) == T - 5 - L + 1
-    assert seen[0] == (0, 0) and seen[-1] == (T - 1 - 5 - L + 1,) * 2
-    prior = SLAM(traversal, config(write_lag=T)).run("online", progress=False)
-    assert len(prior["losses"]) == 0 and (prior["map_loc"] == 0).all()
-    with pytest.raises(ValueError, match="write_lag must be >= 0, got -1"):
-        SLAM(traversal, config(write_lag=-1))
-
-
-def test_cloud_wide_trust_flattens_the_weights_of_every_particle(traversal):
-    from pyro_slam.filtering import MapBelief
-
-    slam = SLAM(traversal, config())
-    slam.run("online", progress=False)
-    b, p = slam.map_mean(), slam.particles
-    flat = torch.zeros_like(p.logw)
-    spread = {}
-    for trust in (1.0, 0.01):
-        belief = MapBelief(b.loc, b.scale, None, trust)
-        w, _ = slam.pf._weigh(p.z, belief, slam.obs[-1], None, flat, step=0)
-        spread[trust] = float(w.logw.detach().max() - w.logw.detach().min())
-    assert spread[1.0] > 0.5 and spread[0.01] < 0.1 * spread[1.0]
-
-
-@pytest.mark.parametrize("train_sigma", [None, 0.1])
-def test_elbo_chunk_filter_sigma(traversal, train_sigma):
-    # the ELBO's chunk filter weighs with filter_sigma unless train_sigma overrides it (e.g.
+@pytest.mark.parametrize("training_sigma", [None, 0.1])
+def test_elbo_chunk_filter_weighs_with_the_filter_sigma_unless_training_sets_one(
+    traversal, training_sigma
+):
+    # the ELBO's chunk filter weighs with filter.sigma unless training.sigma overrides it (e.g.
     # with the model's own sigma_E = 0.1)
-    from pyro_slam.filtering import ChunkBatch
-
-    slam = SLAM(traversal, config(filter_sigma=0.02, train_sigma=train_sigma))
+    slam = make_slam(traversal, {"filter": {"sigma": 0.02}, "training": {"sigma": training_sigma}})
     t = 5
     true = torch.as_tensor(traversal.poses, dtype=slam.cache.z.dtype)
     slam.cache.z[:] = true.unsqueeze(1)  # every cached particle at the true pose
@@ -329,39 +231,11 @@ def test_elbo_chunk_filter_sigma(traversal, train_sigma):
     with torch.no_grad():
         ev = slam.elbo.chunk_log_evidence(M, ChunkBatch(torch.tensor([t]), 1))
         scan = slam.model.emission_mean(M, true[t])
-        sigma = 0.02 if train_sigma is None else train_sigma
+        sigma = 0.02 if training_sigma is None else training_sigma
         expected = slam.model.emission_log_prob(slam.obs[t], scan, sigma=sigma)
-    assert slam.pf.sigma_emission == 0.02
+    assert slam.pf.weighting.sigma == 0.02
+    assert slam.elbo.pf.weighting.sigma == sigma and slam.elbo.pf.weighting.outlier_prob == 0
     torch.testing.assert_close(ev[0], expected, rtol=1e-3, atol=1e-2)
-
-
-def test_reprojection_writes_the_map_around_the_chunk_poses(traversal):
-    # reproject_radius > 0: the loss also scores the scans reprojected within the radius, so
-    # map cells the chunk filter never reads get gradients; the chunk evidence is unchanged
-    from pyro_slam.filtering import ChunkBatch
-
-    true = torch.as_tensor(traversal.poses)
-    grads, evidence = {}, {}
-    for radius in (0.0, 0.1):
-        slam = SLAM(traversal, config(reproject_radius=radius, reproject_samples=16))
-        slam.cache.z[:] = true.to(slam.cache.z.dtype).unsqueeze(1)  # cached particles at truth
-        slam.cache.filled[:] = True
-        slam.model.transition.sigma = torch.full((3,), 1e-6)  # the chunk stays on the truth
-        loc, _ = slam.guide.params()
-        loss = slam.elbo.differentiable_loss(
-            slam.model.map_model, slam.guide, ChunkBatch(torch.tensor([0, 10]), 4)
-        )
-        (g,) = torch.autograd.grad(loss, loc)
-        kl_only = loc.detach()  # the KL's gradient is d/dloc KL / T = loc / T
-        grads[radius] = (g - kl_only / slam.elbo.num_steps_seen).abs().sum(-1)  # [w, h]
-        evidence[radius] = slam.elbo.last_log_evidence
-    torch.testing.assert_close(evidence[0.0], evidence[0.1])
-    read = grads[0.0] > 0
-    assert read.sum() >= 4  # the cells around the chunk poses
-    assert (grads[0.1][read] > 0).all()
-    assert ((grads[0.1] > 0) & ~read).sum() >= 4  # cells only the reprojection writes
-    with pytest.raises(ValueError, match="reproject_samples >= 1"):
-        SLAM(traversal, config(reproject_radius=0.1, reproject_samples=0))
 
 
 @pytest.mark.parametrize("weighting", ["marginal", "shared"])
@@ -370,9 +244,7 @@ def test_shared_trust_removes_the_pull_towards_often_written_cells(traversal, we
     # observation is that scan) but whose scale falls from 1 (unmapped) to 0.2 (written often)
     # along x: per-particle trust ("marginal") prefers the particles in the often-written cells
     # through the normaliser -B log sigma alone; one trust for the cloud ("shared") does not
-    from pyro_slam.filtering import MapBelief, ParticleFilter
-
-    slam = SLAM(traversal, config())
+    slam = make_slam(traversal)
     w, h, D = slam.model.grid.shape
     scale = torch.linspace(1.0, 0.2, w).view(w, 1, 1).expand(w, h, D).contiguous()
     belief = MapBelief(torch.full((w, h, D), 0.3), scale)
@@ -380,7 +252,7 @@ def test_shared_trust_removes_the_pull_towards_often_written_cells(traversal, we
     z = torch.zeros(64, 3)
     z[:, 0] = torch.linspace(x0 + 0.05, x1 - 0.05, 64)
     z[:, 1] = 0.5 * (y0 + y1)
-    pf = ParticleFilter(slam.model, sigma_emission=0.05, weighting=weighting)
+    pf = ParticleFilter(slam.model, Weighting(weighting, 0.05))
     flat = torch.full((64,), -math.log(64))
     x = slam.model.emission_mean(belief.loc, z[0]).detach()  # [B] a perfect match everywhere
     p, _ = pf._weigh(z, belief, x, None, flat, step=0)
@@ -391,23 +263,22 @@ def test_shared_trust_removes_the_pull_towards_often_written_cells(traversal, we
         assert logw[-1] - logw[0] > 1.0 and (logw.diff() >= -1e-6).all()
 
 
-def test_n_world_sets_the_emission_profile_resolution(traversal):
-    from pyro_slam.cli import load_emission
-
-    slam = SLAM(traversal, config(n_world=40))
+def test_an_emission_with_a_finer_world_profile_reads_the_traversals_beams(traversal):
+    emission = small_emission(traversal, n_world=40)
+    slam = make_slam(traversal, emission=emission, learn_emission=True)
     assert slam.model.emission.n_world == 40
     assert slam.model.emission_mean(slam.guide.params()[0].detach(), torch.zeros(3)).shape == (
         traversal.num_beams,
     )
-    # a shipped 20-direction emission does not fit a 40-direction config
+    # the shipped 20-direction emission does not fit a 40-beam LiDAR
+    wide = simulate_traversal("simple-small", steps=4, seed=0, lidar=LidarConfig(n_beams=40))
     with pytest.raises(pyro_slam.data.DatasetError, match="40"):
-        shipped = REPO / "pyro_slam/pretrained/emission_lidar20.pt"
-        load_emission(shipped, traversal, config(n_world=40))
+        load_emission(PRETRAINED / EMISSION_FILE, wide)
 
 
-def test_bad_mode(traversal):
+def test_unknown_run_mode_is_rejected(traversal):
     with pytest.raises(ValueError, match="mode must be"):
-        SLAM(traversal, config()).run("sideways", progress=False)
+        make_slam(traversal).run("sideways", progress=False)
 
 
 def test_path_integration_reproduces_noiseless_motion():
@@ -421,6 +292,9 @@ def test_path_integration_reproduces_noiseless_motion():
 
 
 # ---------------------------------------------------------------------------- resume
+RAYCAST = {"emission": {"kind": "raycast", "insert": {}}, "filter": {"outlier_prob": 0.1}}
+
+
 @pytest.mark.parametrize(
     "mode, crash_at, over",
     [
@@ -428,26 +302,30 @@ def test_path_integration_reproduces_noiseless_motion():
         ("offline", 2, {}),  # inside the online sweep that starts offline SLAM
         ("offline", 5, {}),  # between the two offline rounds
         ("offline", 7, {}),  # after the final checkpoint: nothing is redone
-        ("online", 2, {"revisit_gap": 3, "revisit_radius": 0.01}),  # the track is restored
-        ("offline", 5, {"transition_scale": (3.0, 3.0, 0.2)}),  # scaled once, not on resume
-        ("offline", 5, {"offline_estimate": "cache"}),  # between rounds without filter passes
+        ("offline", 5, {"transition": {"scale": [3.0, 3.0, 0.2]}}),  # scaled once, not on resume
+        ("offline", 5, {"offline": {"estimate": "cache"}}),  # between rounds without filter passes
+        ("online", 2, RAYCAST),  # the scan inserter's record of written cells is restored
     ],
 )
 def test_resume_reproduces_uninterrupted_run(traversal, tmp_path, mode, crash_at, over):
-    ref = SLAM(traversal, config(**over))
+    ref = make_slam(traversal, over)
     r_ref = ref.run(mode, progress=False)
 
     ckpt = tmp_path / "ckpt.pt"
-    first = SLAM(traversal, config(**over), checkpoint=ckpt)
+    first = make_slam(traversal, over, checkpoint=ckpt)
     crash_after_save(first, crash_at)
     with pytest.raises(Crash):
         first.run(mode, progress=False)
     del first
 
-    resumed = SLAM(traversal, config(**over), checkpoint=ckpt).resume(ckpt)
+    resumed = make_slam(traversal, over, checkpoint=ckpt).resume(ckpt)
     assert 0 < resumed.state.t or resumed.state.round > 0 or resumed.state.phase != "online"
+    if resumed.inserter is not None:
+        assert resumed.inserter.inserted.any()
     r_res = resumed.run(mode, progress=False)
     assert_same_run(ref, r_ref, resumed, r_res)
+    if ref.inserter is not None:
+        assert torch.equal(ref.inserter.inserted, resumed.inserter.inserted)
 
 
 def test_resume_after_sigkill(traversal, tmp_path):
@@ -458,9 +336,15 @@ def test_resume_after_sigkill(traversal, tmp_path):
         import os, signal, torch
         torch.set_num_threads(1)
         from simulators import simulate_traversal
-        from pyro_slam.slam import SLAM, SLAMConfig
+        from pyro_slam.model import EmissionMLP
+        from pyro_slam.slam import SLAM, from_dict
         tr = simulate_traversal("simple-small", steps={STEPS}, seed=0)
-        slam = SLAM(tr, SLAMConfig(**{CFG!r}), checkpoint={str(ckpt)!r})
+        torch.manual_seed(0)
+        emission = EmissionMLP({MAP_DIM}, max(tr.num_beams, 20), hidden={HIDDEN},
+                               layers={LAYERS}, scale=tr.max_range)
+        slam = SLAM(tr, from_dict({CONFIG.to_dict()!r}), emission=emission,
+                    learn_emission=True, checkpoint={str(ckpt)!r},
+                    checkpoint_every={CHECKPOINT_EVERY})
         save = slam.save
         def hooked(path):
             save(path)
@@ -473,9 +357,9 @@ def test_resume_after_sigkill(traversal, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, timeout=120)
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
-    ref = SLAM(traversal, config())
+    ref = make_slam(traversal)
     r_ref = ref.run("online", False)
-    resumed = SLAM(traversal, config(), checkpoint=ckpt).resume(ckpt)
+    resumed = make_slam(traversal, checkpoint=ckpt).resume(ckpt)
     assert resumed.state.t == 14 and resumed.state.phase == "online"
     assert_same_run(ref, r_ref, resumed, resumed.run("online", False))
 
@@ -483,7 +367,7 @@ def test_resume_after_sigkill(traversal, tmp_path):
 # ------------------------------------------------------------------------ atomic saves
 def test_checkpoint_writes_are_atomic(traversal, tmp_path, monkeypatch):
     ckpt = tmp_path / "ckpt.pt"
-    slam = SLAM(traversal, config(checkpoint_every=100), checkpoint=ckpt)
+    slam = make_slam(traversal, checkpoint=ckpt, checkpoint_every=100)
     slam.run("online", progress=False)
     good = ckpt.read_bytes()
     assert torch.load(ckpt, weights_only=False)["state"]["t"] == STEPS
@@ -510,21 +394,25 @@ def test_checkpoint_writes_are_atomic(traversal, tmp_path, monkeypatch):
     assert ckpt.read_bytes() == good
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt"]  # no temp files left
     # the surviving checkpoint still resumes
-    again = SLAM(traversal, config(), checkpoint=ckpt).resume(ckpt)
+    again = make_slam(traversal, checkpoint=ckpt).resume(ckpt)
     assert again.state.t == STEPS and again.state.phase == "done"
     slam.save(ckpt)  # and a working save replaces it
     assert torch.load(ckpt, weights_only=False)["state"]["t"] == 3
 
 
-def test_transition_scale_trusted_loosens_sigma_t_with_the_clouds_trust(traversal):
-    # sigma_T moves from the transition_scale one (unmapped map: trust 0.01) to the
-    # transition_scale_trusted one (map with scale 0: trust 1), and the filter spreads by it
-    from pyro_slam.filtering import MapBelief, Particles
+def test_checkpoint_every_must_be_a_positive_integer(traversal):
+    for bad in (0, -3, 2.5):
+        with pytest.raises(ValueError, match="checkpoint_every must be a positive integer"):
+            make_slam(traversal, checkpoint_every=bad)
 
+
+def test_transition_scale_trusted_loosens_sigma_t_with_the_clouds_trust(traversal):
+    # sigma_T moves from the transition.scale one (unmapped map: trust 0.01) to the
+    # transition.scale_trusted one (map with scale 0: trust 1), and the filter spreads by it
     lo_scale, hi_scale = (1.0, 1.0, 0.2), (1.0, 1.0, 1.0)
-    slam = SLAM(traversal, config(transition_scale=lo_scale, transition_scale_trusted=hi_scale))
-    base = SLAM(traversal, config(transition_scale=lo_scale))
-    assert base._transition_sigma(base.map_mean()) is None  # off by default
+    slam = make_slam(traversal, {"transition": {"scale": lo_scale, "scale_trusted": hi_scale}})
+    base = make_slam(traversal, {"transition": {"scale": lo_scale}})
+    assert base._transition_sigma(base.map_belief()) is None  # off by default
     lo = slam.model.transition.sigma.clone()
     w, h, D = slam.model.grid.shape
     K = 4000
@@ -543,28 +431,10 @@ def test_transition_scale_trusted_loosens_sigma_t_with_the_clouds_trust(traversa
     res = slam.run("online", progress=False)  # runs end to end with it
     assert np.isfinite(res["mean"]).all()
     # the offline filter passes (a finished map, no frontier) keep the model's sigma_T
-    from pyro_slam.slam import SLAMState
-
     slam.state = SLAMState("offline", phase="online-init")
     torch.testing.assert_close(slam._transition_sigma(mapped), hi)
-    slam.state = SLAMState("offline", phase="offline-filter")
-    assert slam._transition_sigma(mapped) is None
-    slam.state = SLAMState("offline", phase="offline-final")
-    assert slam._transition_sigma(mapped) is None
-    # ... unless trusted_passes widens it: "final" to the last pass, "all" to every pass
-    for passes, loose in (
-        ("final", ("offline-final",)),
-        ("all", ("offline-final", "offline-filter")),
-    ):
-        slam.cfg.trusted_passes = passes
-        for phase in ("offline-filter", "offline-final"):
-            slam.state = SLAMState("offline", phase=phase)
-            sigma = slam._transition_sigma(mapped)
-            if phase in loose:
-                torch.testing.assert_close(sigma, hi)
-            else:
-                assert sigma is None
-    with pytest.raises(ValueError, match="transition_scale_trusted must be 3 positive"):
-        SLAM(traversal, config(transition_scale_trusted=(1.0, 0.0, 1.0)))
-    with pytest.raises(ValueError, match="trusted_passes must be"):
-        SLAM(traversal, config(trusted_passes="sometimes"))
+    for phase in ("offline-filter", "offline-final"):
+        slam.state = SLAMState("offline", phase=phase)
+        assert slam._transition_sigma(mapped) is None
+    with pytest.raises(ConfigError, match="transition.scale_trusted must be 3 positive"):
+        TransitionConfig(scale_trusted=(1.0, 0.0, 1.0))

@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
+from pyro_slam.model import KinematicTransition, LearnedTransition, pretrain_transition
 from pyro_slam.slam import path_integration
-from pyro_slam.transitions import KinematicTransition, LearnedTransition, pretrain_transition
 from simulators import simulate_traversal
 
 

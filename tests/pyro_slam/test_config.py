@@ -1,0 +1,368 @@
+"""The SLAM configuration layer: component configs, validation, nested overrides, dict round trips
+and the named presets (:mod:`pyro_slam.slam.config`, :mod:`pyro_slam.slam.presets`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pyro
+import pytest
+import torch
+
+from pyro_slam.data import Traversal
+from pyro_slam.model import (
+    ImageEmission,
+    KinematicTransition,
+    LearnedTransition,
+    LidarEmission,
+    RayEmission,
+    RayImageEmission,
+)
+from pyro_slam.pretrained import (
+    EMISSION_FILE,
+    PRETRAINED,
+    TRANSITION_FILE,
+    load_emission,
+    load_transition,
+)
+from pyro_slam.slam import (
+    SLAM,
+    ConfigError,
+    EmissionConfig,
+    FilterConfig,
+    HeadingConfig,
+    OfflineConfig,
+    ScanInsertionConfig,
+    SLAMConfig,
+    TrainingConfig,
+    TransitionConfig,
+    from_dict,
+    presets,
+    with_overrides,
+)
+from pyro_slam.slam import config as config_module
+from pyro_slam.slam.insertion import ScanInserter
+from pyro_slam.slam.presets import odometry_sigma
+from simulators import simulate_traversal
+
+PRESET_NAMES = ["paper", "raycast", "manhattan", "visual", "visual-raycast", "visual-manhattan",
+                "real"]  # fmt: skip
+NO_RETURN = 81.91
+
+
+def real_log(T: int = 20, B: int = 361, seed: int = 0) -> Traversal:
+    """A metric laser log as the readers produce it: no walls, robot-frame odometry, a 180 deg
+    scanner of ``B`` beams with some no-return readings (masked)."""
+    rng = np.random.default_rng(seed)
+    obs = rng.uniform(0.5, 8.0, (T, B))
+    obs[:, ::17] = NO_RETURN
+    controls = np.column_stack([rng.uniform(0.1, 0.3, T - 1), np.zeros(T - 1),
+                                rng.normal(0.0, 0.05, T - 1)])  # fmt: skip
+    return Traversal(
+        observations=obs,
+        controls=controls,
+        walls=np.zeros((0, 4)),
+        beam_angles=np.linspace(-math.pi / 2, math.pi / 2, B),
+        max_range=NO_RETURN,
+        obs_mask=obs < NO_RETURN,
+        timestamps=0.2 * np.arange(T),
+        metadata={"control_model": "odometry_delta", "odometry_origin": [0.0, 0.0, 0.0]},
+    )
+
+
+@pytest.fixture(scope="module")
+def maze_traversal():
+    """The simulator's 20-beam, 0.53-range LiDAR (the shipped networks' sensor)."""
+    return simulate_traversal("simple-small", steps=8, seed=0)
+
+
+# ----------------------------------------------------------------------- presets
+def test_presets_are_the_documented_ones():
+    assert list(presets.PRESETS) == PRESET_NAMES
+    assert presets.DEFAULT == "raycast"
+    for name, preset in presets.PRESETS.items():
+        assert preset.name == name and preset.summary and isinstance(preset.config, SLAMConfig)
+        assert presets.get(name) is preset
+        assert name in presets.describe()
+
+
+@pytest.mark.parametrize("name", PRESET_NAMES)
+def test_every_preset_round_trips_through_a_plain_dict(name):
+    cfg = presets.get(name).config
+    d = cfg.to_dict()
+    assert json.loads(json.dumps(d)) == d  # plain JSON data (tuples as lists)
+    assert from_dict(d) == cfg
+    assert from_dict(json.loads(json.dumps(d))) == cfg
+    assert with_overrides(cfg, {}) == cfg
+
+
+def test_adapted_real_preset_round_trips_through_a_plain_dict():
+    cfg = presets.get("real").for_traversal(real_log())
+    assert cfg != presets.get("real").config
+    assert from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+
+
+def test_presets_differ_from_each_other_as_documented():
+    paper, raycast = presets.get("paper").config, presets.get("raycast").config
+    assert paper.emission == EmissionConfig("mlp")
+    assert paper.transition == TransitionConfig(
+        "learned", scale=(3.0, 3.0, 0.2), scale_trusted=(3.0, 3.0, 1.0)
+    )
+    assert paper.filter.weighting == "shared" and paper.offline.estimate == "cache"
+    assert raycast == replace(
+        paper,
+        emission=EmissionConfig("raycast", resolution=1 / 63, insert=ScanInsertionConfig()),
+        filter=replace(paper.filter, outlier_prob=0.1),
+    )
+    assert presets.get("manhattan").config == replace(raycast, heading=HeadingConfig(1e-3))
+    visual = presets.get("visual").config
+    assert visual.emission == EmissionConfig("image_mlp", resolution=1 / 24, margin=0.0)
+    assert visual.emission.observation == "image" and paper.emission.observation == "lidar"
+    assert visual.transition == TransitionConfig("kinematic", scale=(0.6, 0.6, 0.15))
+    assert visual.filter == FilterConfig(sigma=0.1)
+    assert visual.training == TrainingConfig(particles=8, chunks=16, lr=0.05)
+    assert visual.offline == OfflineConfig(rounds=2, svi_steps=400, estimate="forward")
+    ray_camera = EmissionConfig("ray_camera", resolution=1 / 63, margin=0.0)
+    assert presets.get("visual-raycast").config == replace(visual, emission=ray_camera)
+    assert presets.get("visual-manhattan").config == replace(
+        visual, emission=ray_camera, heading=HeadingConfig(1e-3)
+    )
+    real = presets.get("real").config
+    assert real.emission == EmissionConfig("mlp", resolution=0.5, margin=0.0, sigma=0.5)
+    assert real.filter == FilterConfig(weighting="tempered", sigma=1.0, outlier_prob=0.05)
+    assert real.training.chunks == 8 and real.transition.kind == "kinematic"
+
+
+def test_unknown_preset_lists_the_names():
+    with pytest.raises(ValueError, match="unknown preset 'nope'") as info:
+        presets.get("nope")
+    for name in PRESET_NAMES:
+        assert name in str(info.value)
+
+
+def test_real_preset_reads_beam_stride_range_clip_and_odometry_noise_from_the_log():
+    tr = real_log()
+    real = presets.get("real")
+    assert real.for_traversal(None) is real.config
+    cfg = real.for_traversal(tr)
+    assert cfg.beam_stride == 8  # 361 beams -> every 8th: 46 left
+    assert tr.subsample_beams(cfg.beam_stride).num_beams == 46
+    valid = tr.observations[tr.obs_mask]
+    assert cfg.range_clip == round(float(np.percentile(valid, 99)), 2) and cfg.range_clip < 8
+    assert cfg.transition.sigma == pytest.approx(odometry_sigma(tr.controls, 0.1, 0.1))
+    assert all(isinstance(s, float) for s in cfg.transition.sigma)
+    # the rest is the preset's
+    assert replace(cfg, beam_stride=1, range_clip=None, transition=real.config.transition) == (
+        real.config
+    )
+    noisy = presets.adapt_real_log(tr, real.config, target_beams=100, odometry_noise=0.2)
+    assert noisy.beam_stride == 4
+    assert noisy.transition.sigma == pytest.approx(odometry_sigma(tr.controls, 0.2, 0.2))
+    assert presets.adapt_real_log(tr, real.config, range_quantile=50).range_clip < cfg.range_clip
+
+
+def test_default_for_picks_the_real_preset_for_real_logs_only(maze_traversal):
+    log = real_log()
+    assert presets.is_real_log(log) and not presets.is_real_log(maze_traversal)
+    assert presets.default_for(log) == presets.get("real").for_traversal(log)
+    raycast = presets.get("raycast").config
+    assert presets.default_for(maze_traversal) == raycast
+    assert presets.default_for(None) == raycast
+    # a log with walls, or without robot-frame odometry, is not a real log
+    walled = replace(log, walls=np.array([[0.0, 0.0, 1.0, 0.0]]))
+    assert not presets.is_real_log(walled) and presets.default_for(walled) == raycast
+    meta = {**log.metadata, "control_model": "rotate_forward"}
+    rotate = replace(log, controls=log.controls[:, :2], metadata=meta)
+    assert not presets.is_real_log(rotate) and presets.default_for(rotate) == raycast
+    # SLAM without a configuration uses the default for its traversal
+    assert SLAM(maze_traversal).cfg == raycast
+
+
+# ------------------------------------------------------------------------ overrides
+def test_with_overrides_applies_nested_changes_and_keeps_the_rest():
+    base = presets.get("raycast").config
+    cfg = with_overrides(
+        base,
+        {"filter": {"particles": 512}, "emission": {"insert": {"gap": 0.1}}, "beam_stride": 2,
+         "transition": {"scale": [1, 2, 3]}},
+    )  # fmt: skip
+    assert cfg.filter == replace(base.filter, particles=512)
+    assert cfg.emission.insert == ScanInsertionConfig(gap=0.1)
+    assert cfg.emission.kind == "raycast" and cfg.emission.resolution == base.emission.resolution
+    assert cfg.transition.scale == (1.0, 2.0, 3.0) and isinstance(cfg.transition.scale, tuple)
+    assert cfg.beam_stride == 2
+    assert (cfg.training, cfg.offline, cfg.heading) == (base.training, base.offline, None)
+    assert base.filter.particles == 128 and base.beam_stride == 1  # the original is unchanged
+    # components are replaced whole when given as objects
+    assert with_overrides(base, {"filter": FilterConfig(particles=7)}).filter == FilterConfig(7)
+
+
+def test_with_overrides_switches_the_heading_observation_on_and_off():
+    raycast, manhattan = presets.get("raycast").config, presets.get("manhattan").config
+    on = with_overrides(raycast, {"heading": {"sigma": 0.002}})
+    assert on.heading == HeadingConfig(sigma=0.002, support=2)  # from the defaults
+    assert with_overrides(raycast, {"heading": {}}) == manhattan
+    assert with_overrides(manhattan, {"heading": {"support": 3}}).heading == HeadingConfig(1e-3, 3)
+    assert with_overrides(manhattan, {"heading": None}) == raycast
+    assert with_overrides(raycast, {"emission": {"insert": None}}).emission.insert is None
+
+
+@pytest.mark.parametrize(
+    "changes, field",
+    [
+        ({"nope": 1}, "nope"),
+        ({"filter": {"partcles": 5}}, "filter.partcles"),
+        ({"emission": {"insert": {"gapp": 0.1}}}, "emission.insert.gapp"),
+        ({"heading": {"tol": 1e-3}}, "heading.tol"),
+        ({"training": {"chunk_length": 4, "lr_map": 0.1}}, "training.lr_map"),
+    ],
+)
+def test_unknown_fields_are_rejected_by_their_dotted_name(changes, field):
+    with pytest.raises(ConfigError, match=rf"unknown field {field}(;|$)"):
+        with_overrides(presets.get("raycast").config, changes)
+
+
+def test_unknown_fields_list_the_known_ones():
+    with pytest.raises(ConfigError, match="FilterConfig has outlier_prob, particles, sigma"):
+        with_overrides(SLAMConfig(), {"filter": {"partcles": 5}})
+    with pytest.raises(ConfigError, match="unknown fields filter.a, filter.b"):
+        with_overrides(SLAMConfig(), {"filter": {"b": 1, "a": 2}})
+
+
+@pytest.mark.parametrize("value", [-5, 0, "abc", None, 2.5, True])
+def test_bad_particle_counts_are_rejected_by_name(value):
+    msg = rf"filter\.particles must be a positive integer, got {value!r}"
+    with pytest.raises(ConfigError, match=msg):
+        with_overrides(SLAMConfig(), {"filter": {"particles": value}})
+    with pytest.raises(ConfigError, match=msg):
+        FilterConfig(particles=value)
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"emission": {"resolution": 0}}, "emission.resolution must be a positive number, got 0"),
+        ({"emission": {"resolution": math.inf}}, "emission.resolution must be a positive"),
+        ({"emission": {"sigma": -0.1}}, "emission.sigma must be a positive number"),
+        ({"emission": {"margin": -1}}, "emission.margin must be a number >= 0"),
+        ({"emission": {"kind": "nerf"}}, "emission.kind must be one of"),
+        ({"emission": {"kind": "mlp", "insert": {}}}, "emission.insert .* needs emission.kind "
+                                                      "'raycast', got 'mlp'"),
+        ({"emission": {"insert": {"scale": 0}}}, "emission.insert.scale must be a positive"),
+        ({"emission": {"insert": {"occupancy": "high"}}}, "emission.insert.occupancy must be"),
+        ({"transition": {"scale": [1, 1]}}, r"transition.scale must be 3 positive numbers"),
+        ({"transition": {"sigma": [1, 0, 1]}}, r"transition.sigma must be 3 positive numbers"),
+        ({"transition": {"scale_trusted": "x"}}, "transition.scale_trusted must be 3 positive"),
+        ({"transition": {"kind": "neural"}}, "transition.kind must be one of"),
+        ({"filter": {"weighting": "predictive"}}, "filter.weighting must be one of"),
+        ({"filter": {"sigma": 0}}, "filter.sigma must be a positive number"),
+        ({"filter": {"outlier_prob": 1.0}}, r"filter.outlier_prob must be in \[0, 1\)"),
+        ({"training": {"chunk_length": 0}}, "training.chunk_length must be a positive integer"),
+        ({"training": {"every": 1.5}}, "training.every must be a positive integer"),
+        ({"training": {"lr": -1}}, "training.lr must be a positive number"),
+        ({"offline": {"rounds": -1}}, "offline.rounds must be an integer >= 0"),
+        ({"offline": {"estimate": "smooth"}}, "offline.estimate must be one of"),
+        ({"heading": {"sigma": 0}}, "heading.sigma must be a positive number"),
+        ({"heading": {"support": 1}}, "heading.support must be an integer >= 2"),
+        ({"beam_stride": 0}, "beam_stride must be a positive integer"),
+        ({"range_clip": -2.0}, "range_clip must be a positive number"),
+        ({"filter": 5}, "filter must be a FilterConfig, got 5"),
+        ({"heading": "on"}, "heading must be a HeadingConfig"),
+    ],
+)  # fmt: skip
+def test_bad_values_are_rejected_naming_the_field(changes, message):
+    with pytest.raises(ConfigError, match=message):
+        with_overrides(presets.get("raycast").config, changes)
+
+
+def test_config_errors_are_value_errors_and_configs_are_frozen():
+    assert issubclass(ConfigError, ValueError)
+    with pytest.raises(ConfigError, match="must be a JSON object"):
+        with_overrides(SLAMConfig(), [1, 2])
+    cfg = SLAMConfig()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.beam_stride = 2
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.filter.particles = 2
+
+
+def test_the_configuration_has_at_most_35_fields():
+    classes = [
+        cls
+        for name, cls in inspect.getmembers(config_module, inspect.isclass)
+        if name.endswith("Config") and cls.__module__ == config_module.__name__
+    ]
+    assert SLAMConfig in classes and ScanInsertionConfig in classes and HeadingConfig in classes
+    assert all(dataclasses.is_dataclass(cls) for cls in classes)
+    assert sum(len(dataclasses.fields(cls)) for cls in classes) <= 35
+
+
+# ------------------------------------------------------------------ presets in SLAM
+EMISSIONS = {"mlp": LidarEmission, "raycast": RayEmission, "image_mlp": ImageEmission,
+             "ray_camera": RayImageEmission}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", PRESET_NAMES)
+def test_every_preset_builds_a_slam_run_for_its_sensor(name, maze_traversal):
+    cfg = presets.get(name).config
+    if name == "real":
+        tr = real_log()
+        cfg = presets.get(name).for_traversal(tr)
+    elif cfg.emission.observation == "image":
+        tr = simulate_traversal("simple-small", steps=4, seed=0, images=True)
+    else:
+        tr = maze_traversal
+    slam = SLAM(tr, cfg)
+    e = cfg.emission
+    assert isinstance(slam.model.emission, EMISSIONS[e.kind])
+    assert slam.model.sigma_emission == e.sigma and slam.cache.num_particles == 50
+    grid = slam.model.grid
+    assert grid.size[0] / (grid.cells[0] - 1) == pytest.approx(e.resolution, rel=0.05)
+    assert (slam.inserter is not None) == (e.insert is not None)
+    assert (slam.headings is not None) == (cfg.heading is not None)
+    kind = {"learned": LearnedTransition, "kinematic": KinematicTransition}[cfg.transition.kind]
+    assert isinstance(slam.model.transition, kind)
+    assert slam.pf.weighting.kind == cfg.filter.weighting
+    assert slam.pf.weighting.sigma == cfg.filter.sigma
+    assert slam.elbo.K == cfg.training.particles
+
+
+def test_raycast_preset_weighs_per_beam_and_writes_scans(maze_traversal):
+    slam = SLAM(maze_traversal, presets.get("raycast").config)
+    assert slam.pf.weighting.per_beam and slam.pf.weighting.outlier_prob == 0.1
+    assert slam.elbo.pf.weighting.per_beam and slam.elbo.pf.weighting.outlier_prob == 0
+    assert isinstance(slam.inserter, ScanInserter) and not slam.inserter.inserted.any()
+    assert slam.headings is None and not slam.model.learn_emission
+    res = slam.run("online", progress=False)
+    assert np.isfinite(res["mean"]).all() and slam.inserter.inserted.any()
+    assert SLAM(maze_traversal, presets.get("manhattan").config).headings is not None
+
+
+def test_paper_preset_loads_the_shipped_emission_frozen_and_the_learned_transition(
+    maze_traversal,
+):
+    tr = maze_traversal
+    slam = SLAM(tr, presets.get("paper").config)
+    assert not slam.model.learn_emission and slam.inserter is None
+    assert not slam.pf.weighting.per_beam and slam.pf.weighting.kind == "shared"
+    shipped = load_emission(PRETRAINED / EMISSION_FILE, tr).state_dict()
+    weights = slam.model.emission.net.state_dict()
+    assert weights.keys() == shipped.keys()
+    for k in shipped:
+        torch.testing.assert_close(weights[k], shipped[k], rtol=0, atol=0)
+    transition = slam.model.transition
+    assert isinstance(transition, LearnedTransition)
+    sigma = load_transition(PRETRAINED / TRANSITION_FILE).sigma
+    torch.testing.assert_close(transition.sigma, sigma * torch.tensor([3.0, 3.0, 0.2]))
+    # SVI learns the map only: the emission stays as shipped
+    slam.run("online", progress=False)
+    assert not any(n.startswith("emission") for n in pyro.get_param_store().keys())
+    for k, v in slam.model.emission.net.state_dict().items():
+        torch.testing.assert_close(v, shipped[k], rtol=0, atol=0)
+    # asked to, SLAM learns the shipped emission too
+    assert SLAM(tr, presets.get("paper").config, learn_emission=True).model.learn_emission
