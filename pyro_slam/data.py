@@ -276,7 +276,7 @@ def validate(tr: Traversal, src: str = "traversal") -> Traversal:
             raise DatasetError(f"{src}: field 'images' must lie in [0, 1]")
         tr.images = img.astype(np.float32)
     if tr.timestamps is not None:
-        ts = _float_array(src, "timestamps", tr.timestamps, 1)
+        ts = _float_array(src, "timestamps", tr.timestamps, 1, limit=1e13)
         if ts.shape != (T,):
             raise DatasetError(f"{src}: field 'timestamps' must have shape ({T},), got {ts.shape}")
         if T > 1 and np.any(np.diff(ts) < 0):

@@ -27,7 +27,7 @@ from ..model import (
     RayImageEmission,
     Transition,
 )
-from .config import SLAMConfig
+from .config import ConfigError, SLAMConfig
 
 # the paper's emission networks: D_m = 10 features, 4 x 256 softsign layers (LiDAR); the
 # visual row MLPs are reduced from the paper's 4 x 256 to 4 x 64 for CPU
@@ -96,6 +96,41 @@ def _extent(traversal: Traversal, config: SLAMConfig):
     reach = float(config.range_clip or traversal.max_range)
     path = odometry_poses(traversal)[:, :2]
     return (*(path.min(0) - reach), *(path.max(0) + reach))
+
+
+MAX_BYTES = 8 << 30  # the largest working set a configuration may ask for (8 GiB)
+RAY_SAMPLES = 48  # points per ray of the ray-cast emissions (their constructors' default)
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:.3g} GiB"
+
+
+def check_size(traversal: Traversal, config: SLAMConfig) -> None:
+    """Refuse, before anything is allocated, a configuration whose map grid or particle
+    tensors for this (prepared) traversal would not fit in memory, naming the field."""
+    x0, y0, x1, y1 = _extent(traversal, config)
+    e = config.emission
+    cells = [(hi - lo + 2 * e.margin) / e.resolution + 1 for lo, hi in ((x0, x1), (y0, y1))]
+    dim = {"mlp": MAP_DIM, "raycast": 1, "ray_camera": 9}.get(e.kind, IMAGE_BINS * 24)
+    grid = cells[0] * cells[1] * dim * 4 * 8  # q(M) loc, scale, their gradients and Adam moments
+    if grid > MAX_BYTES:
+        raise ConfigError(
+            f"emission.resolution {e.resolution:g} over the data's {x1 - x0:.4g} x {y1 - y0:.4g} "
+            f"extent needs a {cells[0]:.0f} x {cells[1]:.0f} grid ({_gib(grid)}; at most "
+            f"{_gib(MAX_BYTES)}): use a coarser resolution"
+        )
+    per_point = traversal.num_beams * (RAY_SAMPLES if e.kind in ("raycast", "ray_camera") else 1)
+    per_point *= 4 * 8  # float32 points, stops, weights and their gradients
+    t = config.training
+    for name, n in (("filter.particles", config.filter.particles),
+                    ("training.particles x chunks x chunk_length",
+                     t.particles * t.chunks * t.chunk_length)):  # fmt: skip
+        if n * per_point > MAX_BYTES:
+            raise ConfigError(
+                f"{name} {n} would need {_gib(n * per_point)} for its particles' predicted "
+                f"observations (at most {_gib(MAX_BYTES)})"
+            )
 
 
 def build_model(

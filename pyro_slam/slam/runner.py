@@ -43,7 +43,7 @@ from ..inference import (
 )
 from ..model import Emission, EmissionMLP, Transition
 from . import checkpoint, presets
-from .build import build_model, prepare_traversal, traversal_tensors
+from .build import build_model, check_size, prepare_traversal, traversal_tensors
 from .config import SLAMConfig
 from .heading import heading_observations
 from .insertion import ScanInserter
@@ -111,6 +111,7 @@ class SLAM:
             )
         self.checkpoint_every, self.seed = checkpoint_every, seed
         self.tr = prepare_traversal(traversal, self.cfg)
+        check_size(self.tr, self.cfg)
         self.obs, self.ctl, self.mask, self.init_pose = traversal_tensors(self.tr)
         self.T = self.obs.shape[0]
         if transition is None and self.cfg.transition.kind == "learned":

@@ -53,17 +53,42 @@ def test_resume_of_finished_run_keeps_result(traversal, tmp_path):
     np.testing.assert_array_equal(np.load(out / "posterior.npz")["pose_mean"], first)
 
 
+def test_a_run_never_replaces_another_runs_folder(traversal, tmp_path, capsys):
+    """A second run into a finished run's folder is refused before any work and leaves every
+    file as it was; --overwrite replaces the run (and removes its stale outputs); --resume with
+    other settings is refused naming what differs."""
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+    assert cli.main(args) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert cli.main(args) == 2
+    assert "not empty" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    other = '{"filter": {"particles": 8}}'
+    assert cli.main(["slam", str(traversal), "--out", str(out), "--config", other, "--resume"]) == 2
+    assert "filter.particles (16 in the checkpoint, 8 now)" in capsys.readouterr().err
+    assert cli.main(args + ["--resume", "--mode", "offline"]) == 2
+    assert "online run, not offline" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    (out / "map.png").write_bytes(b"stale")  # an output a simulated run does not write
+    assert cli.main(args + ["--overwrite"]) == 0
+    assert not (out / "map.png").exists() and (out / "metrics.json").is_file()
+    mode = (out / "metrics.json").stat().st_mode & 0o777
+    assert mode == 0o644 or mode & 0o600 == 0o600 and not mode & 0o022, oct(mode)
+
+
 def test_bad_inputs_exit_2_with_message(traversal, tmp_path, capsys):
-    assert cli.main(["slam", str(tmp_path / "missing.npz"), "--out", str(tmp_path)]) == 2
+    assert cli.main(["slam", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "a")]) == 2
     assert "missing.npz" in capsys.readouterr().err
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip file")
     assert cli.main(["slam", str(bad), "--out", str(tmp_path / "o")]) == 2
     assert "bad.npz" in capsys.readouterr().err
-    rc = cli.main(["slam", str(traversal), "--out", str(tmp_path), "--config", '{"nope": 1}'])
+    out = str(tmp_path / "c")
+    rc = cli.main(["slam", str(traversal), "--out", out, "--config", '{"nope": 1}'])
     assert rc == 2 and "nope" in capsys.readouterr().err
     bad_value = '{"filter": {"particles": -5}}'
-    rc = cli.main(["slam", str(traversal), "--out", str(tmp_path), "--config", bad_value])
+    rc = cli.main(["slam", str(traversal), "--out", out, "--config", bad_value])
     assert rc == 2 and "filter.particles must be a positive integer" in capsys.readouterr().err
     rc = cli.main(["slam", str(traversal), "--out", str(tmp_path / "r"), "--resume"])
     assert rc == 2 and "checkpoint" in capsys.readouterr().err
