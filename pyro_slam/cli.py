@@ -30,7 +30,7 @@ from simulators.plotting import plot_traversal
 from simulators.traversal import integrate_controls
 
 from . import pretrained
-from .data import DatasetError, Traversal
+from .data import DatasetError, Traversal, one_line
 from .io import read_any
 from .model import pretrain_transition
 from .planning import GroundTruthEnv, execute, free_grid, learned_env, lookalikes, plan
@@ -187,7 +187,9 @@ def cmd_slam(args) -> int:
 
 
 def cmd_pretrain(args) -> int:
-    args.out.mkdir(parents=True, exist_ok=True)
+    if args.out.exists() and not args.out.is_dir():
+        raise DatasetError(f"--out {args.out}: exists and is not a folder")
+    _writable(args.out / pretrained.EMISSION_FILE, "--out")
     tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
     em, stats = pretrain_emission([tr], SLAMConfig(), steps=args.emission_steps, seed=args.seed)
     blob = {
@@ -251,6 +253,7 @@ def _observation_goal(args, maze, lenv, tr):
 
 
 def cmd_navigate(args) -> int:
+    _writable(Path(args.out), "--out")
     torch.set_num_threads(1)
     maze = make_maze(args.maze, args.maze_seed)
     pts = free_grid(maze)
@@ -409,6 +412,10 @@ def main(argv=None) -> int:
         return args.func(args)
     except (DatasetError, FileNotFoundError, ValueError) as e:
         print(f"pyro-slam {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except (OSError, MemoryError) as e:  # the machine refused: disk, permissions, memory
+        why = f"{type(e).__name__}: {one_line(e)}"
+        print(f"pyro-slam {args.command}: error: {why}", file=sys.stderr)
         return 2
 
 

@@ -33,10 +33,12 @@ file in place of a good one.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import struct
 import tempfile
+import warnings
 import zipfile
 import zlib
 from dataclasses import dataclass, field, replace
@@ -44,6 +46,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 FORMAT_VERSION = 1
 
@@ -238,7 +241,7 @@ def validate(tr: Traversal, src: str = "traversal") -> Traversal:
                 f"got {mask.dtype} {mask.shape}"
             )
     valid = obs if mask is None else obs[mask]
-    if not np.any(valid < max_range):
+    if not np.any(valid < max_range * (1 - 1e-6)):  # (float32 readings of the range itself)
         raise DatasetError(
             f"{src}: field 'observations' has no valid reading: every reading is masked or at "
             f"the sensor's range {float(max_range):g}"
@@ -292,6 +295,32 @@ def validate(tr: Traversal, src: str = "traversal") -> Traversal:
     tr.max_range = float(tr.max_range)
     tr.obs_mask = mask
     return tr
+
+
+def load_tensors(path, what: str, data: bytes | None = None):
+    """The contents of a file written by ``torch.save`` (or of its bytes ``data``), read with
+    ``weights_only=True``: only tensors and plain data, so nothing in the file can run. Any
+    failure is a one-line :class:`DatasetError` naming the file and saying it is not ``what``."""
+    path = Path(path)
+    if data is None and not path.is_file():
+        raise DatasetError(f"{path}: no such file" if not path.exists() else f"{path}: not a file")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # (pickle-protocol notes on foreign files)
+            source = path if data is None else io.BytesIO(data)
+            return torch.load(source, weights_only=True, map_location="cpu")
+    except Exception as e:  # torch raises many types for truncated, corrupt or unsafe files
+        if "Weights only load failed" in str(e):
+            why = "it holds objects other than tensors and plain data; nothing in it was run"
+        else:
+            why = one_line(e)
+        raise DatasetError(f"{path}: not {what} ({why})") from None
+
+
+def one_line(e: BaseException, limit: int = 160) -> str:
+    """The first line of an exception's message (its type if empty), at most ``limit`` chars."""
+    text = str(e).strip()
+    return (text.splitlines()[0] if text else type(e).__name__)[:limit]
 
 
 def _check_member_count(path: Path, n: int) -> None:

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from pyro_slam.data import Traversal
+from pyro_slam.data import DatasetError, Traversal
 
 
 class ParseError(ValueError):
@@ -226,6 +226,14 @@ def build_traversal(
     meta.setdefault("sensor", {}).update(
         num_beams=int(obs.shape[1]), beam_stride=beam_stride, max_range=float(max_range)
     )
+    try:
+        return _traversal(obs, controls, beam_angles, beam_stride, max_range, poses, mask, ts, meta)
+    except DatasetError as e:  # name the log, not the traversal built from it
+        src = str(metadata.get("file", "log"))
+        raise DatasetError(str(e).replace("traversal:", f"{src}:", 1)) from None
+
+
+def _traversal(obs, controls, beam_angles, beam_stride, max_range, poses, mask, ts, meta):
     return Traversal(
         observations=obs,
         controls=controls,

@@ -13,9 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import torch
-
-from ..data import DatasetError, Traversal
+from ..data import DatasetError, Traversal, load_tensors, one_line
 from ..model import EmissionMLP, LearnedTransition
 
 PRETRAINED = Path(__file__).parent
@@ -26,13 +24,8 @@ MIN_WORLD_DIRECTIONS = 20
 
 
 def _load(path) -> dict:
-    """A network file's contents (tensors and plain data only), or a clear error."""
-    try:
-        blob = torch.load(path, weights_only=True)
-    except FileNotFoundError:
-        raise
-    except Exception as e:
-        raise DatasetError(f"{path}: not a network file written by pyro-slam ({e})") from None
+    """A network file's contents (tensors and plain data only), or a one-line error."""
+    blob = load_tensors(path, "a network file written by pyro-slam")
     if not isinstance(blob, dict):
         raise DatasetError(f"{path}: not a network file written by pyro-slam")
     return blob
@@ -56,7 +49,9 @@ def load_emission(path, traversal: Traversal) -> EmissionMLP:
     try:
         em.load_state_dict(blob["state_dict"])
     except (RuntimeError, KeyError, TypeError) as e:
-        raise DatasetError(f"{path}: emission weights do not fit the network ({e})") from None
+        raise DatasetError(
+            f"{path}: not an emission MLP for this sensor (its weights do not fit: {one_line(e)})"
+        ) from None
     return em
 
 
@@ -66,7 +61,7 @@ def load_transition(path) -> LearnedTransition:
     try:
         return LearnedTransition.from_state(blob)
     except (RuntimeError, KeyError, TypeError, ValueError) as e:
-        raise DatasetError(f"{path}: not a learned transition file ({e})") from None
+        raise DatasetError(f"{path}: not a learned transition file ({one_line(e)})") from None
 
 
 def shipped_sensor(traversal: Traversal) -> bool:

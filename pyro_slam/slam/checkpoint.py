@@ -10,19 +10,18 @@ from __future__ import annotations
 
 import hashlib
 import io
-import warnings
 from pathlib import Path
 
 import pyro
 import torch
 from pyro.distributions import constraints
 
-from ..data import atomic_write
+from ..data import DatasetError, atomic_write, load_tensors
 
 FORMAT = 2
 
 
-class CheckpointError(ValueError):
+class CheckpointError(DatasetError):
     """A checkpoint cannot be read, or belongs to another run; the message says which."""
 
 
@@ -58,29 +57,37 @@ def load_param_store(params: dict) -> None:
     )
 
 
+MAGIC = b"pyro-slam checkpoint\n"
+
+
 def write(path, state: dict) -> None:
-    """Atomic ``torch.save`` (temp file + rename)."""
+    """Atomic write (temp file + rename) of ``MAGIC``, the SHA-256 of the payload and the
+    ``torch.save`` payload: a damaged file is detected on reading, not silently resumed."""
     buf = io.BytesIO()
     torch.save(state, buf)
-    atomic_write(Path(path), lambda f: f.write(buf.getvalue()))
+    payload = buf.getvalue()
+    digest = hashlib.sha256(payload).hexdigest().encode()
+    atomic_write(Path(path), lambda f: f.write(MAGIC + digest + b"\n" + payload))
 
 
 def read(path) -> dict:
-    """A checkpoint's contents; :class:`CheckpointError` for anything that is not one (code in
-    a pickle is refused by ``weights_only=True`` and never runs)."""
+    """A checkpoint's contents; :class:`CheckpointError` for anything that is not one, is
+    damaged (its digest does not match) or holds more than tensors and plain data (code in a
+    pickle is refused by ``weights_only=True`` and never runs)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint to resume from")
+    data = path.read_bytes()
+    head = len(MAGIC) + 65
+    if not data.startswith(MAGIC) or len(data) < head or data[head - 1 : head] != b"\n":
+        raise CheckpointError(f"{path}: not a pyro-slam checkpoint")
+    digest, payload = data[len(MAGIC) : head - 1], data[head:]
+    if hashlib.sha256(payload).hexdigest().encode() != digest:
+        raise CheckpointError(f"{path}: damaged checkpoint (its contents do not match its digest)")
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # (pickle-protocol notes on foreign files)
-            d = torch.load(path, weights_only=True, map_location="cpu")
-    except Exception as e:  # torch raises many types for truncated, corrupt or unsafe files
-        if "Weights only load failed" in str(e):
-            why = "it holds objects other than tensors and plain data; nothing in it was run"
-        else:
-            why = str(e).strip().splitlines()[0][:160] if str(e).strip() else type(e).__name__
-        raise CheckpointError(f"{path}: not a pyro-slam checkpoint ({why})") from None
+        d = load_tensors(path, "a pyro-slam checkpoint", data=payload)
+    except DatasetError as e:
+        raise CheckpointError(str(e)) from None
     if not isinstance(d, dict) or d.get("format") != FORMAT or "fingerprint" not in d:
         raise CheckpointError(f"{path}: not a pyro-slam checkpoint (format {FORMAT} expected)")
     return d
