@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import json
+from pathlib import Path
 
 
 def parse_maze_seeds(
@@ -21,3 +23,77 @@ def parse_maze_seeds(
             allowed += f" or tuning mazes {list(tuning)}"
         p.error(f"--maze-seeds {unknown}: {allowed}")
     return mazes
+
+
+def add_config_args(p: argparse.ArgumentParser, default: str, prefix: str = "") -> None:
+    """``--{prefix}preset NAME`` (a :mod:`pyro_slam.slam.presets` name, default ``default``) and
+    ``--{prefix}config JSON`` (nested overrides of the preset's configuration)."""
+    from pyro_slam.slam import presets
+
+    p.add_argument(
+        f"--{prefix}preset",
+        choices=list(presets.PRESETS),
+        default=default,
+        help=f"the SLAM configuration (pyro_slam.slam.presets; default {default})",
+    )
+    p.add_argument(
+        f"--{prefix}config",
+        default="{}",
+        metavar="JSON",
+        help="nested overrides of the preset's configuration, e.g. "
+        '\'{"filter": {"particles": 512}, "transition": {"kind": "kinematic"}}\'',
+    )
+
+
+def slam_config(
+    p: argparse.ArgumentParser,
+    preset: str,
+    text: str,
+    flag: str = "--config",
+    base: dict | None = None,
+):
+    """The configuration of ``preset`` with the nested overrides ``base`` (a benchmark's own,
+    if any), then the JSON overrides ``text`` applied (:func:`pyro_slam.slam.with_overrides`);
+    text that is not JSON or a configuration error is a usage error (``p.error``, exit 2) with a
+    one-line message naming the problem."""
+    from pyro_slam.slam import ConfigError, presets, with_overrides
+
+    try:
+        changes = json.loads(text)
+    except json.JSONDecodeError as e:
+        p.error(f"{flag}: not JSON ({e})")
+    config = with_overrides(presets.get(preset).config, base or {})
+    try:
+        return with_overrides(config, changes)
+    except ConfigError as e:
+        p.error(f"{flag}: {e}")
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    """A nested dict as ``{"a.b": value}``."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def check_out_config(path: Path, record: dict) -> None:
+    """Write ``record`` (e.g. ``{"config": config.to_dict(), ...}``) to ``path``, or stop with
+    an error if ``path`` holds a different one: the runs (and cached networks) next to it were
+    made with that configuration, and a resumed benchmark must not mix the two."""
+    record = json.loads(json.dumps(record))  # tuples -> lists, as read back
+    if path.is_file():
+        old = _flat(json.loads(path.read_text()))
+        new = _flat(record)
+        if old != new:
+            diff = sorted(k for k in {**old, **new} if old.get(k, ...) != new.get(k, ...))
+            raise SystemExit(
+                f"{path}: this output folder holds runs made with another configuration "
+                f"(differs in {', '.join(diff)}); choose another --out"
+            )
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(record, indent=1))

@@ -1,10 +1,10 @@
-"""Exact perceptual aliasing of the navigation benchmark's observation targets (issue 4).
+"""Exact perceptual aliasing of the navigation benchmark's observation targets.
 
 The paper's criterion for pose-to-observation navigation is position: a run fails if the agent
 ends more than 0.05 from the pose the target scan was taken at. Where another place sees exactly
 the same scan, no inverse model reading that scan can know which of the two was meant. This
 script measures how often that happens, with the truth itself as the inverse: for each test
-maze, the targets of ``benchmarks/navigation.py`` (its 25 grid points, two random headings each,
+maze, the targets of ``benchmarks.navigation`` (its 25 grid points, two random headings each,
 the same seed) are inverted by :meth:`pyro_slam.planning.GroundTruthEnv.places` (every place
 whose true, noise-free scan matches, refined to float precision). Per maze and in all:
 
@@ -25,7 +25,7 @@ points.
 Sensor variants (``--sensors``, ``BEAMSxRANGE``) show how much of the ambiguity a richer
 observation would remove; the paper's LiDAR is ``20x0.53``.
 
-    python benchmarks/aliasing.py --out out/aliasing --sensors 20x0.53,40x0.53,20x1.0
+    python -m benchmarks.aliasing --out out/aliasing --sensors 20x0.53,40x0.53,20x1.0
 
 Output: ``OUT/aliasing.json`` (per sensor and tolerance: ``aliased``, ``ideal_failure``, and both
 per maze) and ``OUT/aliasing.png`` (the expected failures per maze against the 2 % criterion).
@@ -35,16 +35,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import parse_maze_seeds
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from navigation import MAZE_SEEDS, observation_targets  # noqa: E402
+from benchmarks._common import parse_maze_seeds
+from benchmarks.navigation import MAZE_SEEDS, observation_targets
 
 
 def parse_sensor(text: str) -> tuple[int, float]:
@@ -76,7 +73,9 @@ def aliasing(maze, tposes: np.ndarray, lidar, tols, spacing: float) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.aliasing", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--out", type=Path, default=Path("out/aliasing"))
     p.add_argument("--maze-seeds", default=None, help="comma-separated test mazes (default all)")
     p.add_argument("--seed", type=int, default=0, help="the navigation benchmark's --seed")

@@ -1,15 +1,15 @@
 """Paired comparison of two benchmark outputs over the runs they share.
 
-Reads the per-run error curves (``slam`` and ``pi``, ``[T]``) that ``slam_accuracy.py`` and
-``visual_slam.py`` write to ``OUT/runs/*.npz``, matches the runs of ``A`` and ``B`` by file name
+Reads the per-run error curves (``slam`` and ``pi``, ``[T]``) that ``slam_accuracy`` and
+``visual_slam`` write to ``OUT/runs/*.npz``, matches the runs of ``A`` and ``B`` by file name
 (same maze, traversal and length, hence the same truth), and prints JSON: for each side the final
 error (mean, std, median, runs under 0.05, runs beating path integration) and the time-averaged
 error; and the paired difference ``A - B`` at the final step and time-averaged (mean, its
 standard error, and on how many runs ``A`` is lower).
 
-    python benchmarks/compare_runs.py out/s16_off_cache_24 out/s13_shtt_off_t1 \
+    python -m benchmarks.compare_runs out/slam_accuracy_raycast out/slam_accuracy_paper \
         --glob "offline_*.npz"
-    python benchmarks/compare_runs.py out/s16_visual_cache out/s15_visual_sh_k256 --glob "m*.npz"
+    python -m benchmarks.compare_runs out/visual_slam out/visual_slam_raycast --glob "m*.npz"
 """
 
 from __future__ import annotations
@@ -55,7 +55,9 @@ def _paired(d: np.ndarray) -> dict:  # d [R] = A - B
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.compare_runs", description=__doc__.split("\n")[0]
+    )
     p.add_argument("a", type=Path, help="a benchmark --out directory")
     p.add_argument("b", type=Path, help="the one to compare against")
     p.add_argument("--glob", default="online_*.npz", help="run files under OUT/runs")

@@ -7,12 +7,12 @@ moderate-medium training mazes (seeds 1000+, disjoint from the evaluation mazes 
 
 Full run (paper budget, days of CPU)::
 
-    python benchmarks/exploration.py --paper --scales all --seeds 2
+    python -m benchmarks.exploration --paper --scales all --seeds 2
 
 Reduced run used in docs/exploration.md (plan horizon T = 50 as in the paper; ``--workers 2``
 runs two agents at a time, one thread each)::
 
-    python benchmarks/exploration.py --scales all --seeds 2 --step-fraction 0.2 \
+    python -m benchmarks.exploration --scales all --seeds 2 --step-fraction 0.2 \
         --max-steps 1800 --ars-iterations 20 --ars-directions 8 --ars-mazes 3 \
         --ars-steps 200 --workers 2 --out out/exploration
 
@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
@@ -34,8 +35,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from pyro_slam.exploration import ExploreConfig, run_agent
-from pyro_slam.pema import ARSConfig, PEMAPolicy, train_pema
+from pyro_slam.planning.exploration import ExploreConfig, run_agent
+from pyro_slam.planning.pema import ARSConfig, PEMAPolicy, train_pema
 from simulators import SCALES
 
 AGENTS = ("mi", "pema", "random")
@@ -43,7 +44,9 @@ COLOURS = {"mi": "tab:blue", "pema": "tab:purple", "random": "tab:gray"}
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m benchmarks.exploration", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--scales", nargs="+", default=["simple-small", "simple-medium"])
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--first-seed", type=int, default=0, help="evaluation mazes first..+seeds-1")
@@ -124,8 +127,8 @@ def main(argv=None) -> int:
                     results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, t0
                 )
     bar.close()
+    print(f"total {summary['seconds']:.0f} s (ARS {t_ars:.0f} s)", file=sys.stderr)
     print(json.dumps(summary["final"], indent=1))
-    print(f"total {summary['seconds']:.0f} s (ARS {t_ars:.0f} s)")
     return 0
 
 

@@ -9,8 +9,8 @@ emission MLP alone on the same K particles (``emission_only_steps_per_s``): both
 once per step, so no implementation of the step beats that figure, and ``ceiling_speedup`` is
 the most any filter could gain over SMCFilter at that precision.
 
-    python benchmarks/filter_speed.py           # K = 1000, 500 timed steps, 100k-step run
-    python benchmarks/filter_speed.py --long-steps 10000   # quicker memory check
+    python -m benchmarks.filter_speed           # K = 1000, 500 timed steps, 100k-step run
+    python -m benchmarks.filter_speed --long-steps 10000   # quicker memory check
 """
 
 from __future__ import annotations
@@ -18,13 +18,9 @@ from __future__ import annotations
 import argparse
 import json
 import resource
-import sys
 import time
-from pathlib import Path
 
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def peak_rss_mib() -> float:
@@ -47,7 +43,7 @@ def setup(steps: int, seed: int = 0):
 
 def ours(model, M, obs, ctl, init, K, steps, checkpoints=(), autocast_dtype=None):
     """Our filter; returns (steps/s, {step: peak RSS MiB})."""
-    from pyro_slam.filtering import ParticleFilter
+    from pyro_slam.inference import ParticleFilter
 
     g = torch.Generator().manual_seed(0)
     pf = ParticleFilter(model, generator=g, autocast_dtype=autocast_dtype)
@@ -91,12 +87,11 @@ def emission_only(model, M, init, K, steps, autocast_dtype=None):
 
 
 def smcfilter(model, M, obs, ctl, init, K, steps):
-    """pyro.infer.SMCFilter running the same model step (model.py: FilterModel)."""
+    """pyro.infer.SMCFilter running the same model step (pyro_slam.model.FilterModel)."""
     import pyro
     from pyro.infer import SMCFilter
 
-    from pyro_slam.guide import BootstrapGuide
-    from pyro_slam.model import FilterModel
+    from pyro_slam.model import BootstrapGuide, FilterModel
 
     pyro.set_rng_seed(0)
     smc = SMCFilter(FilterModel(model, M), BootstrapGuide(model), K, max_plate_nesting=0)
@@ -110,7 +105,9 @@ def smcfilter(model, M, obs, ctl, init, K, steps):
 
 
 def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.filter_speed", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--particles", type=int, default=1000)
     p.add_argument("--steps", type=int, default=500, help="timed steps per filter")
     p.add_argument("--long-steps", type=int, default=100_000)

@@ -11,22 +11,24 @@ noise); success = final position within 0.05 of the target.
 The learned model's map belief ``q(M)`` is fitted with *known poses* (``fit_map`` at the true
 poses of a ``--traversal-steps`` traversal, default 6000), or with ``--map-poses slam`` at the
 pose means of online DVBF-LM SLAM on that traversal (then no ground truth enters the learned
-model: emission and map are both fitted at the SLAM poses). With ``--cover-grid``
+model: emission and map are both fitted at the SLAM poses; the SLAM run is a preset of
+:mod:`pyro_slam.slam.presets`, ``--slam-preset`` (default ``paper``), with ``--slam-config``
+overrides). With ``--cover-grid``
 (default) the mapping traversal ends with a tour through the grid points its random walk
 passed farther than 0.02 from (a few hundred steps: the walk misses some dead ends for
 20,000 steps), so every start and target has been seen. The emission is fitted
 to the same traversal first (``--emission-steps`` 3000, ``--n-world`` 60 world directions) and
-then frozen; ``--emission-steps 0 --n-world 20 --traversal-steps 3000`` is the earlier setting
-(the shipped pretrained emission).
+then frozen; ``--emission-steps 0 --n-world 20 --traversal-steps 3000`` uses the shipped
+pretrained emission instead.
 
 A* is deterministic, so one search with the largest budget gives the whole curve: a pair
 succeeds at budget B iff the search found the goal within B expansions and the execution ended
 within 0.05 of the target.
 
 Pose-to-observation (planner ``learned_obs``): per maze the inverse model ``q(z | x)``
-(:mod:`pyro_slam.inverse`) is trained once on the mapping traversal's scans; the target is the
-simulator's scan at the target position with a random heading, the goal its inferred pose (the
-mode), and success is measured against the *true* target position. The inverse model is also
+(:mod:`pyro_slam.planning.inverse`) is trained once on the mapping traversal's scans; the target
+is the simulator's scan at the target position with a random heading, the goal its inferred pose
+(the mode), and success is measured against the *true* target position. The inverse model is also
 evaluated alone on every grid point with two random headings (encoder mean and mode errors),
 next to a check of how ambiguous each target scan is under the *true* geometry (a pose more
 than 0.05 away whose true scan differs by less than ``--alias-tol`` mean absolute range), and
@@ -47,15 +49,16 @@ with a look-alike place more than 0.05 away whose true scan differs by less than
 look-alike places, and ``*_obs_failure_ratio_unaliased`` the failure ratios on the runs whose
 target has no exact look-alike.
 
-    python benchmarks/navigation.py --out out/navigation --pairs-limit 4
+    python -m benchmarks.navigation --out out/navigation --pairs-limit 4
+    python -m benchmarks.navigation --map-poses slam --slam-preset manhattan --out out/nav_slam
 
 Each maze's rows are saved to ``OUT/mazes/m<seed>.json`` when the maze is done; a re-run with the
 same settings resumes from them (``wall_s`` then counts only the mazes computed in that run,
 ``resumed_mazes`` lists the others). ``--maze-seeds`` runs a share of the mazes (the files of
 shares run into other ``--out`` folders can be copied into one, whose run then resumes them all):
 
-    python benchmarks/navigation.py --out out/nav_a --maze-seeds 1001,1002 &
-    python benchmarks/navigation.py --out out/nav_b --maze-seeds 1003,1004
+    python -m benchmarks.navigation --out out/nav_a --maze-seeds 1001,1002 &
+    python -m benchmarks.navigation --out out/nav_b --maze-seeds 1003,1004
 """
 
 from __future__ import annotations
@@ -67,9 +70,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import parse_maze_seeds
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks._common import add_config_args, parse_maze_seeds, slam_config
 
 MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
 # planner rows per pair: the learned model and the truth, to the pose and to the observation
@@ -77,7 +79,9 @@ PLANNERS = ("learned", "ground_truth", "learned_obs", "ground_truth_obs")
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.navigation", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--out", type=Path, default=Path("out/navigation"))
     p.add_argument("--mazes", type=int, default=6, help="the first N of the 6 test mazes")
     p.add_argument(
@@ -123,12 +127,9 @@ def main(argv=None) -> int:
         help="poses the emission and q(M) are fitted at: the traversal's true poses (mapping "
         "with known poses) or the pose means of online DVBF-LM SLAM on it",
     )  # fmt: skip
-    p.add_argument(
-        "--slam-config", default="{}",
-        help="--map-poses slam: JSON SLAMConfig overrides of the SLAM run (e.g. the ray-cast "
-        "emission with the Manhattan heading observation, docs/navigation.md)",
-    )  # fmt: skip
+    add_config_args(p, "paper", prefix="slam-")  # --slam-preset, --slam-config
     args = p.parse_args(argv)
+    args.slam = slam_config(p, args.slam_preset, args.slam_config, "--slam-config")
     mazes = MAZE_SEEDS[: args.mazes]
     if args.maze_seeds is not None:
         mazes = tuple(parse_maze_seeds(p, args.maze_seeds, MAZE_SEEDS))
@@ -142,9 +143,13 @@ def main(argv=None) -> int:
     (args.out / "mazes").mkdir(exist_ok=True)
     runs, targets, resumed = [], [], []
     t0 = time.perf_counter()
-    settings = {k: str(v) for k, v in vars(args).items() if k not in ("out", "mazes", "maze_seeds")}
-    # row format: 2 adds the observation-space success (session 19), 3 the ground-truth
-    # observation-target planner and the exact look-alikes (session 32)
+    skip = ("out", "mazes", "maze_seeds", "slam", "slam_preset", "slam_config")
+    settings = {k: str(v) for k, v in vars(args).items() if k not in skip}
+    settings["slam_config"] = "{}"
+    if args.map_poses == "slam":  # the SLAM run's configuration
+        settings["slam_config"] = json.dumps(args.slam.to_dict(), sort_keys=True)
+    # row format: 2 adds the observation-space success, 3 the ground-truth observation-target
+    # planner and the exact look-alikes
     settings["rows"] = "3"
     all_pairs = maze_pairs(args.pairs_limit, args.seed)
     for ms in mazes:
@@ -174,7 +179,10 @@ def main(argv=None) -> int:
         "pairs": len(runs) // len(PLANNERS),
         "wall_s": time.perf_counter() - t0,
         "resumed_mazes": resumed,
-        "args": {k: str(v) for k, v in vars(args).items()},
+        "args": {k: str(v) for k, v in vars(args).items() if k != "slam"},
+        # --map-poses slam: the SLAM run's preset and configuration (None: no SLAM ran)
+        "slam_preset": args.slam_preset if args.map_poses == "slam" else None,
+        "slam_config": args.slam.to_dict() if args.map_poses == "slam" else None,
     }
     for name in PLANNERS:
         rs = [r for r in runs if r["planner"] == name]
@@ -370,7 +378,7 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
     import torch
     from tqdm.auto import tqdm
 
-    from pyro_slam.inverse import fit_inverse, heading_error
+    from pyro_slam.metrics import heading_error
     from pyro_slam.planning import (
         GroundTruthEnv,
         execute,
@@ -379,14 +387,14 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
         lookalikes,
         plan,
     )
+    from pyro_slam.planning.inverse import fit_inverse
 
     runs, targets = [], []
     pts = free_grid(maze)
     tour = pts if args.cover_grid else None
     traversal, poses, slam_err = None, None, None
     if args.map_poses == "slam":
-        overrides = json.loads(args.slam_config)
-        traversal, poses, slam_err = _slam_poses(maze, tour, args.traversal_steps, **overrides)
+        traversal, poses, slam_err = _slam_poses(maze, tour, args.traversal_steps, args.slam)
     lenv, _, traversal = learned_env(
         maze, traversal=traversal, poses=poses, steps=args.traversal_steps,
         fit_steps=args.fit_steps, emission_steps=args.emission_steps, n_world=args.n_world,
@@ -489,19 +497,17 @@ def run_maze(maze, ms: int, pairs, args) -> tuple[list, list]:
     return runs, targets
 
 
-def _slam_poses(maze, tour, steps: int, seed: int = 1, **overrides):
-    """``--map-poses slam``: online DVBF-LM SLAM on the mapping traversal, with the settings of
-    ``benchmarks/slam_accuracy.py`` (shipped frozen emission, learned transition filtered as
-    ``pyro_slam.cli.SHIPPED_FILTER`` says; ``overrides``: SLAMConfig fields, ``--slam-config``).
-    Returns ``(traversal, pose means [T, 3], error summary)``; the traversal is the one
-    :func:`~pyro_slam.planning.learned_env` would simulate (same seed)."""
+def _slam_poses(maze, tour, steps: int, config, seed: int = 1):
+    """``--map-poses slam``: online DVBF-LM SLAM with ``config`` (``--slam-preset`` and
+    ``--slam-config``) on the mapping traversal. Returns ``(traversal, pose means [T, 3], error
+    summary)``; the traversal is the one :func:`~pyro_slam.planning.learned_env` would simulate
+    (same seed)."""
     from pyro_slam import metrics
-    from pyro_slam.cli import shipped_slam
-    from pyro_slam.slam import path_integration
+    from pyro_slam.slam import SLAM, path_integration
     from simulators import simulate_traversal
 
     tr = simulate_traversal(maze, steps=steps, seed=seed, tour=tour)
-    slam = shipped_slam(tr, seed=seed, **overrides)
+    slam = SLAM(tr, config, seed=seed)
     est = slam.run("online", progress=False)["mean"]  # [T, 3]
     err = metrics.localisation_error(est, tr.poses)  # [T]
     pi = metrics.localisation_error(path_integration(tr, slam.model.transition), tr.poses)

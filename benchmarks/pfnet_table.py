@@ -3,10 +3,11 @@
 For each setting (walls only / distractors) and sensor (LiDAR / depth image), train PF-net, the
 histogram filter network and the LSTM network on trajectories of the training mazes, tune the
 beam-model PF on walls-only LiDAR data, and report the (x, y) RMSE in cm (1 m = 1/6 maze units)
-on trajectories of separate test mazes. Prints a Markdown table and writes JSON.
+on trajectories of separate test mazes. Prints a Markdown table (on stderr) and the RMSE per
+method, setting and sensor as JSON, and writes everything to ``OUT/pfnet_table.json``.
 
-    python benchmarks/pfnet_table.py --smoke            # seconds: plumbing check
-    python benchmarks/pfnet_table.py --out out/pfnet    # full: ~22 min on 1 core
+    python -m benchmarks.pfnet_table --smoke            # seconds: plumbing check
+    python -m benchmarks.pfnet_table --out out/pfnet    # full: ~22 min on 1 core
 
 Full-mode budget (single thread): 400 training trajectories (40 mazes x 10) and 100 test
 trajectories (10 unseen mazes x 10) per setting, 24 steps each. PF-net: 400 warm-start steps
@@ -27,11 +28,10 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import simulators  # noqa: E402
-from pyro_slam import pfnet, pfnet_data  # noqa: E402
-from pyro_slam import pfnet_baselines as bl  # noqa: E402
+import simulators
+from pyro_slam import pfnet
+from pyro_slam.pfnet import baselines as bl
+from pyro_slam.pfnet import data as pfnet_data
 
 
 @dataclass
@@ -203,7 +203,9 @@ def markdown(results: dict, K_eval) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m benchmarks.pfnet_table", description=__doc__.split("\n")[0]
+    )
     ap.add_argument("--smoke", action="store_true", help="tiny fast run (plumbing check)")
     ap.add_argument("--out", default=None, help="output folder (JSON, checkpoints)")
     ap.add_argument("--threads", type=int, default=1)
@@ -219,8 +221,12 @@ def main(argv=None) -> int:
     results["total_seconds"] = time.monotonic() - t0
     results["markdown"] = markdown(results, budget.K_eval)
     (out / "pfnet_table.json").write_text(json.dumps(results, indent=2, default=float))
-    print(results["markdown"])
-    print(f"total {results['total_seconds']:.0f}s; JSON: {out / 'pfnet_table.json'}")
+    print(results["markdown"], file=sys.stderr)
+    print(
+        f"total {results['total_seconds']:.0f}s; JSON: {out / 'pfnet_table.json'}", file=sys.stderr
+    )
+    summary = {"rmse_cm": results["rmse_cm"], "total_seconds": results["total_seconds"]}
+    print(json.dumps(summary, default=float))
     return 0
 
 

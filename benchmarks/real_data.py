@@ -1,7 +1,8 @@
-"""DVBF-LM SLAM on real laser logs vs odometry alone vs MRPT's icp-slam (issue 7).
+"""DVBF-LM SLAM on real laser logs vs odometry alone vs MRPT's icp-slam.
 
-    python benchmarks/real_data.py --out out/real_data            # both logs, ~10 min on 1 core
-    python benchmarks/real_data.py --steps 300 --out /tmp/rd        # quick look
+    python -m benchmarks.real_data --out out/real_data            # both logs, ~10 min on 1 core
+    python -m benchmarks.real_data --steps 300 --out /tmp/rd        # quick look
+    python -m benchmarks.real_data --config '{"filter": {"particles": 256}}' --out out/rd_k256
 
 Logs (``../shared/data``, see its README):
 
@@ -20,7 +21,8 @@ Scan consistency alone rewards a trajectory that collapses (all scans piled in o
 with each other), so each row also reports the path length, which odometry measures well.
 
 Systems: odometry (dead reckoning), DVBF-LM online SLAM (``pyro-slam slam`` defaults for real
-logs, :func:`pyro_slam.slam.real_log_config`), MRPT ``icp-slam`` (Debian ``mrpt-apps`` +
+logs: the ``real`` preset adapted to each log, :mod:`pyro_slam.slam.presets`; ``--preset`` and
+``--config`` overrides), MRPT ``icp-slam`` (Debian ``mrpt-apps`` +
 ``mrpt-common`` for the shipped ini): ``carmen2rawlog`` then ``icp-slam`` with
 ``icp-slam_demo_classic.ini``, GUI / 3D-scene output off. MRPT 2.5.8's ``carmen2rawlog`` stamps
 every observation with one and the same time, so icp-slam cannot use the odometry (its pose
@@ -49,20 +51,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from pyro_slam import metrics  # noqa: E402
-from pyro_slam.cli import run_slam  # noqa: E402
-from pyro_slam.io import (  # noqa: E402
+from benchmarks._common import add_config_args, slam_config
+from pyro_slam import metrics
+from pyro_slam.io import (
     odometry_poses,
     read_any,
     relation_error,
     relations_from_reference,
     write_carmen,
 )
-from pyro_slam.io.common import compose, relative  # noqa: E402
-from pyro_slam.slam import prepare_traversal, real_log_config  # noqa: E402
+from pyro_slam.io.common import compose, relative
+from pyro_slam.slam import prepare_traversal, presets, with_overrides
+from pyro_slam.slam.outputs import run_slam
+
+REPO = Path(__file__).resolve().parents[1]
 
 DATA = REPO.parent / "shared" / "data"
 MRPT_INI = Path("/usr/share/mrpt/config_files/icp-slam/icp-slam_demo_classic.ini")
@@ -90,9 +92,14 @@ def integrate_odometry(tr, origin):
 
 
 # ----------------------------------------------------------------------------------- systems
-def run_dvbf(tr, out: Path, seed: int = 0):
-    cfg = real_log_config(tr, seed=seed)
-    rep = run_slam(tr, out, "online", cfg, progress=False)
+def log_config(tr, preset: str = "real", overrides: dict | None = None):
+    """The SLAM configuration for log ``tr``: ``preset`` adapted to the log (the ``real``
+    preset's beam stride, range clip and odometry noise), then the ``--config`` overrides."""
+    return with_overrides(presets.get(preset).for_traversal(tr), overrides or {})
+
+
+def run_dvbf(tr, out: Path, cfg, preset: str, seed: int = 0):
+    rep = run_slam(tr, out, "online", cfg, progress=False, seed=seed, preset=preset)
     post = np.load(out / "posterior.npz")
     return post["pose_mean"], rep["wall_time_s"], post
 
@@ -186,10 +193,13 @@ def map_figure(tr_eval, systems: dict, path: Path, title: str):
     plt.close(fig)
 
 
-def benchmark_log(name, tr, out: Path, img: Path, use_mrpt: bool, reference: bool):
+def benchmark_log(
+    name, tr, out: Path, img: Path, use_mrpt: bool, reference: bool, preset="real", overrides=None
+):
     print(f"== {name}: {tr.num_steps} scans, {tr.num_beams} beams", file=sys.stderr)
-    cfg = real_log_config(tr)
-    tr_eval = prepare_traversal(tr, replace(cfg, beam_stride=2))  # denser scans for the metric
+    cfg = log_config(tr, preset, overrides)
+    # the metric reads the log as the real preset does, with denser scans, whatever SLAM runs
+    tr_eval = prepare_traversal(tr, replace(presets.get("real").for_traversal(tr), beam_stride=2))
     ref = tr.poses if reference else None
     rel = None
     if reference:
@@ -204,7 +214,7 @@ def benchmark_log(name, tr, out: Path, img: Path, use_mrpt: bool, reference: boo
     rows["odometry"] = evaluate(tr_eval, odo, ref, rel)
     rows["odometry"]["seconds_per_scan"] = odo_wall / tr.num_steps
 
-    dv, wall, post = run_dvbf(tr, out / f"{name}_dvbf")
+    dv, wall, post = run_dvbf(tr, out / f"{name}_dvbf", cfg, preset)
     trajs["DVBF-LM"] = dv
     rows["DVBF-LM"] = evaluate(tr_eval, dv, ref, rel)
     rows["DVBF-LM"]["seconds_per_scan"] = wall / tr.num_steps
@@ -226,13 +236,18 @@ def benchmark_log(name, tr, out: Path, img: Path, use_mrpt: bool, reference: boo
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.real_data", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--out", type=Path, default=Path("out/real_data"))
     p.add_argument("--img", type=Path, default=REPO / "docs" / "img")
     p.add_argument("--steps", type=int, default=0, help="first N scans of each log only")
     p.add_argument("--data", type=Path, default=DATA)
     p.add_argument("--no-mrpt", action="store_true")
+    add_config_args(p, "real")
     args = p.parse_args(argv)
+    slam_config(p, args.preset, args.config)  # a bad --preset / --config: a usage error now
+    overrides = json.loads(args.config)
     torch.set_num_threads(1)
     why = "--no-mrpt" if args.no_mrpt else mrpt_available()
     if why:
@@ -243,9 +258,15 @@ def main(argv=None):
 
     csail = cut(read_any(args.data / "mit-csail.clf"))
     intel = cut(noisy_odometry(read_any(args.data / "intel.gfs.log")))
+    kw = {"preset": args.preset, "overrides": overrides}
     result = {
-        "mit-csail": benchmark_log("mit-csail", csail, args.out, args.img, not why, False),
-        "intel": benchmark_log("intel", intel, args.out, args.img, not why, True),
+        "preset": args.preset,
+        "config": {
+            "mit-csail": log_config(csail, **kw).to_dict(),
+            "intel": log_config(intel, **kw).to_dict(),
+        },
+        "mit-csail": benchmark_log("mit-csail", csail, args.out, args.img, not why, False, **kw),
+        "intel": benchmark_log("intel", intel, args.out, args.img, not why, True, **kw),
         "mrpt": why or "icp-slam (MRPT) with icp-slam_demo_classic.ini, localization gates 0",
         "intel_odometry": "GMapping poses + Gaussian noise (no raw odometry in intel.gfs.log)",
         "steps": args.steps or "all",

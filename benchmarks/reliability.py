@@ -1,14 +1,17 @@
-"""Reliability figures (issue 10), printed as JSON.
+"""Reliability figures, printed as JSON.
 
 * ``bad_input``: each malformed input and the exception it raises at the API boundary.
 * ``nan_free``: online SLAM on the default maze with 10 seeds: all losses and estimates finite.
+  SLAM runs a preset (``--preset``, default ``raycast``) with fewer particles (``SMALL``) and
+  ``--config`` overrides on top.
 * ``kill_resume``: an online SLAM process killed with SIGKILL mid-training (at a random moment,
   not right after a checkpoint) is resumed from its last checkpoint in a new process and
   finishes with the same map parameters and poses as an uninterrupted run (max abs difference).
 * ``memory``: peak RSS of a long online particle-filter run after 10% and 100% of its steps.
 
-    python benchmarks/reliability.py                    # full (100k-step filter run)
-    python benchmarks/reliability.py --long-steps 10000 --nan-seeds 3
+    python -m benchmarks.reliability                    # full (100k-step filter run)
+    python -m benchmarks.reliability --long-steps 10000 --nan-seeds 3
+    python -m benchmarks.reliability --preset paper --long-steps 10000
 """
 
 from __future__ import annotations
@@ -27,10 +30,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from benchmarks._common import add_config_args, slam_config
 
-SMALL = dict(filter_particles=64, train_particles=8, chunks_per_batch=4, chunk_length=4)
+REPO = Path(__file__).resolve().parents[1]
+
+# fewer particles than the presets' for quicker runs (overrides applied before --config's)
+SMALL = {"filter": {"particles": 64}, "training": {"particles": 8, "chunks": 4, "chunk_length": 4}}
 
 
 def bad_input_cases(tmp: Path) -> list[dict]:
@@ -73,27 +78,28 @@ def bad_input_cases(tmp: Path) -> list[dict]:
     return out
 
 
-def nan_free(seeds: int, steps: int) -> dict:
-    from pyro_slam.slam import SLAM, SLAMConfig
+def nan_free(config, seeds: int, steps: int) -> dict:
+    from pyro_slam.slam import SLAM
     from simulators import simulate_traversal
 
     tr = simulate_traversal("moderate-medium", steps=steps, seed=1)
     finite = []
     for s in range(seeds):
-        res = SLAM(tr, SLAMConfig(seed=s, **SMALL)).run("online", progress=False)
+        res = SLAM(tr, config, seed=s).run("online", progress=False)
         ok = all(np.isfinite(res[k]).all() for k in ("mean", "std", "losses", "map_loc"))
         finite.append(bool(ok))
     return {"runs": seeds, "steps": steps, "all_finite": all(finite), "finite": finite}
 
 
+# run with the repository as the working directory (its packages first on the path)
 SCRIPT = """
-import sys, torch
+import torch
 torch.set_num_threads(1)
-sys.path.insert(0, {repo!r})
 from simulators import simulate_traversal
-from pyro_slam.slam import SLAM, SLAMConfig
+from pyro_slam.slam import SLAM, from_dict
 tr = simulate_traversal("moderate-medium", steps={steps}, seed=1)
-slam = SLAM(tr, SLAMConfig(seed=3, checkpoint_every=25, **{small!r}), checkpoint={ckpt!r})
+config = from_dict({config!r})
+slam = SLAM(tr, config, checkpoint={ckpt!r}, checkpoint_every=25, seed=3)
 if {resume}:
     slam.resume({ckpt!r})
 res = slam.run("online", progress=False)
@@ -102,16 +108,17 @@ np.savez({out!r}, mean=res["mean"], map_loc=res["map_loc"], map_scale=res["map_s
 """
 
 
-def kill_resume(tmp: Path, steps: int, kill_after: float) -> dict:
+def kill_resume(config, tmp: Path, steps: int, kill_after: float) -> dict:
     def script(ckpt, out, resume):
         return textwrap.dedent(
-            SCRIPT.format(repo=str(REPO), steps=steps, small=SMALL, ckpt=str(ckpt),
-                          out=str(out), resume=resume)
+            SCRIPT.format(steps=steps, config=config.to_dict(), ckpt=str(ckpt), out=str(out),
+                          resume=resume)
         )  # fmt: skip
 
     ref_out, res_out, ckpt = tmp / "ref.npz", tmp / "res.npz", tmp / "ckpt.pt"
-    subprocess.run([sys.executable, "-c", script(tmp / "ref.pt", ref_out, False)], check=True)
-    proc = subprocess.Popen([sys.executable, "-c", script(ckpt, res_out, False)])
+    py = [sys.executable, "-c"]
+    subprocess.run([*py, script(tmp / "ref.pt", ref_out, False)], check=True, cwd=REPO)
+    proc = subprocess.Popen([*py, script(ckpt, res_out, False)], cwd=REPO)
     while not ckpt.exists() and proc.poll() is None:  # wait for the first checkpoint
         time.sleep(0.05)
     time.sleep(kill_after)  # then kill mid-way between checkpoints
@@ -120,7 +127,7 @@ def kill_resume(tmp: Path, steps: int, kill_after: float) -> dict:
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     t_ckpt = int(torch.load(ckpt, weights_only=False)["state"]["t"])
-    subprocess.run([sys.executable, "-c", script(ckpt, res_out, True)], check=True)
+    subprocess.run([*py, script(ckpt, res_out, True)], check=True, cwd=REPO)
     a, b = np.load(ref_out), np.load(res_out)
     diff = max(float(np.abs(a[k] - b[k]).max()) for k in ("mean", "map_loc", "map_scale"))
     return {"steps": steps, "killed_with": "SIGKILL", "killed_returncode": proc.returncode,
@@ -128,8 +135,7 @@ def kill_resume(tmp: Path, steps: int, kill_after: float) -> dict:
 
 
 def memory(long_steps: int, particles: int) -> dict:
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    from filter_speed import ours, setup
+    from benchmarks.filter_speed import ours, setup
 
     model, M, obs, ctl, init = setup(3000)
     marks = (long_steps // 10, long_steps)
@@ -139,7 +145,9 @@ def memory(long_steps: int, particles: int) -> dict:
 
 
 def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.reliability", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--nan-seeds", type=int, default=10)
     p.add_argument("--nan-steps", type=int, default=300)
     p.add_argument("--kill-steps", type=int, default=400)
@@ -147,14 +155,17 @@ def main(argv=None) -> dict:
         "--kill-after", type=float, default=1.5, help="seconds after the first checkpoint"
     )
     p.add_argument("--long-steps", type=int, default=100_000)
-    p.add_argument("--particles", type=int, default=1000)
+    p.add_argument("--particles", type=int, default=1000, help="of the memory run's filter")
+    add_config_args(p, "raycast")
     args = p.parse_args(argv)
+    config = slam_config(p, args.preset, args.config, base=SMALL)
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        out = {"bad_input": bad_input_cases(tmp)}
-        out["nan_free"] = nan_free(args.nan_seeds, args.nan_steps)
-        out["kill_resume"] = kill_resume(tmp, args.kill_steps, args.kill_after)
+        out = {"preset": args.preset, "config": config.to_dict()}
+        out["bad_input"] = bad_input_cases(tmp)
+        out["nan_free"] = nan_free(config, args.nan_seeds, args.nan_steps)
+        out["kill_resume"] = kill_resume(config, tmp, args.kill_steps, args.kill_after)
     out["memory"] = memory(args.long_steps, args.particles)
     print(json.dumps(out, indent=2))
     return out

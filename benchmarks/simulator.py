@@ -1,6 +1,6 @@
 """Simulator throughput: LiDAR stepping (World.step + 20-beam read) and camera frames/s.
 
-Usage: ``python benchmarks/simulator.py [--steps 5000] [--maze moderate-medium]``; prints JSON.
+Usage: ``python -m benchmarks.simulator [--steps 5000] [--maze moderate-medium]``; prints JSON.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ def _rate(n: int, fn) -> float:
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.simulator", description=__doc__)
     parser.add_argument("--maze", default="moderate-medium")
     parser.add_argument("--steps", type=int, default=5000)
     args = parser.parse_args(argv)

@@ -1,36 +1,42 @@
 """SLAM accuracy (paper Section IV-A, Fig. 4): online / offline DVBF-LM vs path integration.
 
 6 test mazes (moderate-medium, maze seeds 1001-1006) x 4 traversals (driver seeds 1-4) of 3000
-steps. The emission network and the learned transition are the shipped ones
-(``pyro_slam/pretrained``, trained by ``pyro-slam pretrain`` on maze seed 100, never a test
-maze). Prints JSON with mean +- std over runs of the error at t = T and writes a Fig. 4-style
-plot (median, 50% and 80% bands) of error and error relative to distance travelled.
+steps. SLAM runs a preset of :mod:`pyro_slam.slam.presets` (``--preset``, default ``raycast``)
+with ``--config`` overrides; the ``paper`` preset is the paper's model, whose emission network
+and learned transition are the shipped ones (``pyro_slam/pretrained``, trained by ``pyro-slam
+pretrain`` on maze seed 100, never a test maze). Prints JSON with mean +- std over runs of the
+error at t = T and writes a Fig. 4-style plot (median, 50% and 80% bands) of error and error
+relative to distance travelled.
 
-    python benchmarks/slam_accuracy.py --out out/slam_accuracy            # full: 24 runs x modes
-    python benchmarks/slam_accuracy.py --mazes 2 --traversals 1 --steps 1000 --modes online
-    python benchmarks/slam_accuracy.py --modes online --map-poses true --out out/slam_oracle
-    python benchmarks/slam_accuracy.py --traversals 1 --maze-seeds 991,992,993,994,995,996
+    python -m benchmarks.slam_accuracy --out out/slam_accuracy        # full: 24 runs x modes
+    python -m benchmarks.slam_accuracy --mazes 2 --traversals 1 --steps 1000 --modes online
+    python -m benchmarks.slam_accuracy --preset paper --out out/slam_accuracy_paper
+    python -m benchmarks.slam_accuracy --config '{"filter": {"particles": 512}}' --out out/k512
+    python -m benchmarks.slam_accuracy --modes online --map-poses true --out out/slam_oracle
+    python -m benchmarks.slam_accuracy --traversals 1 --maze-seeds 991,992,993,994,995,996
 
 ``--maze-seeds`` runs chosen mazes instead of the first ``--mazes``: test mazes, or the held-out
 tuning mazes ``TUNING_SEEDS`` (991-996, never in the test figures) on which options should be
 screened before they are run on the test mazes.
 
 Each run's actuation noise is seeded with (traversal, maze seed) (``--per-maze-noise``, the
-default since session 19). ``--no-per-maze-noise`` reproduces the earlier figures: the noise
-follows the traversal seed alone, so the 6 mazes of a traversal share one noise sequence (the
-same heading drift, as the rotation noise is added whatever the controls): 24 runs, 4 draws.
+default). ``--no-per-maze-noise``: the noise follows the traversal seed alone, so the 6 mazes of
+a traversal share one noise sequence (the same heading drift, as the rotation noise is added
+whatever the controls): 24 runs, 4 draws.
 
 ``--map-poses true|pi`` is a diagnostic: the particle cache is pinned to the true (or the
 path-integration) poses, so the map is learned there while the filter still localises against
-it (:meth:`pyro_slam.slam.SLAM.pin_cache`); the gap to the default ``filter`` is what pose errors
-written into the map cost.
+it (:func:`benchmarks._diagnostics.pin_cache`); the gap to the default ``filter`` is what pose
+errors written into the map cost.
 
 Each run's result is written to ``OUT/runs/<mode>_m<maze>_t<traversal>.npz`` as it finishes, so
-an interrupted benchmark resumes where it stopped (finished runs are not recomputed). Besides the
-errors over time it holds the trajectories ``estimate``, ``truth`` and ``pi_poses`` ``[T, 3]``
-and the filter's posterior std ``std [T, 3]``; the summary adds the error averaged over time
-(less noisy than the final one) and ``std_over_error_median``, the filter's calibration (1: its
-position std matches its error).
+an interrupted benchmark resumes where it stopped (finished runs are not recomputed);
+``OUT/config.json`` records the configuration they were made with, and a run with another
+configuration into the same ``OUT`` stops with an error instead of mixing the two. Besides the
+errors over time each run holds the trajectories ``estimate``, ``truth`` and ``pi_poses``
+``[T, 3]`` and the filter's posterior std ``std [T, 3]``; the summary adds the error averaged
+over time (less noisy than the final one) and ``std_over_error_median``, the filter's
+calibration (1: its position std matches its error).
 """
 
 from __future__ import annotations
@@ -38,14 +44,12 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import parse_maze_seeds
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks._common import add_config_args, check_out_config, parse_maze_seeds, slam_config
 
 MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
 # held-out moderate-medium mazes for screening options (never in the test figures)
@@ -63,20 +67,20 @@ def _traversal(maze_seed: int, seed: int, steps: int, per_maze_noise: bool = Fal
 
 def run_one(job) -> dict:
     """One SLAM run (in a worker process, 1 thread); returns errors over time."""
-    mode, maze_seed, seed, steps, over, transition_kind, map_poses, path, per_maze_noise = job
+    mode, maze_seed, seed, steps, config, map_poses, path, per_maze_noise = job
     import torch
 
     torch.set_num_threads(1)
+    from benchmarks._diagnostics import pin_cache
     from pyro_slam import metrics
-    from pyro_slam.cli import shipped_slam
-    from pyro_slam.slam import path_integration
+    from pyro_slam.slam import SLAM, path_integration
 
     tr = _traversal(maze_seed, seed, steps, per_maze_noise)
     t0 = time.perf_counter()
-    slam = shipped_slam(tr, transition_kind, **{**BENCH_CONFIG, **over, "seed": seed})
+    slam = SLAM(tr, config, seed=seed)
     pi = path_integration(tr, slam.model.transition)
     if map_poses != "filter":  # diagnostic: the map is learned at these poses, see --map-poses
-        slam.pin_cache(tr.poses if map_poses == "true" else pi, seed=seed)
+        pin_cache(slam, tr.poses if map_poses == "true" else pi, seed=seed)
     res = slam.run(mode, progress=False)
     wall = time.perf_counter() - t0
     out = {
@@ -95,15 +99,10 @@ def run_one(job) -> dict:
             "pi": float(out["pi"][-1]), "wall_s": wall}  # fmt: skip
 
 
-# settings used for the figures in the issue notes (see docs/benchmarks.md)
-BENCH_CONFIG = dict(learn_emission=False)  # frozen pretrained emission; SLAMConfig defaults
-# with the learned transition, SLAM filters as pyro_slam.cli.SHIPPED_FILTER says (sigma_T scaled
-# by TRANSITION_SCALE, loosened to TRANSITION_SCALE_TRUSTED where the map is established, "shared"
-# weights; measured in docs/benchmarks.md) unless --config overrides them
-
-
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.slam_accuracy", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--out", type=Path, default=Path("out/slam_accuracy"))
     p.add_argument("--mazes", type=int, default=6)
     p.add_argument(
@@ -120,36 +119,26 @@ def main(argv=None) -> int:
     )
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--modes", default="online,offline")
-    p.add_argument("--transition", choices=["learned", "kinematic"], default="learned")
-    p.add_argument("--config", default="{}", help="JSON SLAMConfig overrides")
+    add_config_args(p, "raycast")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument(
         "--map-poses",
         choices=["filter", "true", "pi"],
         default="filter",
-        help="diagnostic: learn the map at the true / path-integration poses (SLAM.pin_cache)",
+        help="diagnostic: learn the map at the true / path-integration poses (pin_cache)",
     )
     p.add_argument(
         "--per-maze-noise",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="seed each run's actuation noise with (traversal, maze seed) (default since "
-        "session 19); --no-per-maze-noise: the noise follows the traversal seed alone, so the 6 "
-        "mazes of one traversal share one noise sequence (the figures before session 18)",
+        help="seed each run's actuation noise with (traversal, maze seed) (the default); "
+        "--no-per-maze-noise: the noise follows the traversal seed alone, so the 6 mazes of one "
+        "traversal share one noise sequence",
     )
     args = p.parse_args(argv)
-    from tqdm import tqdm
-
-    from pyro_slam import metrics
-    from pyro_slam.cli import SHIPPED_FILTER
-    from pyro_slam.plotting import plot_error_bands
-
-    runs = args.out / "runs"
-    runs.mkdir(parents=True, exist_ok=True)
-    over = json.loads(args.config)
-    if args.transition == "learned":
-        shipped = {k: list(v) if isinstance(v, tuple) else v for k, v in SHIPPED_FILTER.items()}
-        over = {**shipped, **over}
+    config = slam_config(p, args.preset, args.config)
+    if config.emission.observation != "lidar":
+        p.error(f"--preset {args.preset}: a camera emission; this benchmark runs LiDAR SLAM")
     mazes = list(MAZE_SEEDS[: args.mazes])
     if args.maze_seeds is not None:
         mazes = parse_maze_seeds(p, args.maze_seeds, MAZE_SEEDS, TUNING_SEEDS)
@@ -162,6 +151,16 @@ def main(argv=None) -> int:
         seeds = list(range(1, seeds[0] + 1))
     if not seeds or min(seeds) < 1:
         p.error(f"--traversals needs driver seeds >= 1, got {args.traversals!r}")
+    from tqdm import tqdm
+
+    from pyro_slam import metrics
+    from pyro_slam.plotting import plot_error_bands
+
+    runs = args.out / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    # the run names carry mode, maze, traversal, steps and the diagnostics; the configuration
+    # must match the folder's
+    check_out_config(args.out / "config.json", {"config": config.to_dict()})
     jobs, files = [], {}
     for mode in modes:
         for m in mazes:
@@ -171,14 +170,14 @@ def main(argv=None) -> int:
                 f = runs / f"{mode}{tag}_m{m}_t{s}_T{args.steps}.npz"
                 files.setdefault(mode, []).append(f)
                 if not f.is_file():
-                    jobs.append((mode, m, s, args.steps, over, args.transition, args.map_poses,
-                                 f, args.per_maze_noise))  # fmt: skip
+                    jobs.append((mode, m, s, args.steps, config, args.map_poses, f,
+                                 args.per_maze_noise))  # fmt: skip
     with mp.get_context("spawn").Pool(args.workers) as pool:
         for r in tqdm(pool.imap_unordered(run_one, jobs), total=len(jobs), desc="SLAM runs"):
             tqdm.write(json.dumps(r))
     summary = {"steps": args.steps, "runs_per_mode": len(mazes) * len(seeds),
                "mazes": mazes,
-               "transition": args.transition, "config": {**BENCH_CONFIG, **over},
+               "preset": args.preset, "config": config.to_dict(),
                "map_poses": args.map_poses,
                "per_maze_noise": args.per_maze_noise}  # fmt: skip
     curves = {}

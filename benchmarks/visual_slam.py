@@ -1,27 +1,31 @@
 """Visual DVBF-LM (paper Section IV-B, Fig. 5b): offline SLAM from first-person images.
 
 The same model, guide, particle filter and particle-chunk ELBO as LiDAR SLAM; only the emission
-is swapped for :class:`~pyro_slam.networks.ImageEmission` (map ``w x h x k x l``, chart rotated
+is swapped for :class:`~pyro_slam.model.ImageEmission` (map ``w x h x k x l``, chart rotated
 with the heading and cropped to the 90 deg view, row-wise ReLU MLPs shared top/bottom,
 ``sigma_E = 0.1``), and the observations are the simulator's 32x24 grayscale renders.
 
 6 test mazes (moderate-medium, maze seeds 1001-1006), one 5000-step traversal each (driver seed
-1). The image emission is pretrained with ground-truth poses on maze seed 100 (never a test
-maze) and frozen during SLAM, as the LiDAR benchmark does with its shipped emission; the
+1). SLAM runs a camera preset of :mod:`pyro_slam.slam.presets` (``--preset``, default
+``visual``: the paper's emission reduced for CPU, a kinematic transition) with ``--config``
+overrides. The image emission is pretrained with ground-truth poses on maze seed 100 (never a
+test maze) and frozen during SLAM, as the LiDAR benchmark does with its shipped emission; the
 transition is the kinematic one (the learned transition of the LiDAR benchmark takes a 20-beam
 predicted scan, which an image emission does not give). Prints JSON with the error at t = T
 (mean +- std over mazes) for SLAM and path integration, and writes the Fig. 5b-style error bands
 plus reconstructed vs true images at a few poses.
 
-    python benchmarks/visual_slam.py --out out/visual_slam                       # full
-    python benchmarks/visual_slam.py --mazes 2 --steps 1000 --out out/visual_slam_small
+    python -m benchmarks.visual_slam --out out/visual_slam                       # full
+    python -m benchmarks.visual_slam --mazes 2 --steps 1000 --out out/visual_slam_small
+    python -m benchmarks.visual_slam --config '{"offline": {"svi_steps": 800}}' --out out/v800
 
-``--config '{"image_emission": "raycast", "map_resolution": 0.015873015873015872}'`` swaps the
-paper's emission for the geometric camera :class:`~pyro_slam.networks.RayImageEmission` (one
-ray per column through an occupancy-and-albedo map on a 64 x 64 grid; its scene constants are
-pretrained on maze 100 in the same way), the image counterpart of LiDAR's ``RayEmission``.
+``--preset visual-raycast`` swaps the paper's emission for the geometric camera
+:class:`~pyro_slam.model.RayImageEmission` (one ray per column through an occupancy-and-albedo
+map on a 64 x 64 grid; its scene constants are pretrained on maze 100 in the same way), the
+image counterpart of LiDAR's ``RayEmission``; ``visual-manhattan`` adds the heading observation
+read from the frames.
 
-``--map-poses true|pi`` is the diagnostic of ``slam_accuracy.py``: the map is learned at the true
+``--map-poses true|pi`` is the diagnostic of ``slam_accuracy``: the map is learned at the true
 (or path-integration) poses while the filter still localises against it.
 
 ``--odometry-scale f`` multiplies the simulator's actuation noise (``OdometryNoise``: rotation and
@@ -31,15 +35,15 @@ twice as far as the paper's VizDoom agent (0.11), against which the paper's targ
 ``--calibrate-odometry`` measures path integration at t = T on 60 held-out mazes
 (``CALIBRATION_SEEDS``, no images, no SLAM) and prints the scale that brings its mean to the
 paper's 0.11; it gave ``PAPER_ODOMETRY_SCALE`` = 0.57 (0.101 +- 0.055 there,
-``docs/visual_odometry_calibration_pn.json``), the default since session 19
-(``--odometry-scale 1``: the simulator's own noise, the figures before session 18)::
+``docs/visual_odometry_calibration_pn.json``), the default (``--odometry-scale 1``: the
+simulator's own noise)::
 
-    python benchmarks/visual_slam.py --calibrate-odometry
-    python benchmarks/visual_slam.py --odometry-scale F --out out/visual_slam_odometry_F
+    python -m benchmarks.visual_slam --calibrate-odometry
+    python -m benchmarks.visual_slam --odometry-scale F --out out/visual_slam_odometry_F
 
 Each maze's actuation noise is seeded with (driver seed, maze seed) (``--per-maze-noise``, the
-default since session 19; runs tagged ``_pn``); ``--no-per-maze-noise`` gives the earlier
-figures, where the noise followed the driver seed alone and all 6 mazes shared one draw.
+default; runs tagged ``_pn``); ``--no-per-maze-noise``: the noise follows the driver seed alone
+and all 6 mazes share one draw.
 
 Finished runs are kept in ``OUT/runs`` and the pretrained emission in ``OUT/emission_image.pt``
 (``--pretrain-steps``), so an interrupted benchmark resumes; ``OUT/config.json`` records the
@@ -51,15 +55,14 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import parse_maze_seeds
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks._common import add_config_args, check_out_config, parse_maze_seeds, slam_config
 
 MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
 # held-out mazes for choosing settings at full length (never in the test figures)
@@ -68,35 +71,9 @@ TUNING_SEEDS = (997, 998)
 CALIBRATION_SEEDS = tuple(range(900, 960))
 PAPER_PI = 0.11  # the paper's VizDoom path integration at t = 5000 (Fig. 5b: 0.11 +- 0.05)
 PRETRAIN_MAZE = 100
-# --calibrate-odometry with per-maze noise (session 18): path integration at t = 5000 on the
-# held-out mazes 0.101 +- 0.055 at this scale, the paper's VizDoom 0.11 +- 0.05
+# --calibrate-odometry with per-maze noise: path integration at t = 5000 on the held-out mazes
+# 0.101 +- 0.055 at this scale, the paper's VizDoom 0.11 +- 0.05
 PAPER_ODOMETRY_SCALE = 0.57
-
-# reduced from the paper (25 x 25 x 32 x 24 map, 4 x 256 networks) for CPU: see --config
-BENCH_CONFIG = dict(
-    observation="image",
-    image_bins=32,  # k
-    map_resolution=1 / 24,  # 25 x 25 cells for the unit maze (paper)
-    map_margin=0.0,
-    emission_hidden=64,
-    emission_layers=4,
-    sigma_emission=0.1,
-    filter_sigma=0.1,
-    learn_emission=False,  # frozen pretrained emission (fine-tuning diverged at 5000 steps)
-    # session 10: start from the online sweep, filtered with the kinematic sigma_T scaled to
-    # (3e-4, 3e-4, 0.0012), the sigma_T of the LiDAR benchmark (docs/visual_slam.md); before:
-    # offline_init="odometry" and no scale (0.336 +- 0.140; with the scale 0.233 +- 0.106)
-    offline_init="online",
-    transition_scale=(0.6, 0.6, 0.15),
-    offline_rounds=2,
-    offline_svi_steps=400,
-    filter_particles=128,
-    # tuned on held-out maze 999 (600 steps): a larger map learning rate and more chunks per
-    # SVI step fit the 25 x 25 x 768 map faster (defaults 0.02 / 4 x 16 particles)
-    lr_map=0.05,
-    chunks_per_batch=16,
-    train_particles=8,
-)
 
 
 def _traversal(
@@ -115,11 +92,10 @@ def _traversal(
 
 
 def scaled_config(cfg, odometry_scale: float):
-    """``cfg`` with the kinematic ``sigma_T`` scaled with the actuation noise."""
-    import dataclasses
-
-    sigma = tuple(float(v) * odometry_scale for v in cfg.transition_sigma)
-    return dataclasses.replace(cfg, transition_sigma=sigma)
+    """``cfg`` with the kinematic ``sigma_T`` (``cfg.transition.sigma``) scaled with the
+    actuation noise."""
+    sigma = tuple(float(v) * odometry_scale for v in cfg.transition.sigma)
+    return dataclasses.replace(cfg, transition=dataclasses.replace(cfg.transition, sigma=sigma))
 
 
 def calibrate_odometry(
@@ -130,10 +106,10 @@ def calibrate_odometry(
     ``scale * target / measured`` (the error grows about in proportion to the noise).
     ``scale_for_target`` is the measured scale whose mean is closest to ``target``."""
     from pyro_slam.metrics import localisation_error
-    from pyro_slam.slam import SLAMConfig, path_integration
-    from pyro_slam.transitions import KinematicTransition
+    from pyro_slam.model import KinematicTransition
+    from pyro_slam.slam import TransitionConfig, path_integration
 
-    sigma = SLAMConfig().transition_sigma  # the mean is all path integration uses
+    sigma = TransitionConfig().sigma  # the mean is all path integration uses
 
     def measure(f):
         e = []
@@ -152,24 +128,6 @@ def calibrate_odometry(
     return {"steps": steps, "mazes": list(seeds), "target": target,
             "per_maze_noise": per_maze_noise, "points": points,
             "scale_for_target": best["scale"], "at_scale": best}  # fmt: skip
-
-
-def check_out_config(path: Path, record: dict) -> None:
-    """Write ``record`` to ``path``, or stop if ``path`` holds a different one (the cached
-    emission and runs next to it were made with that configuration)."""
-    record = json.loads(json.dumps(record))  # tuples -> lists, as read back
-    if path.is_file():
-        old = json.loads(path.read_text())
-        if old != record:
-            diff = sorted(k for k in {**old.get("config", {}), **record["config"]}
-                          if old.get("config", {}).get(k) != record["config"].get(k))  # fmt: skip
-            diff += [k for k in record if k != "config" and old.get(k) != record[k]]
-            raise SystemExit(
-                f"{path}: this output folder holds runs made with another configuration "
-                f"(differs in {', '.join(diff)}); choose another --out"
-            )
-        return
-    path.write_text(json.dumps(record, indent=1))
 
 
 def pretrained_emission(path: Path, cfg, steps: int, pretrain_steps: int):
@@ -210,16 +168,17 @@ def run_one(
 
     torch.set_num_threads(threads)
 
+    from benchmarks._diagnostics import pin_cache
     from pyro_slam import metrics
     from pyro_slam.slam import SLAM, path_integration
 
     tr = _traversal(maze_seed, seed, steps, odometry_scale, per_maze_noise=per_maze_noise)
     emission = copy.deepcopy(emission)  # fine-tuning must not leak from one maze to the next
     t0 = time.perf_counter()
-    slam = SLAM(tr, cfg, emission=emission)
+    slam = SLAM(tr, cfg, emission=emission, seed=0)  # the pretrained emission stays frozen
     pi = path_integration(tr, slam.model.transition)
     if map_poses != "filter":  # diagnostic: the map is learned at these poses, see --map-poses
-        slam.pin_cache(tr.poses if map_poses == "true" else pi, seed=seed)
+        pin_cache(slam, tr.poses if map_poses == "true" else pi, seed=seed)
     res = slam.run("offline", progress=False)
     wall = time.perf_counter() - t0
     # reconstructions: emission mean under the map mean at the SLAM estimate, a few steps
@@ -239,8 +198,8 @@ def run_one(
         "true_images": tr.images[idx],
         "rec_images": rec,
         "rec_images_true_pose": rec_true,
-        # trajectories [T, 3] (x, y, heading), as benchmarks/slam_accuracy.py exports them, and
-        # the online sweep offline SLAM starts from (empty with offline_init="odometry")
+        # trajectories [T, 3] (x, y, heading), as benchmarks.slam_accuracy exports them, and
+        # the online sweep offline SLAM starts from
         "estimate": np.asarray(res["mean"], dtype=np.float32),
         "truth": np.asarray(tr.poses, dtype=np.float32),
         "pi_poses": np.asarray(pi, dtype=np.float32),
@@ -272,7 +231,9 @@ def plot_reconstructions(data: dict, path_png):
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.visual_slam", description=__doc__.split("\n")[0]
+    )
     p.add_argument("--out", type=Path, default=Path("out/visual_slam"))
     p.add_argument("--mazes", type=int, default=6, help="the first N of the 6 test mazes")
     p.add_argument(
@@ -283,14 +244,14 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=5000)
     p.add_argument("--pretrain-steps", type=int, default=1500, help="emission SGD steps")
     p.add_argument("--pretrain-traversal", type=int, default=3000, help="steps on maze 100")
-    p.add_argument("--config", default="{}", help="JSON SLAMConfig overrides")
+    add_config_args(p, "visual")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--workers", type=int, default=1, help="SLAM runs in parallel processes")
     p.add_argument(
         "--map-poses",
         choices=["filter", "true", "pi"],
         default="filter",
-        help="diagnostic: learn the map at the true / path-integration poses (SLAM.pin_cache)",
+        help="diagnostic: learn the map at the true / path-integration poses (pin_cache)",
     )
     p.add_argument(
         "--odometry-scale",
@@ -309,11 +270,14 @@ def main(argv=None) -> int:
         "--per-maze-noise",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="seed each maze's actuation noise with (driver seed, maze seed) (default since "
-        "session 19); --no-per-maze-noise: it follows the driver seed alone, so all mazes share "
-        "one noise sequence (the figures before session 18)",
+        help="seed each maze's actuation noise with (driver seed, maze seed) (the default); "
+        "--no-per-maze-noise: it follows the driver seed alone, so all mazes share one noise "
+        "sequence",
     )
     args = p.parse_args(argv)
+    cfg = slam_config(p, args.preset, args.config)
+    if cfg.emission.observation != "image":
+        p.error(f"--preset {args.preset}: a LiDAR emission; this benchmark needs a camera one")
     if not args.odometry_scale > 0:
         p.error(f"--odometry-scale must be > 0, got {args.odometry_scale}")
     if args.calibrate_odometry:
@@ -329,18 +293,15 @@ def main(argv=None) -> int:
     from tqdm import tqdm
 
     from pyro_slam.plotting import plot_error_bands
-    from pyro_slam.slam import SLAMConfig
 
     runs = args.out / "runs"
     runs.mkdir(parents=True, exist_ok=True)
-    over = json.loads(args.config)
-    cfg = SLAMConfig(**{**BENCH_CONFIG, **over})
     # the run names carry maze, odometry scale, noise and steps; the rest must match the folder
     check_out_config(args.out / "config.json", {
         "config": cfg.to_dict(), "pretrain_traversal": args.pretrain_traversal,
         "pretrain_steps": args.pretrain_steps,
     })  # fmt: skip
-    if args.odometry_scale != 1.0 and "transition_sigma" not in over:
+    if args.odometry_scale != 1.0 and "sigma" not in json.loads(args.config).get("transition", {}):
         cfg = scaled_config(cfg, args.odometry_scale)
     t0 = time.perf_counter()
     em, em_meta = pretrained_emission(
@@ -380,7 +341,8 @@ def main(argv=None) -> int:
     summary = {
         "steps": args.steps,
         "mazes": mazes,
-        "config": {**BENCH_CONFIG, **over},
+        "preset": args.preset,
+        "config": cfg.to_dict(),
         "map_poses": args.map_poses,
         "odometry_scale": args.odometry_scale,
         "per_maze_noise": args.per_maze_noise,
@@ -399,7 +361,7 @@ def main(argv=None) -> int:
             "per_maze": [float(v) for v in pi[:, -1]],
         },
     }
-    # the online sweep offline SLAM starts from, where the runs exported it (offline_init online)
+    # the online sweep offline SLAM starts from, where the runs exported it
     if all("sweep" in d.files and len(d["sweep"]) for d in data):
         from pyro_slam.metrics import localisation_error
 

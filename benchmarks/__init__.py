@@ -1,0 +1,1 @@
+"""Benchmark scripts, each run as ``python -m benchmarks.NAME`` from the repository root."""
