@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from pyro_slam.data import load_tensors
 from pyro_slam.planning.exploration import ExploreConfig, run_agent
 from pyro_slam.planning.pema import ARSConfig, PEMAPolicy, train_pema
 from simulators import SCALES
@@ -143,7 +144,7 @@ def _trained_pema(policy, path: Path, settings, ars_cfg, n_mazes, ars_steps):
     Returns ``(ars_history, seconds)``; ``policy.theta`` is set.
     """
     if path.exists():
-        saved = torch.load(path, weights_only=False)
+        saved = load_tensors(path, "a PEMA policy file")
         if saved["settings"] == settings:
             policy.theta = saved["theta"]
             return saved["history"], saved["seconds"]

@@ -30,6 +30,7 @@ import torch
 
 import simulators
 from pyro_slam import pfnet
+from pyro_slam.data import load_tensors
 from pyro_slam.pfnet import baselines as bl
 from pyro_slam.pfnet import data as pfnet_data
 
@@ -128,7 +129,7 @@ def run(budget: Budget, out: Path, progress: bool, seed: int = 0) -> dict:
             pre = out / f"pfnet-{tag}-pretrain.pt"
             t0 = time.monotonic()
             if pre.exists():
-                om.load_state_dict(torch.load(pre))
+                om.load_state_dict(load_tensors(pre, "a PF-net observation model"))
             else:
                 pfnet.pretrain_observation_model(
                     om, tr, budget.pretrain_steps, seed=seed, progress=progress

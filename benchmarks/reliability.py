@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from benchmarks._common import add_config_args, slam_config
+from pyro_slam.slam import checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -126,7 +127,7 @@ def kill_resume(config, tmp: Path, steps: int, kill_after: float) -> dict:
         raise RuntimeError("the run finished before it could be killed: lower --kill-after")
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    t_ckpt = int(torch.load(ckpt, weights_only=False)["state"]["t"])
+    t_ckpt = int(checkpoint.read(ckpt)["state"]["t"])
     subprocess.run([*py, script(ckpt, res_out, True)], check=True, cwd=REPO)
     a, b = np.load(ref_out), np.load(res_out)
     diff = max(float(np.abs(a[k] - b[k]).max()) for k in ("mean", "map_loc", "map_scale"))

@@ -10,6 +10,7 @@ import pytest
 import torch
 from scipy.stats import ortho_group
 
+from pyro_slam.model import MapGrid
 from pyro_slam.planning.exploration import (
     ExploreConfig,
     KnownObstacles,
@@ -21,7 +22,6 @@ from pyro_slam.planning.exploration import (
     observed_endpoints,
     run_agent,
 )
-from pyro_slam.model import MapGrid
 from pyro_slam.planning.pema import ARSConfig, ars
 
 

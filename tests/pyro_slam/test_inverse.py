@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from pyro_slam.planning.inverse import InversePose, PoseEncoder, fit_inverse, heading_error
 from pyro_slam.planning import GroundTruthEnv, free_grid, learned_env
+from pyro_slam.planning.inverse import InversePose, PoseEncoder, fit_inverse, heading_error
 from simulators import make_maze
 from simulators.world import point_segment_distance
 

@@ -17,10 +17,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 from pfnet_standin import StandInWorld, make_maze  # noqa: E402
 
 from pyro_slam import pfnet  # noqa: E402
-from pyro_slam.inference import resampling  # noqa: E402
-from pyro_slam.pfnet import data as pfnet_data  # noqa: E402
-from pyro_slam.pfnet import baselines as bl  # noqa: E402
 from pyro_slam.geometry import odometry_delta, wrap_angle  # noqa: E402
+from pyro_slam.inference import resampling  # noqa: E402
+from pyro_slam.pfnet import baselines as bl  # noqa: E402
+from pyro_slam.pfnet import data as pfnet_data  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
@@ -207,7 +207,7 @@ def test_checkpoint_resume_matches_uninterrupted_run(data, tmp_path):
     b = make()
     ck = tmp_path / "ck.pt"
     pfnet.train(b, ds, cfg(1), checkpoint=ck)
-    assert torch.load(ck, weights_only=False)["epoch"] == 1
+    assert torch.load(ck, weights_only=True)["epoch"] == 1
     c = make()  # fresh process: model rebuilt, then resumed from the checkpoint
     hist = pfnet.train(c, ds, cfg(2), checkpoint=ck).history
     assert len(hist) == 2

@@ -29,6 +29,7 @@ from pyro_slam.slam import (
     SLAMState,
     TrainingConfig,
     TransitionConfig,
+    checkpoint,
     path_integration,
     with_overrides,
 )
@@ -370,7 +371,7 @@ def test_checkpoint_writes_are_atomic(traversal, tmp_path, monkeypatch):
     slam = make_slam(traversal, checkpoint=ckpt, checkpoint_every=100)
     slam.run("online", progress=False)
     good = ckpt.read_bytes()
-    assert torch.load(ckpt, weights_only=False)["state"]["t"] == STEPS
+    assert checkpoint.read(ckpt)["state"]["t"] == STEPS
 
     def boom(*args, **kwargs):
         raise OSError("disk full")
@@ -397,7 +398,7 @@ def test_checkpoint_writes_are_atomic(traversal, tmp_path, monkeypatch):
     again = make_slam(traversal, checkpoint=ckpt).resume(ckpt)
     assert again.state.t == STEPS and again.state.phase == "done"
     slam.save(ckpt)  # and a working save replaces it
-    assert torch.load(ckpt, weights_only=False)["state"]["t"] == 3
+    assert checkpoint.read(ckpt)["state"]["t"] == 3
 
 
 def test_checkpoint_every_must_be_a_positive_integer(traversal):

@@ -3,9 +3,9 @@ import json
 import numpy as np
 import pytest
 
+from pyro_slam.cli import main
 from pyro_slam.data import load
 from simulators import DriverConfig, integrate_controls, make_maze, simulate_traversal
-from pyro_slam.cli import main
 from simulators.plotting import plot_traversal
 
 
