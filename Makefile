@@ -14,7 +14,7 @@ $(STAMP): setup.cfg pyproject.toml constraints.txt
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m pyro_slam.cli demo --out out
+	$(PY) -m pyro_slam.cli demo --out out --overwrite
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -213,11 +213,9 @@ def _float_array(src: str, name: str, value, ndim: int, limit: float = MAX_MAGNI
     return arr
 
 
-def validate(tr: Traversal, src: str = "traversal") -> Traversal:
-    """Check shapes, dtypes, lengths and values; raise :class:`DatasetError` on the first problem.
-
-    Converts float fields to ``float32`` (``float64`` is kept) in place.
-    """
+def _observations(tr: Traversal, src: str):
+    """The checked ``observations [T, B]``, ``max_range`` and ``obs_mask [T, B]`` (or None):
+    plausible, non-negative, and at least one valid reading below the sensor's range."""
     obs = _float_array(src, "observations", tr.observations, 2)
     T, B = obs.shape
     if T == 0:
@@ -251,6 +249,16 @@ def validate(tr: Traversal, src: str = "traversal") -> Traversal:
         raise DatasetError(
             f"{src}: field 'observations' has a negative range {obs[t, b]} at step {t}, beam {b}"
         )
+    return obs, max_range, mask
+
+
+def validate(tr: Traversal, src: str = "traversal") -> Traversal:
+    """Check shapes, dtypes, lengths and values; raise :class:`DatasetError` on the first problem.
+
+    Converts float fields to ``float32`` (``float64`` is kept) in place.
+    """
+    obs, _, mask = _observations(tr, src)
+    T, B = obs.shape
     ctl = _float_array(src, "controls", tr.controls, 2)
     if ctl.shape[0] != T - 1 or ctl.shape[1] < 1:
         raise DatasetError(

@@ -11,8 +11,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from .data import Traversal, atomic_write
+from .geometry import odometry_delta, rotate_forward
 
 
 def localisation_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
@@ -137,10 +139,6 @@ def summary(est: np.ndarray, true: np.ndarray) -> dict:
 
 def odometry_poses(traversal: Traversal) -> np.ndarray:
     """Integrate the traversal's controls from its first pose (zeros if unknown): ``[T, 3]``."""
-    import torch
-
-    from .geometry import odometry_delta, rotate_forward
-
     z = torch.zeros(3, dtype=torch.float64)
     if traversal.poses is not None:
         z = torch.as_tensor(traversal.poses[0], dtype=torch.float64)

@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import pymunk
 
+from simulators.camera import Camera, CameraConfig
 from simulators.maze import Maze
 from simulators.raycast import raycast
 
@@ -219,8 +220,6 @@ class World:
 
     def camera(self, config=None, depth: bool = False) -> np.ndarray:
         """First-person image ``[24, 32]`` (or depth image with ``depth=True``) at the pose."""
-        from simulators.camera import Camera, CameraConfig
-
         config = config or CameraConfig()
         if self._camera is None or self._camera.config != config:
             w = self.maze.corridor_width
