@@ -242,7 +242,7 @@ def config_cases(shared) -> list[Case]:
         ("transition", "scale_trusted", [1, 1, None]), ("transition", "kind", "neural"),
         ("training", "particles", 0), ("training", "chunks", -1), ("training", "chunk_length", 0),
         ("training", "lr", 0), ("training", "lr", -0.02), ("training", "every", 0),
-        ("training", "sigma", -1), ("training", "particles", 10**6),
+        ("training", "objective", "tempered"), ("training", "particles", 10**6),
         ("offline", "rounds", -1), ("offline", "svi_steps", 2.5), ("offline", "estimate", "both"),
         ("heading", "sigma", 0), ("heading", "support", 1), ("heading", "support", "many"),
     ]  # fmt: skip

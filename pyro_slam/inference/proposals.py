@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import pyro.distributions as dist
 import torch
 
 from ..geometry import wrap_angle
@@ -27,15 +28,30 @@ class HeadingObservation:
         return HeadingObservation(self.value[t], self.sigma, self.period)
 
 
+def _gaussian(model, p, u, sigma):
+    """The model's transition at particles ``p`` as its ``(loc, scale)`` ``[..., K, 3]``; a
+    transition that is not Gaussian is refused where the proposal needs one."""
+    d = model.transition_dist(p.z, u.unsqueeze(-2), p.scan, sigma, validate=False)
+    base = getattr(d, "base_dist", d)
+    if not isinstance(base, dist.Normal):
+        return None, d
+    return (base.loc, base.scale), d
+
+
 @torch.no_grad()
 def bootstrap(model, p, u: torch.Tensor, sigma=None, generator=None) -> torch.Tensor:
-    """Sample ``z_{t+1} ~ p(. | z_t, u_t, mu_E(m_t))`` for particles ``p``: ``[..., K, 3]``.
+    """Sample ``z_{t+1} ~ p(. | z_t, u_t, mu_E(m_t))`` (``model.transition_dist``) for particles
+    ``p``: ``[..., K, 3]``. A Gaussian transition is sampled with ``generator``; any other
+    distribution with its own ``sample()``.
 
     ``sigma``: the transition std to use instead of the model's ``sigma_T`` (``[3]`` or
     ``[..., 1, 3]``)."""
-    mean = model.transition.mean(p.z, u.unsqueeze(-2), p.scan)
-    eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
-    return mean + eps * (model.transition.sigma if sigma is None else sigma)
+    params, d = _gaussian(model, p, u, sigma)
+    if params is None:
+        return d.sample()
+    loc, scale = params
+    eps = torch.randn(loc.shape, generator=generator, dtype=loc.dtype)
+    return loc + eps * scale
 
 
 @torch.no_grad()
@@ -51,9 +67,10 @@ def heading_conditioned(model, p, u, obs: HeadingObservation, sigma=None, genera
     lands on a heading the observation allows, however narrow the cloud. Where the value is
     nan the heading is the transition's sample and the weight unchanged. Returns
     ``(z, log_weight [..., K])``."""
-    mean = model.transition.mean(p.z, u.unsqueeze(-2), p.scan)  # [..., K, 3]
-    std = model.transition.sigma if sigma is None else sigma
-    std = torch.as_tensor(std, dtype=mean.dtype)
+    params, _ = _gaussian(model, p, u, sigma)
+    if params is None:
+        raise ValueError("the heading observation's exact proposal needs a Gaussian transition")
+    mean, std = params  # [..., K, 3]
     eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
     z = mean + eps * std
     s = std[..., 2]

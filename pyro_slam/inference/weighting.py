@@ -25,7 +25,6 @@ from dataclasses import dataclass
 import torch
 
 WEIGHTINGS = ("marginal", "shared", "tempered")
-LOG_SQRT_2PI = 0.9189385332046727
 
 
 @dataclass
@@ -81,23 +80,25 @@ class Weighting:
     def trust(self, model, z: torch.Tensor, M: MapBelief) -> torch.Tensor:
         """How far the weights trust ``M`` at poses ``z [..., K, 3]``: ``[..., K, 1]`` (per
         beam ``[..., K, B]``) in ``[0.01, 1]``: one minus the chart's variance under ``M``
-        relative to the prior's (of the first ``emission.trust_features`` features where the
-        emission says so)."""
+        relative to the map prior's (``model.prior_std()``; of the first
+        ``emission.trust_features`` features where the emission says so). Charts of cells
+        still at the prior (relative variance 1) give flat weights."""
         g = model.grid
+        scale = M.scale / model.prior_std()  # [w, h, D] relative to the prior
         if self.per_beam:
-            var = model.emission.beam_variance(g, M.loc, M.scale, z)  # [..., K, B]
+            var = model.emission.beam_variance(g, M.loc, scale, z)  # [..., K, B]
         else:
             n = getattr(model.emission, "trust_features", None)  # None: every feature
-            scale = M.scale if n is None else M.scale[..., :n]
+            scale = scale if n is None else scale[..., :n]
             var = g.relative_variance(scale, z[..., :2])  # [..., K, 1]
-        # prior variance is 1: charts of unmapped cells (var -> 1) give flat weights
         return (1.0 - var).clamp_min(1e-2)
 
     def log_likelihood(self, model, z, M, x, mask=None, logw=None, autocast_dtype=None):
         """Log weights of poses ``z [..., K, 3]`` for the scan ``x [..., B]`` (``mask [..., B]``)
         under ``M``, a map ``[w, h, D]`` or a :class:`MapBelief`; ``logw [..., K]`` the prior
-        weights (``"shared"`` averages the trust with them). Returns ``(loglik [..., K],
-        scan [..., K, B])``, the predicted scans at the map mean."""
+        weights (``"shared"`` averages the trust with them). The per-beam density is the
+        model's emission noise (``model.noise_dist``) with this weighting's scale. Returns
+        ``(loglik [..., K], scan [..., K, B])``, the predicted scans at the map mean."""
         sigma = self.sigma if self.sigma is not None else model.sigma_emission
         s0, beta = sigma, None
         if isinstance(M, MapBelief):
@@ -117,25 +118,18 @@ class Weighting:
             scan = model.emission_mean(M, z)  # [..., K, B]
         m = None if mask is None else mask.unsqueeze(-2)
         xs = x.unsqueeze(-2)  # [..., 1, B]
+        eps = self.outlier_prob
         if beta is not None:
             # relative to a perfect match (no normaliser): an unmapped chart (beta = 0) scores
             # like a perfectly predicted scan, so no pull towards mapped cells at the frontier
-            lb = -0.5 * ((xs - scan) / s0).pow(2)  # [..., K, B]
-            if self.outlier_prob > 0:
-                eps = self.outlier_prob
+            noise = model.noise_dist(scan, s0)
+            lb = noise.log_prob(xs) - noise.log_prob(scan)  # [..., K, B]
+            if eps > 0:
                 lb = torch.logaddexp(lb + math.log1p(-eps), lb.new_tensor(math.log(eps)))
             return (beta * (lb if m is None else lb * m)).sum(-1), scan
-        return self._gaussian(xs, scan, m, sigma), scan
-
-    def _gaussian(self, x, scan, mask, sigma) -> torch.Tensor:
-        """Per-beam ``log N(x; scan, sigma)`` (with ``outlier_prob``, the beam mixture) summed
-        over the unmasked beams: ``x [..., 1, B]``, ``scan [..., K, B]`` -> ``[..., K]``."""
-        s = torch.as_tensor(sigma, dtype=scan.dtype)
-        r = (x - scan) / s
-        lg = -0.5 * r * r - (torch.log(s) + LOG_SQRT_2PI)  # [..., K, B]
-        if self.outlier_prob > 0:
-            eps = self.outlier_prob
-            lg = torch.logaddexp(
-                lg + math.log1p(-eps), lg.new_tensor(math.log(eps / self.outlier_range))
+        lb = model.noise_dist(scan, sigma).log_prob(xs)  # [..., K, B] the model's noise
+        if eps > 0:  # the beam mixture
+            lb = torch.logaddexp(
+                lb + math.log1p(-eps), lb.new_tensor(math.log(eps / self.outlier_range))
             )
-        return (lg if mask is None else lg * mask).sum(-1)
+        return (lb if m is None else lb * m).sum(-1), scan

@@ -10,7 +10,7 @@ from .emissions import (
     RayImageEmission,
     rotate_scan,
 )
-from .guide import BootstrapGuide, MapGuide
+from .guide import BootstrapGuide, MapGuide, autoguide, map_marginals
 from .model import DVBFLM, FilterModel, MapGrid
 from .networks import EmissionMLP, TransitionMLP, mlp
 from .transitions import KinematicTransition, LearnedTransition, Transition, pretrain_transition
@@ -31,6 +31,8 @@ __all__ = [
     "RayImageEmission",
     "Transition",
     "TransitionMLP",
+    "autoguide",
+    "map_marginals",
     "mlp",
     "pretrain_transition",
     "rotate_scan",

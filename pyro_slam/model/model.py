@@ -129,6 +129,18 @@ class DVBFLM(nn.Module):
         beam_angles: ``[B]`` beam directions relative to the heading (bare ``EmissionMLP`` only).
         sigma_emission: ``sigma_E`` (paper: 0.1 for training).
         init_scale: std of the initial-pose prior around the given start pose, ``[3]``.
+        prior: the map prior ``p(M)``: a Pyro distribution over a cell's features (event
+            ``[D_m]``, batch shape broadcastable to the grid ``[w, h]``) that exposes its
+            marginal ``variance`` (the filter's trust in the map compares with it); default
+            ``N(0, 1)``.
+        noise: the emission noise, a callable ``noise(loc, scale)`` returning a distribution
+            over each observation entry (batch shape that of ``loc``), e.g.
+            ``pyro.distributions.StudentT`` partially applied; default ``Normal``.
+
+    Every factor is a Pyro distribution (:meth:`map_prior`, :meth:`emission_dist`,
+    :meth:`transition_dist`), and everything that evaluates the model -- the Pyro model, the
+    particle filter's proposals and weights, the training objective, map fitting, planning
+    rollouts and MI -- reads these, so a swapped prior or noise model reaches all of them.
     """
 
     def __init__(
@@ -139,6 +151,8 @@ class DVBFLM(nn.Module):
         beam_angles=None,
         sigma_emission: float = 0.1,
         init_scale=(1e-3, 1e-3, 1e-3),
+        prior: dist.Distribution | None = None,
+        noise=None,
     ):
         super().__init__()
         if not isinstance(emission, Emission):
@@ -154,6 +168,8 @@ class DVBFLM(nn.Module):
         self.register_buffer(
             "init_scale", torch.as_tensor(init_scale, dtype=torch.get_default_dtype())
         )
+        self.noise = dist.Normal if noise is None else noise
+        self.prior = prior
 
     # ----------------------------------------------------------------- factors as functions
     def chart(self, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -174,34 +190,59 @@ class DVBFLM(nn.Module):
         """
         return self.emission.read(self.grid, M, z)
 
+    def noise_dist(self, mean: torch.Tensor, sigma=None, validate: bool = False):
+        """The emission noise around ``mean [..., N]``, one distribution per entry (batch
+        ``[..., N]``) with scale ``sigma`` (default ``sigma_E``; a tensor broadcasts). Argument
+        validation is off unless ``validate``: the particle filter checks its weights itself
+        and evaluates this on every particle of every step."""
+        s = torch.as_tensor(self.sigma_emission if sigma is None else sigma, dtype=mean.dtype)
+        with pyro.validation_enabled(validate):
+            d = self.noise(mean, s)
+        d._validate_args = validate  # (read again by log_prob, after the context)
+        return d
+
     def emission_dist(self, mean: torch.Tensor, mask: torch.Tensor | None = None, sigma=None):
         """``p(x_t | m_t)`` as a Pyro distribution with event shape ``[N]``."""
-        d = dist.Normal(mean, self.sigma_emission if sigma is None else sigma)
+        d = self.noise_dist(mean, sigma, validate=dist.is_validation_enabled())
         if mask is not None:
             d = d.mask(mask)
         return d.to_event(1)
 
     def emission_log_prob(self, x, mean, mask=None, sigma=None) -> torch.Tensor:
-        """``log p(x_t | m_t)`` summed over (unmasked) beams: ``[...]``.
+        """``log p(x_t | m_t)`` summed over (unmasked) entries: ``[...]``; the same value as
+        ``emission_dist(mean, mask, sigma).log_prob(x)``, on the particle batch."""
+        lp = self.noise_dist(mean, sigma).log_prob(x)  # [..., N]
+        return (lp if mask is None else lp * mask).sum(-1)
 
-        Same value as ``emission_dist(mean, mask).log_prob(x)``, written out for speed.
-        """
-        s = torch.as_tensor(self.sigma_emission if sigma is None else sigma, dtype=mean.dtype)
-        r = (x - mean) / s
-        lp = -0.5 * r * r - (torch.log(s) + 0.9189385332046727)
-        if mask is not None:
-            lp = lp * mask
-        return lp.sum(-1)
-
-    def transition_dist(self, z, u, scan=None):
-        """``p(z_{t+1} | z_t, u_t, m_t)`` with event shape ``[3]``."""
-        return dist.Normal(self.transition.mean(z, u, scan), self.transition.sigma).to_event(1)
+    def transition_dist(self, z, u, scan=None, sigma=None, validate: bool | None = None):
+        """``p(z_{t+1} | z_t, u_t, m_t)`` with event shape ``[3]`` (std ``sigma`` instead of the
+        transition's ``sigma_T`` if given, ``[3]`` or broadcastable to ``z``). ``validate``:
+        check the arguments (default: Pyro's setting; the particle filter turns it off, so a
+        deterministic transition, ``sigma_T = 0``, can be filtered)."""
+        s = self.transition.sigma if sigma is None else sigma
+        validate = dist.is_validation_enabled() if validate is None else validate
+        return dist.Normal(self.transition.mean(z, u, scan), s, validate_args=validate).to_event(1)
 
     def map_prior(self):
-        """``p(M) = N(0, 1)`` per cell and feature (batch ``[w, h]``, event ``[D_m]``)."""
-        w, h, D = self.grid.shape
-        loc = self.init_scale.new_zeros(D)
+        """``p(M)`` per cell (event ``[D_m]``): the given prior, or ``N(0, 1)``."""
+        if self.prior is not None:
+            return self.prior
+        loc = self.init_scale.new_zeros(self.grid.dim)
         return dist.Normal(loc, torch.ones_like(loc)).to_event(1)
+
+    def prior_std(self) -> torch.Tensor:
+        """The map prior's marginal std, broadcastable to ``[w, h, D_m]``: what the particle
+        filter's trust compares the map belief's std with."""
+        if self.prior is None:
+            return self.init_scale.new_ones(())
+        try:
+            var = self.prior.variance
+        except NotImplementedError:
+            raise ValueError(
+                f"the map prior {type(self.prior).__name__} must expose its marginal variance "
+                "(.variance): the filter's trust in the map compares the belief with it"
+            ) from None
+        return var.sqrt()
 
     # ------------------------------------------------------------------------ Pyro model
     learn_emission = True
@@ -210,7 +251,7 @@ class DVBFLM(nn.Module):
         """The global part of the model: registers ``mu_E`` (if learned) and samples the map.
 
         This is the ``model`` handed to :class:`pyro.infer.SVI` with
-        :class:`~pyro_slam.filtering.ParticleChunkELBO`, which adds the pose/observation part
+        :class:`~pyro_slam.inference.ParticleChunkELBO`, which adds the pose/observation part
         by particle filtering.
         """
         if self.learn_emission:
@@ -228,48 +269,64 @@ class DVBFLM(nn.Module):
 
         Args:
             observations: ``[T, N]`` flattened observations (or None to sample them).
-            controls: ``[T-1, D_u]``.
-            init_pose: ``[3]`` start pose (the map frame is anchored at it).
+            controls: ``[..., T-1, D_u]`` (a batch of control sequences, e.g. planned motion
+                primitives, broadcasts against the poses).
+            init_pose: ``[3]`` start pose (the map frame is anchored at it), or ``[..., 3]``.
             mask: optional ``[T, B]`` bool, False = missing reading.
         Returns:
-            poses ``[T, 3]``.
+            poses ``[..., T, 3]``. Sites: ``map``, ``z_t``, ``x_t`` and the predicted
+            observation ``scan_t`` (deterministic, ``mu_E``) of every step.
         """
         pyro.module("dvbflm", self)
-        T = controls.shape[0] + 1
+        T = controls.shape[-2] + 1
         M = self.sample_map()
         z = pyro.sample("z_0", dist.Normal(init_pose, self.init_scale).to_event(1))
         poses = []
         scan = None
         for t in pyro.markov(range(T)):
             if t > 0:
-                z = pyro.sample(f"z_{t}", self.transition_dist(z, controls[t - 1], scan))
-            scan = self.emission_mean(M, z)
+                z = pyro.sample(f"z_{t}", self.transition_dist(z, controls[..., t - 1, :], scan))
+            scan = pyro.deterministic(f"scan_{t}", self.emission_mean(M, z), event_dim=1)
             obs_t = None if observations is None else observations[t]
             mask_t = None if mask is None else mask[t]
             pyro.sample(f"x_{t}", self.emission_dist(scan, mask_t), obs=obs_t)
             poses.append(z)
-        return torch.stack(poses, -2)
+        return torch.stack(torch.broadcast_tensors(*poses), -2)
 
 
 class FilterModel:
     """The DVBF-LM time step as a model object for :class:`pyro.infer.SMCFilter`.
 
-    The map is fixed (e.g. the mean of a learned ``q(M)``). ``state["z"]`` holds the poses and
-    ``state["scan"]`` the predicted scan at them (the transition's input at the next step).
+    The map ``M`` is fixed (e.g. the mean of a learned ``q(M)``). ``state["z"]`` holds the
+    poses, ``state["scan"]`` the predicted scan at them (the transition's input at the next
+    step) and ``state["log_lik"]`` each particle's ``log p(x_t | z_t, M)`` (for the
+    log-evidence). ``weights``: a function ``(z, x, mask) -> (log_lik [K], scan [K, N])`` that
+    weighs the particles instead of the emission at ``M`` (e.g. SLAM's weights under a map
+    belief, :meth:`~pyro_slam.inference.Weighting.log_likelihood`); it enters as a
+    ``pyro.factor``.
     """
 
-    def __init__(self, dvbflm: DVBFLM, M: torch.Tensor):
-        self.m, self.M = dvbflm, M
+    def __init__(self, dvbflm: DVBFLM, M: torch.Tensor, weights=None):
+        self.m, self.M, self.weights = dvbflm, M, weights
+
+    def _observe(self, state, z, x, mask):
+        if self.weights is not None:
+            log_lik, scan = self.weights(z, x, mask)
+            pyro.factor("x", log_lik)
+        else:
+            scan = self.m.emission_mean(self.M, z)
+            if x is not None:
+                d = self.m.emission_dist(scan, mask)
+                pyro.sample("x", d, obs=x)
+                log_lik = d.log_prob(x)
+        if x is not None:
+            state["log_lik"] = log_lik
+        state["z"], state["scan"] = z, scan
 
     def init(self, state, init_pose, x=None, mask=None):
         z = pyro.sample("z", dist.Normal(init_pose, self.m.init_scale).to_event(1))
-        scan = self.m.emission_mean(self.M, z)
-        if x is not None:
-            pyro.sample("x", self.m.emission_dist(scan, mask), obs=x)
-        state["z"], state["scan"] = z, scan
+        self._observe(state, z, x, mask)
 
-    def step(self, state, x, u, mask=None):
-        z = pyro.sample("z", self.m.transition_dist(state["z"], u, state["scan"]))
-        scan = self.m.emission_mean(self.M, z)
-        pyro.sample("x", self.m.emission_dist(scan, mask), obs=x)
-        state["z"], state["scan"] = z, scan
+    def step(self, state, x, u, mask=None, sigma=None):
+        z = pyro.sample("z", self.m.transition_dist(state["z"], u, state["scan"], sigma))
+        self._observe(state, z, x, mask)

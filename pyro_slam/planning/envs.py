@@ -9,13 +9,15 @@ import copy
 from dataclasses import replace
 
 import numpy as np
+import pyro
 import torch
+from pyro.infer import Predictive
 from scipy.optimize import minimize
 
 from simulators import LidarConfig, World, raycast, simulate_traversal
 from simulators.world import point_segment_distance
 
-from ..model import EmissionMLP, KinematicTransition
+from ..model import DVBFLM, EmissionMLP, KinematicTransition
 from ..pretrained import EMISSION_FILE, PRETRAINED, load_emission
 from ..slam import SLAMConfig, build_model, fit_map, pretrain_emission
 from ..slam.build import LAYERS, LIDAR_HIDDEN, MAP_DIM
@@ -45,7 +47,12 @@ class LearnedEnv:
         max_std: float = 0.6,
     ):
         self.model, self.M, self.scale, self.max_std = model, M, scale, max_std
+        # the planner's copy of the model: its emission, map prior and noise, with kinematics
+        # that stop short of predicted walls and no transition noise
         self.transition = KinematicTransition(0.0, "rotate_forward", clip_margin=clip_margin)
+        self.planner_model = DVBFLM(model.grid, model.emission, self.transition,
+                                    sigma_emission=model.sigma_emission, prior=model.prior,
+                                    noise=model.noise)  # fmt: skip
         self.bounds = bounds if bounds is not None else model.grid.extent()
         self.seen: list[tuple] = []  # (pose [3], real scan [B], margin, radius)
 
@@ -67,13 +74,15 @@ class LearnedEnv:
 
     @torch.no_grad()
     def std(self, xy) -> np.ndarray:
-        """Mean std of the chart ``m = f_m(z, M)`` under ``q(M)`` at positions ``[N, 2]``."""
+        """Mean std of the chart ``m = f_m(z, M)`` under ``q(M)`` at positions ``[N, 2]``,
+        relative to the map prior's (1: nothing known there)."""
         xy = torch.as_tensor(np.asarray(xy)[..., :2], dtype=self.M.dtype)
-        var = self.model.grid.attend(self.scale**2, xy, power=2)
+        rel = self.scale / self.model.prior_std()
+        var = self.model.grid.attend(rel**2, xy, power=2)
         return var.mean(-1).sqrt().numpy()
 
     def valid(self, z) -> np.ndarray:
-        """Explored positions: chart std under ``q(M)`` below ``max_std`` (prior: 1); the
+        """Explored positions: chart std under ``q(M)`` below ``max_std`` of the prior's; the
         model's predicted scans are extrapolations elsewhere."""
         if self.scale is None:
             return np.ones(len(z), dtype=bool)
@@ -84,28 +93,28 @@ class LearnedEnv:
 
     @torch.no_grad()
     def rollout(self, z0: np.ndarray, controls: torch.Tensor):
-        """Apply ``controls [P, L, 2]`` from pose ``z0 [3]`` through the transition mean.
+        """Roll the model out under ``controls [P, L, 2]`` from pose ``z0 [3]``:
+        :class:`pyro.infer.Predictive` on ``DVBFLM.model`` with the map at ``M``, the planner's
+        transition (kinematics that stop short of predicted walls, no noise) and the model's
+        emission, prior and noise; the predicted scans are its ``scan_t`` sites.
 
         Returns final poses ``[P, 3]``, travel ``[P]``, end scans ``[P, B]``, paths
         ``[P, L + 1, 3]``.
         """
         P, L, _ = controls.shape
-        z = torch.as_tensor(z0, dtype=controls.dtype).expand(P, 3).clone()
-        path, travel = [z], torch.zeros(P)
-        for k in range(L):
-            u = controls[:, k]
-            zr = torch.cat([z[:, :2], z[:, 2:] + u[:, :1]], -1)
-            if bool((u[:, 1] > 0).any()):
-                # the scan read at the rotated pose: its forward beam looks along the motion
-                nz = self.transition.mean(
-                    zr, torch.stack([torch.zeros(P), u[:, 1]], -1), self.scan(zr)
-                )
-            else:
-                nz = zr
-            travel = travel + (nz[:, :2] - z[:, :2]).norm(dim=-1)
-            z = nz
-            path.append(z)
-        return z.numpy(), travel.numpy(), self.scan(z), torch.stack(path, 1).numpy()
+        z0 = torch.as_tensor(z0, dtype=controls.dtype)
+        sites = [f"z_{t}" for t in range(L + 1)] + [f"scan_{L}"]
+        predictive = Predictive(
+            self.planner_model.model,
+            posterior_samples={"map": self.M[None], "z_0": z0[None]},
+            return_sites=sites,
+        )
+        with pyro.validation_enabled(False):  # (a noise-free transition)
+            s = predictive(None, controls, z0)
+        path = torch.stack([s[f"z_{t}"].reshape(-1, 3).expand(P, 3) for t in range(L + 1)], 1)
+        travel = (path[:, 1:, :2] - path[:, :-1, :2]).norm(dim=-1).sum(-1)  # [P]
+        scans = s[f"scan_{L}"].reshape(P, -1)  # [P, B]
+        return path[:, -1].numpy(), travel.numpy(), scans, path.numpy()  # path [P, L + 1, 3]
 
 
 class GroundTruthEnv:

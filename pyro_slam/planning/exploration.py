@@ -31,10 +31,8 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import pyro
-import pyro.distributions as dist
 import torch
-from pyro import poutine
-from pyro.infer import SVI, TraceMeanField_ELBO
+from pyro.infer import SVI, Predictive, TraceMeanField_ELBO
 from pyro.optim import Adam
 from scipy.ndimage import gaussian_filter
 from scipy.spatial import cKDTree
@@ -213,32 +211,24 @@ class Mapper:
         loc, scale = (p.detach() for p in self.guide.params())
         return float((0.5 * (scale**2 + loc**2 - 1) - torch.log(scale)).sum())
 
-    # -- ancestral sampling for MI
-    def rollout_model(self, controls, init_pose, n_maps: int, n_paths: int, stride: int = 1):
-        """Pyro model: ``n_maps`` maps (site ``"map"``, ``[n_maps, w, h, D]``), ``n_paths``
-        pose/scan rollouts under each for ``controls [T-1, 2]`` from ``init_pose``; scans
-        ``x_t`` (``[n_maps, n_paths, B]``) every ``stride`` steps (the last step always)."""
-        m = self.model
-        w, h, _ = m.grid.shape
-        with pyro.plate("maps", n_maps, dim=-3):
-            with pyro.plate("map_x", w, dim=-2), pyro.plate("map_y", h, dim=-1):
-                M = pyro.sample("map", m.map_prior())
-        T = controls.shape[0] + 1
-        with pyro.plate("maps_r", n_maps, dim=-2), pyro.plate("paths", n_paths, dim=-1):
-            z = pyro.sample("z_0", dist.Normal(init_pose, m.init_scale).to_event(1))
-            for t in range(T):
-                if t > 0:
-                    z = pyro.sample(f"z_{t}", m.transition_dist(z, controls[t - 1]))
-                if (T - 1 - t) % stride == 0:
-                    pyro.sample(f"x_{t}", m.emission_dist(m.emission_mean(M, z)))
-
+    # -- the model's predictive for MI
     def sample_observations(self, controls, init_pose, n_maps, n_paths, stride=1):
-        """``[n_maps, n_paths, T' * B]`` scans from the rollout model with maps from ``q(M)``."""
+        """``[n_maps, n_paths, T' * B]`` scans predicted by the model (``DVBFLM.model`` through
+        :class:`pyro.infer.Predictive`): ``n_maps`` maps from ``q(M)``, ``n_paths`` pose
+        rollouts under each for ``controls [T-1, 2]`` from ``init_pose``; the scans ``x_t`` of
+        every ``stride``-th step counted back from the last."""
+        T = controls.shape[0] + 1
+        kept = [t for t in range(T) if (T - 1 - t) % stride == 0]
         with torch.no_grad():
             maps = self.guide.distribution().sample((n_maps,))  # [n_maps, w, h, D]
-            model = poutine.condition(self.rollout_model, data={"map": maps})
-            tr = poutine.trace(model).get_trace(controls, init_pose, n_maps, n_paths, stride)
-        xs = [s["value"] for name, s in tr.nodes.items() if name.startswith("x_")]
+            pred = Predictive(
+                self.model.model,
+                posterior_samples={"map": maps.repeat_interleave(n_paths, 0)},
+                return_sites=[f"x_{t}" for t in kept],
+                parallel=True,
+            )
+            s = pred(None, controls, init_pose)
+        xs = [s[f"x_{t}"].reshape(n_maps, n_paths, -1) for t in kept]
         return torch.cat(xs, -1)
 
 

@@ -138,9 +138,13 @@ def build_model(
     config: SLAMConfig,
     transition: Transition | None = None,
     emission: Emission | EmissionMLP | None = None,
+    prior=None,
+    noise=None,
 ):
     """A :class:`~pyro_slam.model.DVBFLM` and :class:`~pyro_slam.model.MapGuide` sized to a
-    prepared traversal's extent (see :func:`prepare_traversal`).
+    prepared traversal's extent (see :func:`prepare_traversal`); ``prior`` and ``noise``: the
+    model's map prior and emission noise (see :class:`~pyro_slam.model.DVBFLM`; the guide
+    starts at the prior's std).
 
     ``emission``: a (pretrained) emission, or None for a new one of the configured kind
     (:func:`make_emission`); ``transition``: None for the configured kinematic one. SLAM filters
@@ -160,8 +164,9 @@ def build_model(
     if not bool((scale == 1).all()):
         transition = copy.deepcopy(transition)
         transition.sigma.mul_(scale)
-    model = DVBFLM(grid, emission, transition, traversal.beam_angles, e.sigma)
-    return model, MapGuide(grid.shape)
+    model = DVBFLM(grid, emission, transition, traversal.beam_angles, e.sigma, prior=prior,
+                   noise=noise)  # fmt: skip
+    return model, MapGuide(grid.shape, init_scale=model.prior_std())
 
 
 def traversal_tensors(tr: Traversal):

@@ -149,25 +149,34 @@ class FilterConfig:
             raise ConfigError(f"filter.outlier_prob must be in [0, 1), got {p!r}")
 
 
+OBJECTIVES = ("elbo", "filter-sigma")
+
+
 @dataclass(frozen=True)
 class TrainingConfig:
     """SVI on the particle-chunk ELBO (paper eq. 3): ``chunks`` chunks of ``chunk_length``
     steps with ``particles`` particles each per SVI step, map learning rate ``lr`` (Adam); the
-    online sweep takes one SVI step every ``every`` steps. ``sigma``: the emission std of the
-    chunk filter's weights (None: the filter's)."""
+    online sweep takes one SVI step every ``every`` steps.
+
+    ``objective``: ``"elbo"``, the model's own ELBO (the chunk filter weighs with the model's
+    emission, ``sigma_E`` and its noise); or ``"filter-sigma"``, the ELBO of the model with
+    ``sigma_E`` replaced by the filter's sharper std (``filter.sigma``; the paper filters with a
+    sharper std, Appendix B-I). For Gaussian noise that is a tempered likelihood: per entry
+    ``log N(x; mu, s_f) = (s_E / s_f)^2 [log N(x; mu, s_E) + log(s_E sqrt(2 pi))] -
+    log(s_f sqrt(2 pi))``."""
 
     particles: int = 16
     chunk_length: int = 4
     chunks: int = 4
     lr: float = 0.02
     every: int = 1
-    sigma: float | None = None
+    objective: str = "elbo"
 
     def __post_init__(self):
         for name in ("particles", "chunk_length", "chunks", "every"):
             _positive(f"training.{name}", getattr(self, name), integer=True)
         _positive("training.lr", self.lr)
-        _positive("training.sigma", self.sigma, optional=True)
+        _choice("training.objective", self.objective, OBJECTIVES)
 
 
 @dataclass(frozen=True)

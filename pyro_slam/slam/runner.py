@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pyro
 import torch
+from pyro import poutine
 from pyro.infer import SVI
 from pyro.optim import Adam
 from tqdm.auto import tqdm
@@ -39,12 +40,13 @@ from ..inference import (
     ParticleChunkELBO,
     ParticleFilter,
     Particles,
+    PyroSMCFilter,
     Weighting,
 )
-from ..model import Emission, EmissionMLP, Transition
+from ..model import Emission, EmissionMLP, MapGuide, Transition, map_marginals
 from . import checkpoint, presets
 from .build import build_model, check_size, prepare_traversal, traversal_tensors
-from .config import SLAMConfig
+from .config import ConfigError, SLAMConfig
 from .heading import heading_observations
 from .insertion import ScanInserter
 
@@ -83,6 +85,17 @@ class SLAM:
             where the sensor matches it; otherwise a new one).
         learn_emission: whether SVI also learns the emission (default: only a new one; a given
             or shipped emission is pretrained and stays frozen).
+        guide: a factory ``model -> guide`` of the map guide (default: the mean-field
+            :class:`~pyro_slam.model.MapGuide`); the guide samples the site ``"map"`` and gives
+            its marginal mean and std through ``params()`` or Pyro's ``quantiles``
+            (:func:`~pyro_slam.model.map_marginals`); :func:`~pyro_slam.model.autoguide` makes
+            one from a Pyro autoguide.
+        prior, noise: the map prior and the emission noise of the model
+            (:class:`~pyro_slam.model.DVBFLM`): they reach the filter's weights and trust, the
+            training objective and everything else that reads the model.
+        smc: filter with Pyro's :class:`pyro.infer.SMCFilter` on the same model
+            (:class:`~pyro_slam.inference.PyroSMCFilter`; slower; per-particle weights only)
+            instead of our batched filter; training keeps ours.
         checkpoint: path of the checkpoint written every ``checkpoint_every`` steps.
         seed: seeds Pyro and the run's own ``torch.Generator``.
 
@@ -103,6 +116,10 @@ class SLAM:
         checkpoint_every: int = 1000,
         seed: int = 0,
         learn_emission: bool | None = None,
+        guide=None,
+        prior=None,
+        noise=None,
+        smc: bool = False,
     ):
         self.cfg = presets.default_for(traversal) if config is None else config
         if not (isinstance(checkpoint_every, int) and checkpoint_every > 0):
@@ -123,9 +140,15 @@ class SLAM:
         pyro.clear_param_store()
         pyro.set_rng_seed(seed)  # (after loading: building a network draws its initial weights)
         self.gen = torch.Generator().manual_seed(seed)
-        self.model, self.guide = build_model(self.tr, self.cfg, transition, emission)
+        self.model, self.guide = build_model(self.tr, self.cfg, transition, emission, prior, noise)
         self.model.learn_emission = bool(learn_emission)
+        if guide is not None:
+            self.guide = guide(self.model)
         self.pf = self._filter(self.cfg.filter.sigma, self.cfg.filter.outlier_prob)
+        if smc:
+            if self.cfg.heading is not None:
+                raise ConfigError("Pyro's SMCFilter drop-in does not take the heading observation")
+            self.pf = PyroSMCFilter(self.model, self.pf.weighting)
         self.cache = ParticleCache(self.T, CACHE_PARTICLES)
         self.headings = None
         if self.cfg.heading is not None:
@@ -135,15 +158,31 @@ class SLAM:
             )
         self.inserter = None
         if self.cfg.emission.insert is not None:
+            if not isinstance(self.guide, MapGuide):
+                raise ConfigError(
+                    "emission.insert writes scans into a MapGuide's mean and scale; with another "
+                    'guide switch it off (--config \'{"emission": {"insert": null}}\')'
+                )
             self.inserter = ScanInserter(self.cfg.emission.insert, self.model, self.guide)
         self.elbo = self._elbo()
         lr = self.cfg.training.lr
-        self.optim = Adam(lambda name, _p: {"lr": lr if name.startswith("map") else LR_EMISSION})
+        self.optim = Adam(
+            lambda name, _p: {"lr": LR_EMISSION if name.startswith("emission") else lr}
+        )
         self.svi = SVI(self.model.map_model, self.guide, self.optim, loss=self.elbo)
-        self.guide.params()  # create the map parameters now (checkpoints need them)
+        self._create_guide_params()
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
         self.particles: Particles | None = None
         self.state: SLAMState | None = None
+
+    def _create_guide_params(self) -> None:
+        """Create the guide's parameters now (checkpoints need them): a :class:`MapGuide`
+        through ``params()``; another guide by one draw (outside any inference)."""
+        if hasattr(self.guide, "params"):
+            self.guide.params()
+            return
+        with torch.no_grad(), poutine.block():
+            self.guide()
 
     def _filter(self, sigma, outlier_prob) -> ParticleFilter:
         """A particle filter of the configured weighting with this emission std and outlier
@@ -158,10 +197,11 @@ class SLAM:
         return ParticleFilter(self.model, w, generator=self.gen)
 
     def _elbo(self) -> ParticleChunkELBO:
-        """The particle-chunk ELBO; its chunk filter weighs with ``training.sigma`` (default
-        the filter's) and no outlier mixture."""
+        """The particle-chunk ELBO of ``training.objective``: its chunk filter weighs with the
+        model's emission (``"elbo"``) or with the filter's std (``"filter-sigma"``), never with
+        the filter's outlier mixture."""
         tc = self.cfg.training
-        sigma = self.cfg.filter.sigma if tc.sigma is None else tc.sigma
+        sigma = self.cfg.filter.sigma if tc.objective == "filter-sigma" else None
         return ParticleChunkELBO(
             self._filter(sigma, 0.0), self.cache, self.obs, self.ctl, self.mask,
             num_particles=tc.particles, headings=self.headings,
@@ -170,7 +210,7 @@ class SLAM:
     # --------------------------------------------------------------------------- helpers
     def map_belief(self) -> MapBelief:
         """The map belief the filter weighs with: mean and scale of ``q(M)`` (detached)."""
-        loc, scale = self.guide.params()
+        loc, scale = map_marginals(self.guide)
         return MapBelief(loc.detach(), scale.detach())
 
     def _svi_step(self, lo: int, hi: int, newest: int | None) -> float:
@@ -350,7 +390,7 @@ class SLAM:
         """``mean``, ``std`` ``[T, 3]`` (pose posterior), ``losses``, ``map_loc``, ``map_scale``
         ``[w, h, D_m]`` (``q(M)``) and, offline, the initial sweep's ``sweep_mean [T, 3]``."""
         st = self.state
-        loc, scale = self.guide.params()
+        loc, scale = map_marginals(self.guide)
         return {
             "mean": np.asarray(st.estimates, dtype=np.float64).reshape(-1, 3),
             "std": np.asarray(st.stds, dtype=np.float64).reshape(-1, 3),
@@ -408,7 +448,6 @@ class SLAM:
             # the store now holds *loaded* tensors: make the emission network use (and SVI
             # update) those, as it did before the checkpoint, not its own parameter copies
             pyro.module("emission", self.model.emission, update_module_params=True)
-        self.guide.params()
         self.optim.set_state(d["optim"])
         self.cache.load_state_dict(d["cache"])
         self.particles = None if d["particles"] is None else Particles(**d["particles"])

@@ -5,7 +5,9 @@ minibatches of time steps, with the poses ``z_t`` given."""
 from __future__ import annotations
 
 import numpy as np
+import pyro.distributions as dist
 import torch
+from torch.distributions import kl_divergence
 from tqdm.auto import tqdm
 
 from ..model import DVBFLM, Emission, EmissionMLP, LidarEmission
@@ -21,12 +23,18 @@ def _map_params(model: DVBFLM):
 
 
 def _negative_elbo(model: DVBFLM, loc, log_scale, obs, mask, poses, idx, T: int):
-    """``-E_q[log p(x | z, M)]`` (one sample, mean over the steps ``idx``) ``+ KL / T``."""
-    q = torch.distributions.Normal(loc, log_scale.exp())
-    mean = model.emission_mean(q.rsample(), poses[idx])
+    """``-E_q[log p(x | z, M)]`` (one sample, mean over the steps ``idx``) ``+ KL(q || p) / T``
+    with the model's own map prior and emission noise (Monte Carlo KL where no closed form)."""
+    q = dist.Normal(loc, log_scale.exp()).to_event(1)  # batch [w, h], event [D_m]
+    M = q.rsample()
+    mean = model.emission_mean(M, poses[idx])
     ll = model.emission_log_prob(obs[idx], mean, None if mask is None else mask[idx])
-    prior = torch.distributions.Normal(0.0, 1.0)
-    return -ll.mean() + torch.distributions.kl_divergence(q, prior).sum() / T
+    prior = model.map_prior()
+    try:
+        kl = kl_divergence(q, prior).sum()
+    except NotImplementedError:
+        kl = (q.log_prob(M) - prior.log_prob(M)).sum()
+    return -ll.mean() + kl / T
 
 
 def pretrain_emission(

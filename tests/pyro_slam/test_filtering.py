@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 
+import pyro
 import pytest
 import torch
 
@@ -42,9 +43,13 @@ class RandomWalk(Transition):
 class LinearGaussian:
     """Duck-typed stand-in for :class:`DVBFLM`: linear-Gaussian emission ``x ~ N(M z, R^2)``."""
 
-    emission_log_prob = DVBFLM.emission_log_prob  # DVBF-LM's emission log-density
+    # DVBF-LM's own factors: emission noise and log-density, transition distribution
+    noise_dist = DVBFLM.noise_dist
+    emission_log_prob = DVBFLM.emission_log_prob
+    transition_dist = DVBFLM.transition_dist
 
     def __init__(self, dtype):
+        self.noise = pyro.distributions.Normal
         self.sigma_emission = R
         self.transition = RandomWalk(torch.tensor(Q, dtype=dtype))
         self.init_scale = torch.tensor(S0, dtype=dtype)

@@ -110,12 +110,13 @@ def test_time_loop_is_first_order_markov():
     # the global map and the initial pose are sampled before the time loop
     assert "_markov_scope" not in tr.nodes["map"]["infer"]
     assert "_markov_scope" not in tr.nodes["z_0"]["infer"]
-    assert set(tr.nodes["x_0"]["infer"]["_markov_scope"]) == set()
+    assert set(tr.nodes["x_0"]["infer"]["_markov_scope"]) == {"scan_0"}
     for t in range(1, 4):
         z, x = tr.nodes[f"z_{t}"]["infer"], tr.nodes[f"x_{t}"]["infer"]
-        prev = {f"x_{t - 1}"} | ({f"z_{t - 1}"} if t > 1 else set())
+        # (scan_t: the deterministic site of the predicted observation mu_E at z_t)
+        prev = {f"x_{t - 1}", f"scan_{t - 1}"} | ({f"z_{t - 1}"} if t > 1 else set())
         assert set(z["_markov_scope"]) == prev  # z_t sees step t-1 only
-        assert set(x["_markov_scope"]) == prev | {f"z_{t}"}
+        assert set(x["_markov_scope"]) == prev | {f"z_{t}", f"scan_{t}"}
         assert z["_markov_depth"] == x["_markov_depth"] == 1  # one loop, not nested
 
 

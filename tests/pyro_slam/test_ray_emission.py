@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import pyro
 import pytest
 import torch
 
@@ -161,7 +162,14 @@ def test_beam_mixture_weights_bound_one_wild_beam():
     weighting = Weighting("marginal", s, outlier_prob=eps, outlier_range=rng)
     x = torch.tensor([[0.3, 0.2]])  # [1, B]
     scan = torch.tensor([[0.3, 0.2], [0.3, 0.45], [0.31, 0.2]])  # [K=3, B]
-    lp = weighting._gaussian(x, scan, None, s)  # [3]
+
+    class Model:  # the model's factors the weights read: its noise and its predicted scans
+        noise, sigma_emission, noise_dist = pyro.distributions.Normal, 0.1, DVBFLM.noise_dist
+
+        def emission_mean(self, M, z):
+            return scan
+
+    lp, _ = weighting.log_likelihood(Model(), torch.zeros(3, 3), torch.zeros(1), x[0])  # [3]
     gauss = -0.5 * ((x - scan) / s) ** 2 - math.log(s) - 0.5 * math.log(2 * math.pi)
     expect = torch.log((1 - eps) * gauss.exp() + eps / rng).sum(-1)
     assert torch.allclose(lp, expect, atol=1e-5)

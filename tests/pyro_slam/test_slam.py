@@ -217,13 +217,12 @@ def test_transition_scale_scales_a_copy_of_sigma_t(traversal):
             TransitionConfig(scale=bad)
 
 
-@pytest.mark.parametrize("training_sigma", [None, 0.1])
-def test_elbo_chunk_filter_weighs_with_the_filter_sigma_unless_training_sets_one(
-    traversal, training_sigma
-):
-    # the ELBO's chunk filter weighs with filter.sigma unless training.sigma overrides it (e.g.
-    # with the model's own sigma_E = 0.1)
-    slam = make_slam(traversal, {"filter": {"sigma": 0.02}, "training": {"sigma": training_sigma}})
+@pytest.mark.parametrize("objective", ["elbo", "filter-sigma"])
+def test_elbo_chunk_filter_weighs_with_the_objectives_emission(traversal, objective):
+    # "elbo": the model's own sigma_E (0.1 here); "filter-sigma": the filter's sharper std;
+    # never the filter's outlier mixture
+    over = {"filter": {"sigma": 0.02, "outlier_prob": 0.2}, "training": {"objective": objective}}
+    slam = make_slam(traversal, over)
     t = 5
     true = torch.as_tensor(traversal.poses, dtype=slam.cache.z.dtype)
     slam.cache.z[:] = true.unsqueeze(1)  # every cached particle at the true pose
@@ -232,10 +231,10 @@ def test_elbo_chunk_filter_weighs_with_the_filter_sigma_unless_training_sets_one
     with torch.no_grad():
         ev = slam.elbo.chunk_log_evidence(M, ChunkBatch(torch.tensor([t]), 1))
         scan = slam.model.emission_mean(M, true[t])
-        sigma = 0.02 if training_sigma is None else training_sigma
+        sigma = 0.02 if objective == "filter-sigma" else slam.model.sigma_emission
         expected = slam.model.emission_log_prob(slam.obs[t], scan, sigma=sigma)
-    assert slam.pf.weighting.sigma == 0.02
-    assert slam.elbo.pf.weighting.sigma == sigma and slam.elbo.pf.weighting.outlier_prob == 0
+    assert slam.pf.weighting.sigma == 0.02 and slam.pf.weighting.outlier_prob == 0.2
+    assert slam.elbo.pf.weighting.outlier_prob == 0
     torch.testing.assert_close(ev[0], expected, rtol=1e-3, atol=1e-2)
 
 
