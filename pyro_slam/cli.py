@@ -92,8 +92,13 @@ def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
     else:
         config = preset.for_traversal(traversal)
     if args.config:
-        src = Path(args.config)
-        text = src.read_text() if src.is_file() else args.config
+        text = args.config
+        if not text.lstrip().startswith("{"):  # a file of JSON
+            try:
+                text = Path(text).read_text()
+            except (OSError, UnicodeDecodeError) as e:
+                raise DatasetError(f"--config {text[:60]!r}: not a JSON object, nor a readable "
+                                   f"file ({one_line(e)})") from None  # fmt: skip
         try:
             over = json.loads(text)
         except json.JSONDecodeError as e:

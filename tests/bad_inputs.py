@@ -262,6 +262,8 @@ def config_cases(shared) -> list[Case]:
         ("config a number", "3", "JSON object"),
         ("config component not an object", '{"filter": 5}', "filter"),
         ("config beam_stride 0", '{"beam_stride": 0}', "beam_stride"),
+        ("config a missing file", "missing.json", "missing.json"),
+        ("config a very long non-JSON string", "x" * 5000, "--config"),
         ("config range_clip negative", '{"range_clip": -3}', "range_clip"),
     ]:
         cases.append(Case(name, [*s, "--config", text], expect))

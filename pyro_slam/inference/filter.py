@@ -56,6 +56,7 @@ class ParticleFilter:
         self.generator = generator
         self.ess_threshold, self.scheme = ess_threshold, scheme
         self.autocast_dtype = autocast_dtype
+        self.last_cloud_trust: torch.Tensor | None = None  # [...] set by each weighing
 
     def trust(self, z: torch.Tensor, M: MapBelief) -> torch.Tensor:
         """The weights' trust in ``M`` at poses ``z [..., K, 3]`` (:meth:`Weighting.trust`)."""
@@ -69,7 +70,7 @@ class ParticleFilter:
         """Weigh poses ``z [..., K, 3]`` (plus ``correction [..., K]``, a proposal's log
         transition-over-proposal density ratio). Returns new particles and the log-evidence
         increment ``[...]``."""
-        loglik, scan = self.weighting.log_likelihood(
+        loglik, scan, trust = self.weighting.log_likelihood(
             self.model, z, M, x, mask, logw, self.autocast_dtype
         )
         if correction is not None:
@@ -79,7 +80,10 @@ class ParticleFilter:
         inc = torch.logsumexp(joint, -1)  # [...]
         # normalised weights keep their graph: without resampling, the next step's evidence
         # depends on the map through them too (resampling resets them to constants)
-        return Particles(z, joint - inc.unsqueeze(-1), scan.detach()), inc
+        out = Particles(z, joint - inc.unsqueeze(-1), scan.detach())
+        if trust is not None:  # the cloud's trust in the map belief it was weighed under
+            self.last_cloud_trust = (out.logw.detach().exp() * trust.mean(-1)).sum(-1)
+        return out, inc
 
     def init(self, z0, M, x, mask=None, step=0):
         """Weigh initial particles ``z0 [..., K, 3]`` by ``x [..., B]``.

@@ -36,7 +36,8 @@ class PyroSMCFilter:
         self._belief: MapBelief | torch.Tensor | None = None
 
     def _weights(self, z, x, mask):
-        return self.weighting.log_likelihood(self.model, z, self._belief, x, mask)
+        log_lik, scan, _ = self.weighting.log_likelihood(self.model, z, self._belief, x, mask)
+        return log_lik, scan
 
     def trust(self, z, M: MapBelief) -> torch.Tensor:
         return self.weighting.trust(self.model, z, M)

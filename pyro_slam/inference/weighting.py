@@ -83,39 +83,51 @@ class Weighting:
         relative to the map prior's (``model.prior_std()``; of the first
         ``emission.trust_features`` features where the emission says so). Charts of cells
         still at the prior (relative variance 1) give flat weights."""
+        return self._read(model, z, M, scan=False)[1]
+
+    def _read(self, model, z, M: MapBelief, scan: bool = True):
+        """The predicted scans at the map mean (if ``scan``) and the trust, sharing one march
+        along the beams where the trust is per beam."""
         g = model.grid
         scale = M.scale / model.prior_std()  # [w, h, D] relative to the prior
         if self.per_beam:
-            var = model.emission.beam_variance(g, M.loc, scale, z)  # [..., K, B]
+            pred, var = model.emission.range_and_variance(g, M.loc, scale, z)  # [..., K, B]
         else:
             n = getattr(model.emission, "trust_features", None)  # None: every feature
             scale = scale if n is None else scale[..., :n]
             var = g.relative_variance(scale, z[..., :2])  # [..., K, 1]
-        return (1.0 - var).clamp_min(1e-2)
+            pred = model.emission_mean(M.loc, z) if scan else None
+        return pred, (1.0 - var).clamp_min(1e-2)
 
     def log_likelihood(self, model, z, M, x, mask=None, logw=None, autocast_dtype=None):
         """Log weights of poses ``z [..., K, 3]`` for the scan ``x [..., B]`` (``mask [..., B]``)
         under ``M``, a map ``[w, h, D]`` or a :class:`MapBelief`; ``logw [..., K]`` the prior
         weights (``"shared"`` averages the trust with them). The per-beam density is the
         model's emission noise (``model.noise_dist``) with this weighting's scale. Returns
-        ``(loglik [..., K], scan [..., K, B])``, the predicted scans at the map mean."""
+        ``(loglik [..., K], scan [..., K, B], trust)``: the predicted scans at the map mean and
+        the trust (None for a plain map)."""
         sigma = self.sigma if self.sigma is not None else model.sigma_emission
-        s0, beta = sigma, None
+        s0, beta, trust = sigma, None, None
         if isinstance(M, MapBelief):
-            trust = self.trust(model, z, M)  # [..., K, 1 | B]
+            scan, trust = self._read(model, z, M)  # [..., K, B], [..., K, 1 | B]
+            shared = trust
             if self.kind == "shared":
-                trust = (logw.exp().unsqueeze(-1) * trust).sum(-2, keepdim=True)  # [..., 1, 1]
-            M = M.loc
+                shared = (logw.exp().unsqueeze(-1) * trust).sum(-2, keepdim=True)  # [..., 1, 1]
             if self.kind == "tempered":
-                beta = trust**2  # p(x | z, E[M])^beta, without the normaliser
+                beta = shared**2  # p(x | z, E[M])^beta, without the normaliser
             else:
-                sigma = s0 / trust
-        if autocast_dtype is not None and not torch.is_grad_enabled():
+                sigma = s0 / shared
+        elif autocast_dtype is not None and not torch.is_grad_enabled():
             # reduced-precision emission for filtering only (training keeps full precision)
             with torch.autocast(z.device.type, dtype=autocast_dtype):
                 scan = model.emission_mean(M, z).to(z.dtype)  # [..., K, B]
         else:
             scan = model.emission_mean(M, z)  # [..., K, B]
+        return self._log_density(model, scan, x, mask, sigma, s0, beta), scan, trust
+
+    def _log_density(self, model, scan, x, mask, sigma, s0, beta) -> torch.Tensor:
+        """``[..., K]``: the per-beam log-density of ``x`` around ``scan`` summed over the
+        unmasked beams (tempered: relative to a perfect match, times ``beta``)."""
         m = None if mask is None else mask.unsqueeze(-2)
         xs = x.unsqueeze(-2)  # [..., 1, B]
         eps = self.outlier_prob
@@ -126,10 +138,9 @@ class Weighting:
             lb = noise.log_prob(xs) - noise.log_prob(scan)  # [..., K, B]
             if eps > 0:
                 lb = torch.logaddexp(lb + math.log1p(-eps), lb.new_tensor(math.log(eps)))
-            return (beta * (lb if m is None else lb * m)).sum(-1), scan
+            return (beta * (lb if m is None else lb * m)).sum(-1)
         lb = model.noise_dist(scan, sigma).log_prob(xs)  # [..., K, B] the model's noise
         if eps > 0:  # the beam mixture
-            lb = torch.logaddexp(
-                lb + math.log1p(-eps), lb.new_tensor(math.log(eps / self.outlier_range))
-            )
-        return (lb if m is None else lb * m).sum(-1), scan
+            floor = lb.new_tensor(math.log(eps / self.outlier_range))
+            lb = torch.logaddexp(lb + math.log1p(-eps), floor)
+        return (lb if m is None else lb * m).sum(-1)

@@ -205,9 +205,15 @@ class RayEmission(Emission):
         stops under ``loc``, averaged over the stopping point (passing rays: the last point).
         A beam that ends on a mapped wall is trusted even where the pose is new; one that runs
         into unmapped space is not."""
-        pts, stop, passes = self._stops(grid, loc, z)
+        return self.range_and_variance(grid, loc, scale, z)[1]
+
+    def range_and_variance(self, grid, loc, scale, z):
+        """Each beam's expected range under ``loc`` and its :meth:`beam_variance`, from one
+        march along the beams: both ``[..., B]``."""
+        pts, stop, passes = self._stops(grid, loc, z)  # [..., B, S, 2], [..., B, S], [..., B]
         var = grid.relative_variance(scale[..., :1], pts)[..., 0]  # [..., B, S] occupancy's
-        return (stop * var).sum(-1) + passes * var[..., -1]
+        rng = (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range
+        return rng, (stop * var).sum(-1) + passes * var[..., -1]
 
 
 class ImageEmission(Emission):

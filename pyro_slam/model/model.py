@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import pyro
 import pyro.distributions as dist
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from .emissions import Emission, LidarEmission
@@ -74,19 +75,13 @@ class MapGrid:
         Returns:
             charts ``[..., D]`` (``[S, ..., D]`` with a batched map).
         """
+        if power == 1:
+            return self._bilinear(M, xy)
         w, h = self.cells
         D = M.shape[-1]
-        gx = (xy[..., 0] - self.origin[0]) * ((w - 1) / self.size[0])
-        gy = (xy[..., 1] - self.origin[1]) * ((h - 1) / self.size[1])
-        gx = gx.clamp(0, w - 1)
-        gy = gy.clamp(0, h - 1)
-        i0 = gx.detach().floor().clamp(max=w - 2)
-        j0 = gy.detach().floor().clamp(max=h - 2)
-        a = (gx - i0).unsqueeze(-1)  # [..., 1]
-        b = (gy - j0).unsqueeze(-1)
+        a, b, base = self._corner(xy)
         wa = (1 - a) ** power, a**power
         wb = (1 - b) ** power, b**power
-        base = i0.long() * h + j0.long()  # [...] flat index of the lower-left cell
         if M.dim() == 3:
             flat = M.reshape(w * h, D)
 
@@ -108,13 +103,50 @@ class MapGrid:
             + wa[1] * wb[1] * cell(h + 1)
         )
 
+    def _corner(self, xy: torch.Tensor):
+        """The interpolation fractions ``a, b [..., 1]`` and the flat index ``[...]`` of the
+        lower-left grid point of each position (clamped to the grid)."""
+        w, h = self.cells
+        gx = ((xy[..., 0] - self.origin[0]) * ((w - 1) / self.size[0])).clamp(0, w - 1)
+        gy = ((xy[..., 1] - self.origin[1]) * ((h - 1) / self.size[1])).clamp(0, h - 1)
+        i0 = gx.detach().floor().clamp(max=w - 2)
+        j0 = gy.detach().floor().clamp(max=h - 2)
+        base = i0.long() * h + j0.long()
+        return (gx - i0).unsqueeze(-1), (gy - j0).unsqueeze(-1), base
+
+    def _bilinear(self, M: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+        """Plain bilinear interpolation (``power = 1``) at positions ``xy [..., 2]``."""
+        w, h = self.cells
+        gx = (xy[..., 0] - self.origin[0]) * ((w - 1) / self.size[0])
+        gy = (xy[..., 1] - self.origin[1]) * ((h - 1) / self.size[1])
+        return self._sample(M, gx, gy)
+
+    def _sample(self, M: torch.Tensor, gx: torch.Tensor, gy: torch.Tensor) -> torch.Tensor:
+        """Bilinear interpolation of ``M`` at grid coordinates ``gx, gy [...]`` (clamped to the
+        grid) through ``grid_sample``: the values of the four-cell sum in one fused kernel."""
+        w, h = self.cells
+        D = M.shape[-1]
+        image = M.permute(0, 3, 2, 1) if M.dim() == 4 else M.permute(2, 1, 0)[None]  # [N, D, h, w]
+        grid = torch.stack([gx * (2 / (w - 1)) - 1, gy * (2 / (h - 1)) - 1], -1)
+        grid = grid.to(M.dtype).reshape(image.shape[0], 1, -1, 2)
+        out = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        return out[:, :, 0].transpose(1, 2).reshape(*gx.shape, D)  # [..., D]
+
     def relative_variance(self, scale: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
         """Variance of the chart at ``xy [..., 2]`` under a mean-field ``q(M)`` with std
         ``scale [w, h, D]``, relative to the prior's (``scale = 1``) and averaged over the ``D``
         features: ``[..., 1]`` in ``[0, 1]``, i.e. ``sum a_i^2 s_i^2 / sum a_i^2`` over the
-        four attended cells (weights ``a_i``)."""
-        var = self.attend(scale**2, xy, power=2).mean(-1, keepdim=True)  # [..., 1]
-        return var / self.attend(torch.ones_like(scale[..., :1]), xy, power=2)
+        four attended cells (bilinear weights ``a_i``). The squared weights are separable and,
+        normalised, bilinear weights again at the fractions ``a^2 / ((1 - a)^2 + a^2)``, so this
+        is one bilinear read of ``s^2`` at shifted positions."""
+        w, h = self.cells
+        gx = ((xy[..., 0] - self.origin[0]) * ((w - 1) / self.size[0])).clamp(0, w - 1)
+        gy = ((xy[..., 1] - self.origin[1]) * ((h - 1) / self.size[1])).clamp(0, h - 1)
+        i0 = gx.floor().clamp(max=w - 2)
+        j0 = gy.floor().clamp(max=h - 2)
+        a, b = gx - i0, gy - j0
+        a2, b2 = a * a / ((1 - a) ** 2 + a * a), b * b / ((1 - b) ** 2 + b * b)
+        return self._sample(scale**2, i0 + a2, j0 + b2).mean(-1, keepdim=True)
 
 
 class DVBFLM(nn.Module):

@@ -257,14 +257,17 @@ class SLAM:
         (scaled by ``transition.scale``) to the one scaled by ``scale_trusted`` as the cloud's
         trust in the map goes from 0 to 1: firm odometry at the frontier of the map, where a
         young chart copies the last scans and misleads the filter, and loose odometry where the
-        map is established."""
+        map is established. The trust is the one the last step's weights computed (no second
+        march along the beams)."""
         tc = self.cfg.transition
         active = self.state is None or self.state.phase in TRUSTED_PHASES
         if tc.scale_trusted is None or not active:
             return None
         lo = self.model.transition.sigma  # [3], already scaled by transition.scale
         hi = lo * (torch.tensor(tc.scale_trusted, dtype=lo.dtype) / torch.tensor(tc.scale))
-        trust = self.pf.cloud_trust(self.particles, M)  # []
+        trust = self.pf.last_cloud_trust  # [] the cloud's, as the last step weighed it
+        if trust is None:
+            trust = self.pf.cloud_trust(self.particles, M)
         return lo + trust * (hi - lo)
 
     # --------------------------------------------------------------------------- phases

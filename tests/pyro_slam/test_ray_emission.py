@@ -169,7 +169,7 @@ def test_beam_mixture_weights_bound_one_wild_beam():
         def emission_mean(self, M, z):
             return scan
 
-    lp, _ = weighting.log_likelihood(Model(), torch.zeros(3, 3), torch.zeros(1), x[0])  # [3]
+    lp, _, _ = weighting.log_likelihood(Model(), torch.zeros(3, 3), torch.zeros(1), x[0])  # [3]
     gauss = -0.5 * ((x - scan) / s) ** 2 - math.log(s) - 0.5 * math.log(2 * math.pi)
     expect = torch.log((1 - eps) * gauss.exp() + eps / rng).sum(-1)
     assert torch.allclose(lp, expect, atol=1e-5)

@@ -430,6 +430,12 @@ def test_transition_scale_trusted_loosens_sigma_t_with_the_clouds_trust(traversa
         torch.testing.assert_close(spread, sigma, rtol=0.08, atol=0)
     res = slam.run("online", progress=False)  # runs end to end with it
     assert np.isfinite(res["mean"]).all()
+    # during a run the schedule reads the trust the last step's weights computed
+    slam.state = SLAMState("online")
+    slam.pf.init(z[:64], mapped, slam.obs[0])
+    torch.testing.assert_close(slam.pf.last_cloud_trust, torch.tensor(1.0))
+    torch.testing.assert_close(slam._transition_sigma(unmapped), hi)
+    slam.pf.last_cloud_trust = None
     # the offline filter passes (a finished map, no frontier) keep the model's sigma_T
     slam.state = SLAMState("offline", phase="online-init")
     torch.testing.assert_close(slam._transition_sigma(mapped), hi)

@@ -1,0 +1,165 @@
+"""SLAM speed: each preset on one fixed traversal, online and offline, optionally side by side
+with another commit's code.
+
+The traversal is the held-out tuning maze 991 (moderate-medium), driver seed 1, 3000 steps. For
+each preset and mode it prints steps per second (online: steps / wall time; offline: the time
+per 3000-step traversal), and a breakdown of the online run from a profile of its first
+``--profile-steps`` steps: the filter, SVI, scan insertion and everything else. The last line
+is one JSON object.
+
+    python -m benchmarks.slam_speed                                   # the default preset
+    python -m benchmarks.slam_speed --presets paper,raycast,manhattan --modes online,offline
+    python -m benchmarks.slam_speed --against 6b4d1e5 --against-config '{"lidar_emission": ...}'
+
+``--against REV`` checks out commit ``REV`` into a temporary git worktree and times its
+``pyro-slam slam`` command on the same traversal, in the same run, so that the ratio is measured
+side by side (absolute times on a shared machine vary from day to day). A commit without
+presets takes the preset's settings as ``--against-config`` (its own JSON format) and
+``--against-transition`` (its learned transition file, if the preset uses one). Threads:
+``--threads`` for both (torch intra-op threads).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import os
+import pstats
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from benchmarks._common import add_config_args, slam_config
+from pyro_slam.slam import SLAM, presets
+from simulators import simulate_traversal
+from simulators.maze import make_maze
+
+REPO = Path(__file__).resolve().parents[1]
+MAZE, DRIVER_SEED = 991, 1  # a held-out tuning maze, never a test maze
+PARTS = {  # profile rows of the online loop -> breakdown
+    "filter": ("runner.py", "_filter_step"),
+    "svi": ("runner.py", "_svi_step"),
+    "insertion": ("insertion.py", "insert"),
+}
+
+
+def traversal(steps: int):
+    maze = make_maze("moderate-medium", MAZE)
+    return simulate_traversal(maze, steps=steps, seed=DRIVER_SEED, noise_seed=(DRIVER_SEED, MAZE))
+
+
+def time_run(tr, config, mode: str) -> float:
+    """Wall seconds of one SLAM run (no progress bar, seed 1)."""
+    slam = SLAM(tr, config, seed=1)
+    t0 = time.perf_counter()
+    slam.run(mode, progress=False)
+    return time.perf_counter() - t0
+
+
+def breakdown(tr, config, steps: int) -> dict:
+    """Fractions of the online loop's time in the filter, SVI, scan insertion and the rest,
+    from a cProfile of its first ``steps`` steps."""
+    slam = SLAM(tr.slice(0, steps), config, seed=1)
+    prof = cProfile.Profile()
+    prof.enable()
+    slam.run("online", progress=False)
+    prof.disable()
+    stats = pstats.Stats(prof).stats
+    total = max(v[3] for k, v in stats.items() if k[2] == "_online")
+    out = {}
+    for part, (file, func) in PARTS.items():
+        out[part] = sum(v[3] for k, v in stats.items() if k[0].endswith(file) and k[2] == func)
+    out = {k: v / total for k, v in out.items()}
+    out["other"] = max(0.0, 1.0 - sum(out.values()))
+    return {k: round(v, 3) for k, v in out.items()}
+
+
+def time_commit(rev: str, tr_path: Path, config: str, transition: str | None, mode: str,
+                threads: int) -> float:  # fmt: skip
+    """Wall seconds of ``pyro-slam slam`` at commit ``rev`` (a temporary worktree) on the saved
+    traversal, from its ``metrics.json``."""
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "tree"
+        subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "-q", str(tree),
+                        rev], check=True)  # fmt: skip
+        try:
+            out, cfg = Path(tmp) / "run", Path(tmp) / "config.json"
+            cfg.write_text(config)  # (a file: long JSON strings are not always taken inline)
+            argv = [sys.executable, "-m", "pyro_slam.cli", "slam", str(tr_path), "--out",
+                    str(out), "--mode", mode, "--seed", "1", "--config", str(cfg)]  # fmt: skip
+            if transition:
+                argv += ["--transition", str(tree / transition)]
+            env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": str(threads)}
+            run = subprocess.run(argv, cwd=tree, env=env, capture_output=True, text=True)
+            if run.returncode:
+                raise RuntimeError(f"{rev}: pyro-slam slam failed: {run.stderr.strip()[-500:]}")
+            return float(json.loads((out / "metrics.json").read_text())["wall_time_s"])
+        finally:
+            subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
+                           check=False)  # fmt: skip
+
+
+def parse(argv):
+    p = argparse.ArgumentParser(prog="python -m benchmarks.slam_speed", description=__doc__)
+    p.add_argument("--presets", default=presets.DEFAULT, help="comma-separated preset names")
+    add_config_args(p, presets.DEFAULT)
+    p.add_argument("--modes", default="online,offline")
+    p.add_argument("--steps", type=int, default=3000)
+    p.add_argument("--profile-steps", type=int, default=300)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--against", metavar="REV", help="also time this commit's code")
+    p.add_argument("--against-config", default="{}", metavar="JSON",
+                   help="the preset's settings in that commit's --config format")  # fmt: skip
+    p.add_argument("--against-transition", metavar="PATH",
+                   help="its learned transition file (relative to its tree), if the preset "
+                   "uses one")  # fmt: skip
+    args = p.parse_args(argv)
+    names = [n for n in args.presets.split(",") if n]
+    if unknown := [n for n in names if n not in presets.PRESETS]:
+        p.error(f"--presets: unknown {unknown}; presets: {list(presets.PRESETS)}")
+    modes = [m for m in args.modes.split(",") if m]
+    if bad := [m for m in modes if m not in ("online", "offline")]:
+        p.error(f"--modes: {bad}: online or offline")
+    if args.steps < 2 or args.profile_steps < 2 or args.threads < 1:
+        p.error("--steps and --profile-steps must be >= 2, --threads >= 1")
+    configs = {n: slam_config(p, n, args.config) for n in names}
+    return args, names, modes, configs
+
+
+def main(argv=None) -> int:
+    args, names, modes, configs = parse(argv)
+    torch.set_num_threads(args.threads)
+    tr = traversal(args.steps)
+    summary = {"maze": MAZE, "driver_seed": DRIVER_SEED, "steps": args.steps,
+               "threads": args.threads, "presets": {}}  # fmt: skip
+    for name in names:
+        row = {}
+        for mode in modes:
+            wall = time_run(tr, configs[name], mode)
+            row[mode] = {"wall_s": round(wall, 1), "steps_per_s": round(args.steps / wall, 2)}
+            print(f"{name} {mode}: {wall:.1f} s, {args.steps / wall:.1f} steps/s", flush=True)
+        row["breakdown_online"] = breakdown(tr, configs[name], min(args.profile_steps, args.steps))
+        print(f"{name} online breakdown: {row['breakdown_online']}", flush=True)
+        summary["presets"][name] = row
+    if args.against:
+        with tempfile.TemporaryDirectory() as tmp:
+            path = tr.save(Path(tmp) / "traversal.npz")
+            for mode in modes:
+                wall = time_commit(args.against, path, args.against_config,
+                                   args.against_transition, mode, args.threads)  # fmt: skip
+                ours = summary["presets"][names[0]][mode]["wall_s"]
+                summary.setdefault("against", {"rev": args.against, "preset": names[0]})[mode] = {
+                    "wall_s": round(wall, 1), "steps_per_s": round(args.steps / wall, 2),
+                    "speedup": round(wall / ours, 2)}  # fmt: skip
+                print(f"{args.against} {mode}: {wall:.1f} s ({wall / ours:.2f}x ours)", flush=True)
+    print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
