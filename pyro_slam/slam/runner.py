@@ -44,6 +44,7 @@ from ..inference import (
     Weighting,
 )
 from ..model import Emission, EmissionMLP, MapGuide, Transition, map_marginals
+from ..runtime import torch_threads
 from . import checkpoint, presets
 from .build import build_model, check_size, prepare_traversal, traversal_tensors
 from .config import ConfigError, SLAMConfig
@@ -96,6 +97,9 @@ class SLAM:
         smc: filter with Pyro's :class:`pyro.infer.SMCFilter` on the same model
             (:class:`~pyro_slam.inference.PyroSMCFilter`; slower; per-particle weights only)
             instead of our batched filter; training keeps ours.
+        threads: torch intra-op threads while running (default: torch's current count, at most
+            one per idle core, :func:`pyro_slam.runtime.idle_cores`, so that a loaded machine is
+            not oversubscribed).
         checkpoint: path of the checkpoint written every ``checkpoint_every`` steps.
         seed: seeds Pyro and the run's own ``torch.Generator``.
 
@@ -120,13 +124,14 @@ class SLAM:
         prior=None,
         noise=None,
         smc: bool = False,
+        threads: int | None = None,
     ):
         self.cfg = presets.default_for(traversal) if config is None else config
         if not (isinstance(checkpoint_every, int) and checkpoint_every > 0):
             raise ValueError(
                 f"checkpoint_every must be a positive integer, got {checkpoint_every!r}"
             )
-        self.checkpoint_every, self.seed = checkpoint_every, seed
+        self.checkpoint_every, self.seed, self.threads = checkpoint_every, seed, threads
         self.tr = prepare_traversal(traversal, self.cfg)
         check_size(self.tr, self.cfg)
         self.obs, self.ctl, self.mask, self.init_pose = traversal_tensors(self.tr)
@@ -369,6 +374,10 @@ class SLAM:
 
     def run(self, mode: str = "online", progress: bool = True) -> dict:
         """Run (or, after :meth:`resume`, continue) SLAM. Returns :meth:`result`."""
+        with torch_threads(self.threads):
+            return self._run(mode, progress)
+
+    def _run(self, mode: str, progress: bool) -> dict:
         if mode not in ("online", "offline"):
             raise ValueError(f"mode must be 'online' or 'offline', got {mode!r}")
         if self.state is None:
