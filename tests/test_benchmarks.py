@@ -15,7 +15,8 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 # every benchmark script (benchmarks/NAME.py, run as python -m benchmarks.NAME)
 SCRIPTS = ("aliasing", "compare_runs", "exploration", "filter_speed", "navigation", "pfnet_table",
-           "real_data", "reliability", "simulator", "slam_accuracy", "visual_slam")  # fmt: skip
+           "real_data", "reliability", "simulator", "slam_accuracy", "slam_speed",
+           "visual_slam")  # fmt: skip
 
 
 def bench(name: str, *args: str, timeout: float = 300) -> subprocess.CompletedProcess:
@@ -609,3 +610,26 @@ def test_real_data_runs_the_real_preset_on_both_logs(tmp_path):
     assert "ate_aligned" in out["intel"]["DVBF-LM"]
     err = bench("real_data", *args, "--config", '{"filter": {"weighting": "best"}}', timeout=60)
     assert err.returncode == 2 and "filter.weighting must be one of" in err.stderr
+
+
+def test_slam_speed_times_presets_and_another_commit_side_by_side():
+    """Steps per second per preset and mode, a profile breakdown that sums to one, and the same
+    traversal timed with another commit's ``pyro-slam slam`` (here HEAD itself, through its
+    --config format)."""
+    args = ["--presets", "raycast", "--modes", "online", "--steps", "40", "--profile-steps", "20",
+            "--threads", "1", "--against", "HEAD", "--against-config",
+            '{"filter": {"particles": 128}}']  # fmt: skip
+    out = last_json(run("slam_speed", *args))
+    row = out["presets"]["raycast"]
+    assert out["steps"] == 40 and row["online"]["steps_per_s"] > 0
+    parts = row["breakdown_online"]
+    assert set(parts) == {"filter", "svi", "insertion", "other"}
+    assert abs(sum(parts.values()) - 1) < 0.01 and parts["filter"] > 0 and parts["svi"] > 0
+    against = out["against"]
+    assert against["rev"] == "HEAD" and against["online"]["wall_s"] > 0
+    assert against["online"]["speedup"] == pytest.approx(
+        against["online"]["wall_s"] / row["online"]["wall_s"], rel=0.05
+    )
+    bad = bench("slam_speed", "--presets", "nope")
+    assert bad.returncode == 2 and "nope" in bad.stderr
+

@@ -34,6 +34,7 @@ class PyroSMCFilter:
         self.ess_threshold = ess_threshold
         self.smc: SMCFilter | None = None
         self._belief: MapBelief | torch.Tensor | None = None
+        self.last_cloud_trust: torch.Tensor | None = None  # (not tracked: computed on demand)
 
     def _weights(self, z, x, mask):
         log_lik, scan, _ = self.weighting.log_likelihood(self.model, z, self._belief, x, mask)

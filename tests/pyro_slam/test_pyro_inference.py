@@ -243,3 +243,25 @@ def test_predictive_rollouts_of_the_model_under_planned_controls():
     assert tr.nodes["z_3"]["value"].shape == (2, 3) and tr.nodes["x_3"]["value"].shape == (2, B)
     turned = tr.nodes["z_1"]["value"][:, 2] - init[2]
     assert abs(float(turned[1] - turned[0]) - 0.5) < 0.3  # the second sequence turned
+
+
+def test_slam_runs_with_pyro_smcfilter_as_its_filter():
+    """``SLAM(..., smc=True)``: Pyro's SMCFilter filters the SLAM loop on the same model (our
+    filter still trains the map) and tracks the pose as ours does; weights it cannot compute
+    per particle are refused."""
+    from pyro_slam.metrics import localisation_error
+    from pyro_slam.slam import SLAM, ConfigError, with_overrides
+
+    tr = simulate_traversal("simple-small", steps=30, seed=0)
+    cfg = with_overrides(presets.get("raycast").config, {"filter": {"weighting": "marginal"}})
+    errs = {}
+    for smc in (False, True):
+        slam = SLAM(tr, cfg, seed=1, smc=smc)
+        res = slam.run("online", progress=False)
+        errs[smc] = float(localisation_error(res["mean"], tr.poses).max())
+    assert type(slam.pf).__name__ == "PyroSMCFilter"
+    assert errs[True] < 0.03 and errs[False] < 0.03  # corridors are 1/12 wide here
+    with pytest.raises(ValueError, match="shared"):
+        SLAM(tr, presets.get("raycast").config, smc=True)
+    with pytest.raises(ConfigError, match="heading"):
+        SLAM(tr, with_overrides(cfg, {"heading": {"sigma": 1e-3}}), smc=True)
