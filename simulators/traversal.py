@@ -38,6 +38,7 @@ def simulate_traversal(
     tour=None,
     tour_skip: float = 0.02,
     max_tour_steps: int = 20000,
+    rotation: float = 0.0,
 ) -> Traversal:
     """Drive the scripted explorer through a maze for ``steps`` time steps.
 
@@ -55,6 +56,9 @@ def simulate_traversal(
             :class:`TourDriver` drives there; the traversal then has more than ``steps``
             steps). Points the exploring steps passed within ``tour_skip`` are left out. Used to
             make a mapping traversal cover given places; at most ``max_tour_steps`` extra steps.
+        rotation: turn the whole world (walls and poses) by this angle (rad) about the maze's
+            centre, so that its walls no longer run along the world axes; the scans, controls
+            and motion are unchanged (the physics does not depend on the frame).
     Returns:
         a :class:`Traversal` with LiDAR observations ``[T, B]``, commanded controls
         ``[T-1, 2]``, true poses ``[T, 3]`` and the maze walls.
@@ -86,16 +90,33 @@ def simulate_traversal(
         )
     metadata = _metadata(maze, world, agent, seed, noise_seed, lidar, camera if images else None,
                          driver, distractors, toured)  # fmt: skip
+    walls = maze.walls
+    if rotation:
+        walls, poses = _rotate(walls, poses, rotation, maze.side / 2)
+        metadata["rotation"] = float(rotation)
     return Traversal(
         observations=obs.astype(np.float32),
         controls=controls,
-        walls=maze.walls,
+        walls=walls,
         beam_angles=lidar.beam_angles,
         max_range=lidar.max_range,
         poses=poses,
         images=frames,
         metadata=metadata,
     )
+
+
+def _rotate(walls: np.ndarray, poses: np.ndarray, angle: float, centre: float):
+    """Walls ``[W, 4]`` and poses ``[T, 3]`` turned by ``angle`` about ``(centre, centre)``."""
+    c, s = np.cos(angle), np.sin(angle)
+    rot = np.array([[c, -s], [s, c]])
+
+    def turn(xy):
+        return (xy - centre) @ rot.T + centre
+
+    w = np.concatenate([turn(walls[:, :2]), turn(walls[:, 2:])], -1)
+    p = np.concatenate([turn(poses[:, :2]), wrap_angle(poses[:, 2:] + angle)], -1)
+    return w, p
 
 
 def _drive_tour(world, maze, tour, skip: float, max_steps: int, poses, obs, controls) -> dict:
@@ -142,6 +163,9 @@ def _metadata(maze, world, agent, seed, noise_seed, lidar, camera, driver, distr
             "n_beams": lidar.n_beams,
             "max_range": lidar.max_range,
             "method": lidar.method,
+            "range_noise": lidar.range_noise,
+            "short_prob": lidar.short_prob,
+            "dropout_prob": lidar.dropout_prob,
         },
         "camera": None if camera is None else camera.to_dict(),
         "noise": world.noise.to_dict(),

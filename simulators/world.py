@@ -38,11 +38,41 @@ class LidarConfig:
 
     ``method`` picks the range computation: ``"numpy"`` (analytic :func:`raycast`) or
     ``"pymunk"`` (one ``segment_query_first`` per beam); both agree to ~1e-12.
+
+    Noise (off by default, the paper's noise-free sensor): each reading gets Gaussian noise of
+    std ``range_noise * max_range`` (clipped to ``[0, max_range]``); with probability
+    ``short_prob`` a beam returns a random short range (uniform up to the true one: an object
+    the map does not hold), with probability ``dropout_prob`` no return (``max_range``).
     """
 
     n_beams: int = 20
     max_range: float = 0.53
     method: str = "numpy"
+    range_noise: float = 0.0
+    short_prob: float = 0.0
+    dropout_prob: float = 0.0
+
+    def __post_init__(self):
+        for name in ("range_noise", "short_prob", "dropout_prob"):
+            v = getattr(self, name)
+            if not (0.0 <= v < 1.0):
+                raise ValueError(f"LidarConfig.{name} must be in [0, 1), got {v!r}")
+
+    @property
+    def noisy(self) -> bool:
+        return bool(self.range_noise or self.short_prob or self.dropout_prob)
+
+    def corrupt(self, ranges: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """``ranges [..., B]`` with this sensor's noise (returned as is when noise-free)."""
+        if not self.noisy:
+            return ranges
+        r = ranges + self.range_noise * self.max_range * rng.standard_normal(ranges.shape)
+        r = np.clip(r, 0.0, self.max_range)
+        u = rng.random(ranges.shape)
+        short = u < self.short_prob
+        r = np.where(short, ranges * rng.random(ranges.shape), r)
+        drop = (u >= self.short_prob) & (u < self.short_prob + self.dropout_prob)
+        return np.where(drop, self.max_range, r)
 
     @property
     def beam_angles(self) -> np.ndarray:
@@ -115,6 +145,8 @@ class World:
         if noise_seed is not None:
             noise_seq = np.random.SeedSequence(noise_seed)
         self._noise_rng = np.random.default_rng(noise_seq)
+        # the sensor's own noise stream (a noise-free sensor draws nothing from it)
+        self._sensor_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 7]))
         self.distractor_segments = _place_distractors(maze, distractors, layout_seq)  # [D, 4]
         self.segments = np.concatenate([maze.walls, self.distractor_segments])  # [W + D, 4]
         self.collisions = 0  # number of blocked moves so far
@@ -197,10 +229,10 @@ class World:
 
     # ---------------------------------------------------------------- sensing
     def lidar(self) -> np.ndarray:
-        """Range reading ``[B]`` at the current pose (method from the config)."""
-        if self.lidar_config.method == "pymunk":
-            return self.lidar_pymunk()
-        return self.lidar_numpy()
+        """Range reading ``[B]`` at the current pose (method from the config), with the
+        sensor's noise (:meth:`LidarConfig.corrupt`)."""
+        exact = self.lidar_pymunk() if self.lidar_config.method == "pymunk" else self.lidar_numpy()
+        return self.lidar_config.corrupt(exact, self._sensor_rng)
 
     def lidar_numpy(self) -> np.ndarray:
         cfg = self.lidar_config

@@ -632,4 +632,3 @@ def test_slam_speed_times_presets_and_another_commit_side_by_side():
     )
     bad = bench("slam_speed", "--presets", "nope")
     assert bad.returncode == 2 and "nope" in bad.stderr
-

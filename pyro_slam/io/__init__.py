@@ -1,6 +1,7 @@
 """Readers for real sensor logs: CARMEN (``.clf`` / ``.log``), ROS bags, and the Kümmerle et
 al. (2009) relation files used to score trajectories on them. Every reader returns a
-:class:`pyro_slam.data.Traversal` with ``control_model = "odometry_delta"``."""
+:class:`pyro_slam.data.Traversal` with ``control_model = "odometry_delta"``. Maps go out as ROS
+``map_server`` occupancy grids (:mod:`pyro_slam.io.ros_map`)."""
 
 from __future__ import annotations
 
@@ -16,21 +17,26 @@ from pyro_slam.io.relations import (
     relations_from_reference,
     write_relations,
 )
+from pyro_slam.io.ros_map import OccupancyGrid, occupancy_grid, read_map, write_map
 from pyro_slam.io.rosbag import read_rosbag
 
 CARMEN_SUFFIXES = (".clf", ".log", ".carmen")
 
 __all__ = [
+    "OccupancyGrid",
     "ParseError",
     "odometry_poses",
     "parse_carmen",
     "read_any",
+    "occupancy_grid",
     "read_carmen",
+    "read_map",
     "read_relations",
     "read_rosbag",
     "relation_error",
     "relations_from_reference",
     "write_carmen",
+    "write_map",
     "write_relations",
 ]
 

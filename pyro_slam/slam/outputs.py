@@ -12,13 +12,16 @@ import numpy as np
 
 from .. import metrics, plotting
 from ..data import DatasetError, Traversal, atomic_write
+from ..io.ros_map import occupancy_grid, write_map
 from .build import path_integration
 from .config import SLAMConfig
 from .runner import SLAM
 
 # what a run writes into its folder (an --overwrite run removes these first)
 OUTPUTS = ("checkpoint.pt", "metrics.json", "posterior.npz", "slam.png", "error.png", "map.png",
-           "trajectory_slam.tum", "trajectory_path_integration.tum")  # fmt: skip
+           "map.pgm", "map.yaml", "trajectory_slam.tum",
+           "trajectory_path_integration.tum")  # fmt: skip
+MAP_CELL = 0.05  # the finest cell of the exported occupancy grid (metres on real logs)
 
 
 def prepare_out_dir(out: Path, resume: bool = False, overwrite: bool = False,
@@ -86,6 +89,13 @@ def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float,
     return report
 
 
+def _occupancy(out: Path, slam: SLAM, res: dict) -> None:
+    """``map.pgm`` + ``map.yaml`` (ROS ``map_server``): the scans placed at the SLAM poses."""
+    cell = min(slam.cfg.emission.resolution, MAP_CELL)
+    grid = occupancy_grid(slam.tr, res["mean"], cell, margin=2 * cell)
+    write_map(grid, out / "map.yaml")
+
+
 def _plots(out: Path, slam: SLAM, traversal: Traversal, res: dict) -> None:
     if traversal.poses is not None:
         plotting.plot_errors(traversal, res, out / "error.png")
@@ -123,6 +133,8 @@ def run_slam(
     _write_trajectories(out, traversal, res)
     report = _report(slam, traversal, res, mode, wall, preset)
     _plots(out, slam, traversal, res)
+    if slam.cfg.emission.observation == "lidar":
+        _occupancy(out, slam, res)
     text = json.dumps(report, indent=2, default=float)
     atomic_write(out / "metrics.json", lambda f: f.write(text.encode()))
     return report

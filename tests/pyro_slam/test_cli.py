@@ -26,7 +26,15 @@ def test_slam_writes_outputs_and_metrics(traversal, tmp_path, capsys):
     out = tmp_path / "run"
     rc = cli.main(["slam", str(traversal), "--out", str(out), "--config", TINY, "--seed", "1"])
     assert rc == 0
-    for name in ("metrics.json", "slam.png", "error.png", "checkpoint.pt", "posterior.npz"):
+    for name in (
+        "metrics.json",
+        "slam.png",
+        "error.png",
+        "checkpoint.pt",
+        "posterior.npz",
+        "map.pgm",
+        "map.yaml",
+    ):
         assert (out / name).is_file(), name
     report = json.loads((out / "metrics.json").read_text())
     assert report["steps"] == 30 and report["mode"] == "online"

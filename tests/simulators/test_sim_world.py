@@ -178,3 +178,45 @@ def test_distractors_seen_by_lidar_but_not_in_floor_map():
             assert r[0] == pytest.approx(0.1 * maze.corridor_width, rel=1e-9)
             seen += 1
     assert seen >= 6
+
+
+def test_noisy_lidar_adds_gaussian_noise_short_returns_and_dropouts():
+    """``LidarConfig`` noise: Gaussian of std ``range_noise * max_range``, a fraction of random
+    short returns (below the true range) and of max-range dropouts; noise-free by default."""
+    import numpy as np
+
+    from simulators.world import LidarConfig
+
+    exact = np.full((20000, 4), 0.3)
+    rng = np.random.default_rng(0)
+    assert LidarConfig().corrupt(exact, rng) is exact
+    cfg = LidarConfig(range_noise=0.01, short_prob=0.05, dropout_prob=0.03)
+    r = cfg.corrupt(exact, rng)
+    drop = r == cfg.max_range
+    short = r < 0.3 - 5 * 0.01 * cfg.max_range
+    gauss = ~drop & ~short
+    assert abs(drop.mean() - 0.03) < 0.005 and abs(short.mean() - 0.05 * 0.83) < 0.01
+    assert abs((r[gauss] - 0.3).std() - 0.01 * cfg.max_range) < 2e-4
+    assert ((r >= 0) & (r <= cfg.max_range)).all()
+    import pytest
+
+    with pytest.raises(ValueError, match="range_noise"):
+        LidarConfig(range_noise=-0.1)
+
+
+def test_rotated_world_keeps_scans_and_controls_and_turns_walls_and_poses():
+    import numpy as np
+
+    from simulators import raycast, simulate_traversal
+
+    a = simulate_traversal("simple-small", steps=40, seed=2)
+    b = simulate_traversal("simple-small", steps=40, seed=2, rotation=0.3)
+    np.testing.assert_array_equal(a.observations, b.observations)
+    np.testing.assert_array_equal(a.controls, b.controls)
+    assert b.metadata["rotation"] == 0.3
+    wall = b.walls[:, 2:] - b.walls[:, :2]
+    angles = np.mod(np.arctan2(wall[:, 1], wall[:, 0]), np.pi / 2)
+    np.testing.assert_allclose(angles, 0.3, atol=1e-9)  # every wall turned by 0.3
+    ang = b.poses[:, 2:3] + b.beam_angles[None]
+    np.testing.assert_allclose(raycast(b.walls, b.poses[:, :2], ang, b.max_range),
+                               b.observations, atol=1e-6)  # fmt: skip
