@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 
@@ -35,22 +36,37 @@ def odometry_delta(z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     return torch.stack([x, y, wrap_angle(z[..., 2] + u[..., 2])], dim=-1)
 
 
+class WallDirection(NamedTuple):
+    """A scan's wall direction (:func:`wall_direction`), each ``[...]``: ``direction`` in
+    ``[0, pi / 2)``; ``support``, the number of agreeing segments; ``length2``, their summed
+    squared lengths; ``scatter``, the direction's standard error from their spread."""
+
+    direction: torch.Tensor
+    support: torch.Tensor
+    length2: torch.Tensor
+    scatter: torch.Tensor
+
+
 def wall_direction(
     ranges: torch.Tensor,
     angles: torch.Tensor,
     max_range: float,
     mask: torch.Tensor | None = None,
     tol: float = 1e-3,
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> WallDirection:
     """The direction of a scan's straight walls modulo ``pi / 2``, in the sensor's frame.
 
     Each pair of neighbouring hits ``h_i, h_{i+1}`` (``h_i = r_i e_i``) spans a segment whose
     direction, modulo ``pi / 2``, is that of the wall both lie on, or an arbitrary one where the
     pair straddles a corner or a depth jump. In a rectilinear (Manhattan) world every wall
     gives the same value, so the value shared by most segments (within ``tol`` rad, modulo
-    ``pi / 2``) is taken, with its support, the number of segments that share it. A world
-    heading ``phi`` is then consistent with the scan if ``phi + direction`` is a multiple of
-    ``pi / 2`` (walls along the world axes).
+    ``pi / 2``) is taken -- the mean of the agreeing segments, weighted by their squared
+    lengths (a segment's direction error falls with its length) -- with its support, the number
+    of segments that share it. Only segments with an agreeing neighbour count (three hits on
+    one straight wall): a segment across a corner or a depth jump rarely has one, and chords
+    of a curved wall never agree with their neighbours, so a round room gives no support. A
+    world heading ``phi`` is consistent with the scan if ``phi + direction`` is the walls' own
+    direction (a multiple of ``pi / 2`` for walls along the world axes).
 
     Args:
         ranges: ``[..., B]`` readings along ``angles [B]`` (relative to the heading, increasing
@@ -59,8 +75,8 @@ def wall_direction(
         mask: ``[..., B]`` valid readings (None: all).
         tol: segments whose directions differ by less than this (rad, modulo ``pi / 2``) agree.
     Returns:
-        ``(direction [...] in [0, pi / 2), support [...] integer)``; support 0 or 1 means no
-        two segments agree and the direction is meaningless.
+        a :class:`WallDirection` of ``[...]`` tensors; support 0 or 1 means no straight wall and
+        the direction is meaningless.
     """
     e = torch.stack([torch.cos(angles), torch.sin(angles)], -1).to(ranges.dtype)  # [B, 2]
     h = ranges.unsqueeze(-1) * e  # [..., B, 2] hit points relative to the sensor
@@ -73,10 +89,47 @@ def wall_direction(
     a = torch.remainder(torch.atan2(d[..., 1], d[..., 0]), quarter)  # [..., B]
     diff = a.unsqueeze(-1) - a.unsqueeze(-2)  # [..., B, B]
     diff = torch.remainder(diff + quarter / 2, quarter) - quarter / 2
-    agree = (diff.abs() < tol) & ok.unsqueeze(-1) & ok.unsqueeze(-2)
+    agree = (diff.abs() < tol) & ok.unsqueeze(-1) & ok.unsqueeze(-2)  # [..., B, B]
     support = torch.where(ok, agree.sum(-1), torch.zeros_like(ok, dtype=torch.long))  # [..., B]
     best = support.argmax(-1, keepdim=True)  # [..., 1]
-    return a.gather(-1, best)[..., 0], support.gather(-1, best)[..., 0]
+    members = agree.gather(-2, best.unsqueeze(-1).expand(*best.shape, agree.shape[-1]))[..., 0, :]
+    # only segments with an agreeing neighbour (three hits on one straight wall) count
+    members = members & (torch.roll(members, 1, -1) | torch.roll(members, -1, -1))
+    l2 = (d * d).sum(-1) * members  # [..., B] squared lengths of the agreeing segments
+    rel = torch.gather(diff, -2, best.unsqueeze(-1).expand(*best.shape, diff.shape[-1]))[..., 0, :]
+    centre = a.gather(-1, best)[..., 0]  # [...] the best segment's direction
+    shift = (l2 * rel).sum(-1) / l2.sum(-1).clamp_min(1e-30)  # weighted mean offset from it
+    direction = torch.remainder(centre - shift, quarter)
+    support = members.sum(-1)  # [...]
+    # the weighted mean's standard error from the agreeing segments' own scatter
+    res = (rel - shift.unsqueeze(-1)) * members
+    n = members.sum(-1).to(l2.dtype)
+    scatter = (l2**2 * res**2).sum(-1).sqrt() / l2.sum(-1).clamp_min(1e-30)
+    scatter = scatter * (n / (n - 1).clamp_min(1)).sqrt()
+    return WallDirection(direction, support, l2.sum(-1), scatter)
+
+
+def range_noise(
+    ranges: torch.Tensor, angles: torch.Tensor, max_range: float, mask=None, max_turn: float = 0.3
+) -> float:
+    """A robust estimate of a range sensor's noise std from its scans ``[..., B]``: the distance
+    of each hit from the line through its two neighbouring hits, over the triples on one
+    straight wall (turn below ``max_turn`` rad), as ``1.4826 median / sqrt(1.5)`` (the middle
+    point's own noise plus half of each neighbour's). ``0.0`` for noise-free straight walls."""
+    e = torch.stack([torch.cos(angles), torch.sin(angles)], -1).to(ranges.dtype)  # [B, 2]
+    h = ranges.unsqueeze(-1) * e  # [..., B, 2]
+    hit = ranges < max_range * (1 - 1e-3)
+    if mask is not None:
+        hit = hit & mask.bool()
+    prev, nxt = torch.roll(h, 1, -2), torch.roll(h, -1, -2)
+    ok = hit & torch.roll(hit, 1, -1) & torch.roll(hit, -1, -1)
+    chord = nxt - prev
+    n = chord.norm(dim=-1).clamp_min(1e-12)
+    dist = ((h - prev)[..., 0] * chord[..., 1] - (h - prev)[..., 1] * chord[..., 0]).abs() / n
+    a, b = h - prev, nxt - h
+    turn = torch.atan2(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0], (a * b).sum(-1)).abs()
+    dist = dist[ok & (turn < max_turn)]
+    return float(1.4826 * dist.median() / math.sqrt(1.5)) if dist.numel() else 0.0
 
 
 def _halves(H: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -202,4 +255,5 @@ def image_wall_direction(
     ranges = torch.cat([ranges, gap], -1).flatten(-2)  # [..., 2 (W + 1)] a no-hit between scans
     a = torch.cat([angles, angles[:1]]).repeat(2)
     hit = torch.isfinite(ranges)
-    return wall_direction(torch.where(hit, ranges, torch.zeros_like(ranges)), a, math.inf, hit, tol)
+    out = wall_direction(torch.where(hit, ranges, torch.zeros_like(ranges)), a, math.inf, hit, tol)
+    return out[0], out[1]

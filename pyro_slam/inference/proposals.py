@@ -15,17 +15,20 @@ from ..geometry import wrap_angle
 @dataclass
 class HeadingObservation:
     """A direct observation of the heading modulo ``period``: ``heading = value (mod period)``
-    up to Gaussian noise of std ``sigma`` (rad). E.g. the Manhattan-world one: a scan's walls
-    run along the world axes, so ``heading + wall_direction`` is a multiple of ``pi / 2``
-    (:mod:`pyro_slam.slam.heading`)."""
+    up to Gaussian noise of std ``sigma`` (rad), or, with probability ``outlier_prob``, an
+    outlier uniform over the period (a wall mistaken for straight, a spurious agreement). E.g.
+    the Manhattan-world one: a scan's walls run along the world's two axes, so the heading is
+    the walls' frame minus the scan's wall direction (:mod:`pyro_slam.slam.heading`)."""
 
     value: torch.Tensor  # [...] (one per batch element; nan: no observation there)
-    sigma: float
+    sigma: float | torch.Tensor  # a number, or one per batch element [...]
     period: float = math.pi / 2
+    outlier_prob: float = 0.0
 
     def at(self, t) -> HeadingObservation:
         """The observation of step(s) ``t`` from one that holds a sequence ``value [T]``."""
-        return HeadingObservation(self.value[t], self.sigma, self.period)
+        sigma = self.sigma[t] if torch.is_tensor(self.sigma) else self.sigma
+        return HeadingObservation(self.value[t], sigma, self.period, self.outlier_prob)
 
 
 def _gaussian(model, p, u, sigma):
@@ -64,7 +67,11 @@ def heading_conditioned(model, p, u, obs: HeadingObservation, sigma=None, genera
     ``r = wrap_period(m - value)`` and ``v = s^2 + sigma_o^2``, the heading is drawn from
     ``N(m - r s^2 / v, s^2 sigma_o^2 / v)`` and the weight gains the predictive
     ``log N(r; 0, sqrt(v))``. With a sharp observation (``sigma_o << s``) every particle
-    lands on a heading the observation allows, however narrow the cloud. Where the value is
+    lands on a heading the observation allows, however narrow the cloud. With
+    ``outlier_prob = eps`` the observation is the mixture ``(1 - eps) N + eps / period``, still
+    exact: each particle takes the conditioned heading with probability ``(1 - eps) N(r) /
+    ((1 - eps) N(r) + eps / period)`` (else the transition's) and the weight gains the log of
+    that denominator, so an observation far from a particle barely moves it. Where the value is
     nan the heading is the transition's sample and the weight unchanged. Returns
     ``(z, log_weight [..., K])``."""
     params, _ = _gaussian(model, p, u, sigma)
@@ -75,11 +82,21 @@ def heading_conditioned(model, p, u, obs: HeadingObservation, sigma=None, genera
     z = mean + eps * std
     s = std[..., 2]
     value = torch.as_tensor(obs.value, dtype=mean.dtype).unsqueeze(-1)  # [..., 1]
+    so = torch.as_tensor(obs.sigma, dtype=mean.dtype)
+    so = so.unsqueeze(-1) if so.dim() else so  # [..., 1]
     seen = ~torch.isnan(value)  # [..., 1]
     half = obs.period / 2
     r = torch.remainder(mean[..., 2] - value.nan_to_num() + half, obs.period) - half
-    v = s**2 + obs.sigma**2  # r: [..., K]
-    h = mean[..., 2] - r * s**2 / v + eps[..., 2] * (s * obs.sigma / v.sqrt())
-    h = torch.where(seen, wrap_angle(h), z[..., 2])
-    logw = torch.where(seen, -0.5 * r**2 / v - 0.5 * torch.log(2 * math.pi * v), 0.0)
+    v = s**2 + so**2  # r: [..., K]
+    h = mean[..., 2] - r * s**2 / v + eps[..., 2] * (s * so / v.sqrt())
+    log_in = -0.5 * r**2 / v - 0.5 * torch.log(2 * math.pi * v)  # [..., K]
+    logw, inlier = log_in, torch.ones_like(log_in, dtype=torch.bool)
+    if obs.outlier_prob > 0:
+        log_in = log_in + math.log1p(-obs.outlier_prob)
+        log_out = math.log(obs.outlier_prob / obs.period)
+        logw = torch.logaddexp(log_in, log_in.new_tensor(log_out))
+        u01 = torch.rand(log_in.shape, generator=generator, dtype=mean.dtype)
+        inlier = u01 < torch.exp(log_in - logw)
+    h = torch.where(seen & inlier, wrap_angle(h), z[..., 2])
+    logw = torch.where(seen, logw, 0.0)
     return torch.cat([z[..., :2], h.unsqueeze(-1)], -1), logw

@@ -1,10 +1,21 @@
 """The Manhattan-world heading observation (not the paper's model).
 
-Where the walls run along two perpendicular world axes, each scan's straight walls give its
-heading modulo a quarter turn: from LiDAR ranges (:func:`~pyro_slam.geometry.wall_direction`)
-or from a camera frame's wall edges (:func:`~pyro_slam.geometry.image_wall_direction`). The
-filter then samples the heading conditioned on it
-(:func:`~pyro_slam.inference.proposals.heading_conditioned`).
+Where the walls run along two perpendicular axes, each scan's straight walls give the heading up
+to a quarter turn: the walls' frame ``phi`` minus the scan's wall direction (from LiDAR ranges,
+:func:`~pyro_slam.geometry.wall_direction`, or from a camera frame's wall edges,
+:func:`~pyro_slam.geometry.image_wall_direction`). Nothing about the world is assumed beyond
+that:
+
+* **the frame** ``phi`` is estimated from the data: from the first scans with a straight wall,
+  each paired with the heading that odometry integrates from the known start, weighted by how
+  little odometry has drifted by then; and refined online with the filter's posterior headings;
+* **the tolerance** within which wall segments agree, and the observation's std, fit the
+  sensor's noise, estimated from the scans themselves (:func:`~pyro_slam.geometry.range_noise`):
+  a segment of length ``L`` has a direction error of about ``sqrt(2) sigma_r / L``;
+* the observation applies only where a scan **supports** it (a straight wall of at least three
+  hits, and at least ``support`` agreeing segments) and, as a mixture with an outlier
+  component, moves only the particles it is consistent with (exact proposal,
+  :func:`~pyro_slam.inference.proposals.heading_conditioned`).
 """
 
 from __future__ import annotations
@@ -14,25 +25,110 @@ import math
 import torch
 
 from ..data import Traversal
-from ..geometry import image_background, image_wall_direction, wall_direction
+from ..geometry import image_background, image_wall_direction, range_noise, wall_direction
 from ..inference import HeadingObservation
+from ..metrics import odometry_poses
 from .config import HeadingConfig
 
+QUARTER = math.pi / 2
+FRAME_SCANS = 50  # at most this many early scans estimate the frame
 
-def heading_observations(
-    traversal: Traversal, obs: torch.Tensor, mask, config: HeadingConfig, image: bool
-) -> HeadingObservation:
-    """The heading observation of every step of a prepared traversal (``obs [T, N]``,
-    ``mask [T, N]`` or None): ``value [T]`` (nan where fewer than ``config.support`` wall
-    segments agree within ``config.sigma`` rad)."""
-    angles = torch.as_tensor(traversal.beam_angles, dtype=obs.dtype)
-    tol = config.sigma
-    if image:  # the walls' edges in each frame
-        frames = obs.reshape(obs.shape[0], *traversal.metadata["image_shape"])  # [T, H, W]
-        columns = angles.reshape(frames.shape[1:])[0]  # [W] column bearings
-        direction, support = image_wall_direction(frames, columns, image_background(frames), tol)
-    else:
-        direction, support = wall_direction(obs, angles, float(traversal.max_range), mask, tol)
-    ok = support >= config.support
-    value = torch.where(ok, -direction, torch.full_like(direction, math.nan))  # [T]
-    return HeadingObservation(value, config.sigma)
+
+def _wrap_quarter(a: torch.Tensor) -> torch.Tensor:
+    return torch.remainder(a + QUARTER / 2, QUARTER) - QUARTER / 2
+
+
+class ManhattanHeading:
+    """Per-step heading observations of a prepared traversal (``obs [T, N]``, ``mask``).
+
+    Args:
+        config: the :class:`~pyro_slam.slam.config.HeadingConfig` (``sigma``: the std floor;
+            ``support``: agreeing segments needed).
+        image: camera frames (the walls' edges) instead of LiDAR ranges.
+        drift: the heading's odometry noise per step (rad), which weighs the early scans.
+        outlier_prob: the observation's outlier probability (the filter's).
+    """
+
+    def __init__(self, traversal: Traversal, obs, mask, config: HeadingConfig, image: bool,
+                 drift: float, outlier_prob: float = 0.0):  # fmt: skip
+        angles = torch.as_tensor(traversal.beam_angles, dtype=obs.dtype)
+        self.noise, self.outlier_prob = 0.0, float(outlier_prob)
+        if image:  # the walls' edges in each frame
+            frames = obs.reshape(obs.shape[0], *traversal.metadata["image_shape"])  # [T, H, W]
+            columns = angles.reshape(frames.shape[1:])[0]  # [W] column bearings
+            direction, support = image_wall_direction(
+                frames, columns, image_background(frames), config.sigma
+            )
+            std = torch.zeros_like(direction)
+        else:
+            wall = self._lidar(traversal, obs, mask, angles, config)
+            direction, support = wall.direction, wall.support
+            # the sensor's noise through the agreeing segments' lengths, or their own scatter
+            std = torch.maximum(math.sqrt(2) * self.noise / wall.length2.clamp_min(1e-30).sqrt(),
+                                wall.scatter)  # fmt: skip
+        self.direction = direction  # [T] in [0, pi / 2)
+        self.ok = support >= config.support  # [T]
+        self.sigma = std.clamp_min(config.sigma)  # [T] the observation's std
+        self.frame = self._initial_frame(traversal, drift)
+        self._acc = torch.zeros(2, dtype=torch.float64)  # refinement: weighted (cos, sin) of 4 phi
+
+    def _lidar(self, traversal, obs, mask, angles, config: HeadingConfig):
+        """Wall directions of the scans, with the agreement tolerance fitted to the noise."""
+        max_range = float(traversal.max_range)
+        self.noise = range_noise(obs, angles, max_range, mask)
+        tol = config.sigma
+        if self.noise > 0:  # 2 stds of a segment as long as the beams' spacing at mid range
+            spacing = float((angles[1:] - angles[:-1]).abs().median()) if len(angles) > 1 else 1.0
+            typical = 0.5 * max_range * spacing
+            tol = max(tol, 2 * math.sqrt(2) * self.noise / typical)
+        return wall_direction(obs, angles, max_range, mask, min(tol, QUARTER / 4))
+
+    def _initial_frame(self, traversal: Traversal, drift: float) -> float:
+        """The walls' frame from the first supported scans: each gives ``y_t`` = odometry
+        heading plus wall direction (modulo a quarter turn) = ``phi + w_t + e_t``, with
+        odometry's drift ``w_t`` a random walk (step std ``drift``) from the known start
+        (``w_0 = 0``) and ``e_t`` the scan's error (std ``sigma_t``). A Kalman filter run
+        backwards in time, from the last of those scans to the first step, ends at ``phi``."""
+        steps = torch.nonzero(self.ok).flatten()[:FRAME_SCANS]
+        if not len(steps):
+            return float("nan")
+        heading = torch.as_tensor(odometry_poses(traversal)[:, 2], dtype=self.direction.dtype)
+        y = heading[steps] + self.direction[steps]  # [n] phi + drift, modulo a quarter turn
+        y = y[0] + _wrap_quarter(y - y[0])  # unwrapped about the first
+        sigma2 = self.sigma[steps] ** 2
+        mean, var, t = float(y[-1]), float(sigma2[-1]), int(steps[-1])
+        for k in range(len(steps) - 2, -1, -1):
+            var += (t - int(steps[k])) * drift**2  # back to step steps[k]
+            gain = var / (var + float(sigma2[k]))
+            mean, var, t = mean + gain * (float(y[k]) - mean), (1 - gain) * var, int(steps[k])
+        # the drift at step 0 is zero: the level there is the frame
+        return float(torch.remainder(torch.tensor(mean), QUARTER))
+
+    def observation(self, t=None) -> HeadingObservation:
+        """Step ``t``'s observation (all steps, ``value [T]``, with ``t=None``); its value is nan
+        where the scan has no straight wall or no frame is known yet."""
+        value = torch.remainder(self.frame - self.direction, QUARTER)
+        value = torch.where(self.ok, value, torch.full_like(value, math.nan))
+        out = HeadingObservation(value, self.sigma, QUARTER, self.outlier_prob)
+        return out if t is None else out.at(t)
+
+    def refine(self, t: int, heading: float, heading_std: float) -> None:
+        """Refine the frame with step ``t``'s posterior heading (mean and std): one more
+        ``heading + direction`` (modulo a quarter turn), weighted by ``1 / (sigma_t^2 +
+        heading_std^2)``, into a running circular mean that starts at the initial frame."""
+        if not bool(self.ok[t]) or math.isnan(self.frame):
+            return
+        w = 1.0 / (float(self.sigma[t]) ** 2 + heading_std**2 + 1e-12)
+        if not self._acc.any():  # the initial estimate counts as one such observation
+            self._acc += w * torch.tensor([math.cos(4 * self.frame), math.sin(4 * self.frame)],
+                                          dtype=torch.float64)  # fmt: skip
+        theta = 4 * (heading + float(self.direction[t]))
+        self._acc += w * torch.tensor([math.cos(theta), math.sin(theta)], dtype=torch.float64)
+        self.frame = float(torch.remainder(torch.atan2(self._acc[1], self._acc[0]) / 4, QUARTER))
+
+    def state_dict(self) -> dict:
+        return {"frame": self.frame, "acc": self._acc.clone()}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.frame = float(d["frame"])
+        self._acc.copy_(d["acc"])

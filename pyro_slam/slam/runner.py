@@ -48,7 +48,7 @@ from ..runtime import torch_threads
 from . import checkpoint, presets
 from .build import build_model, check_size, prepare_traversal, traversal_tensors
 from .config import ConfigError, SLAMConfig
-from .heading import heading_observations
+from .heading import ManhattanHeading
 from .insertion import ScanInserter
 
 CACHE_PARTICLES = 50  # N, cached particles per step (paper III-D2)
@@ -155,12 +155,12 @@ class SLAM:
                 raise ConfigError("Pyro's SMCFilter drop-in does not take the heading observation")
             self.pf = PyroSMCFilter(self.model, self.pf.weighting)
         self.cache = ParticleCache(self.T, CACHE_PARTICLES)
-        self.headings = None
+        self.heading = None  # ManhattanHeading: the heading observation and its frame
         if self.cfg.heading is not None:
             image = self.cfg.emission.observation == "image"
-            self.headings = heading_observations(
-                self.tr, self.obs, self.mask, self.cfg.heading, image
-            )
+            drift = float(self.model.transition.sigma[2] / self.cfg.transition.scale[2])
+            self.heading = ManhattanHeading(self.tr, self.obs, self.mask, self.cfg.heading, image,
+                                            drift, self.cfg.filter.outlier_prob)  # fmt: skip
         self.inserter = None
         if self.cfg.emission.insert is not None:
             if not isinstance(self.guide, MapGuide):
@@ -209,7 +209,8 @@ class SLAM:
         sigma = self.cfg.filter.sigma if tc.objective == "filter-sigma" else None
         return ParticleChunkELBO(
             self._filter(sigma, 0.0), self.cache, self.obs, self.ctl, self.mask,
-            num_particles=tc.particles, headings=self.headings,
+            num_particles=tc.particles,
+            headings=None if self.heading is None else self.heading.observation(),
         )  # fmt: skip
 
     # --------------------------------------------------------------------------- helpers
@@ -251,10 +252,19 @@ class SLAM:
         self.cache.store(torch.tensor([t]), self.particles.batched(), self.gen)
 
     def _heading(self, t: int):
-        """Step ``t``'s heading observation (None: off, or no walls agree)."""
-        if self.headings is None or torch.isnan(self.headings.value[t]):
+        """Step ``t``'s heading observation (None: off, or no straight wall)."""
+        if self.heading is None:
             return None
-        return self.headings.at(t)
+        obs = self.heading.observation(t)
+        return None if torch.isnan(obs.value) else obs
+
+    def _refine_frame(self, t: int) -> None:
+        """Refine the heading observation's frame with step ``t``'s posterior heading; the
+        ELBO's chunk filter then reads the refined observations."""
+        if self.heading is None:
+            return
+        self.heading.refine(t, float(self.particles.mean()[2]), float(self.particles.std()[2]))
+        self.elbo.headings = self.heading.observation()
 
     def _transition_sigma(self, M: MapBelief):
         """The filter's ``sigma_T`` for the next step (``None``: the model's). With
@@ -291,6 +301,7 @@ class SLAM:
                 st.sweep_estimates.append(mean.tolist())
             if self.inserter is not None:
                 self.inserter.insert(self.obs[t], self._valid(t), mean)
+            self._refine_frame(t)
             if t >= L - 1 and t % self.cfg.training.every == 0:
                 self.elbo.num_steps_seen = t + 1
                 st.losses.append(self._svi_step(0, t - L + 1, t - L + 1))
@@ -435,6 +446,7 @@ class SLAM:
             "torch_rng": torch.get_rng_state(),
             "elbo_seen": self.elbo.num_steps_seen,
             "inserter": None if self.inserter is None else self.inserter.state_dict(),
+            "heading": None if self.heading is None else self.heading.state_dict(),
         }
 
     def save(self, path) -> None:
@@ -468,6 +480,9 @@ class SLAM:
         self.elbo.num_steps_seen = int(d["elbo_seen"])
         if self.inserter is not None:
             self.inserter.load_state_dict(d["inserter"])
+        if self.heading is not None:
+            self.heading.load_state_dict(d["heading"])
+            self.elbo.headings = self.heading.observation()
         self.state = SLAMState(**d["state"])
 
 

@@ -324,7 +324,7 @@ def test_every_preset_builds_a_slam_run_for_its_sensor(name, maze_traversal):
     grid = slam.model.grid
     assert grid.size[0] / (grid.cells[0] - 1) == pytest.approx(e.resolution, rel=0.05)
     assert (slam.inserter is not None) == (e.insert is not None)
-    assert (slam.headings is not None) == (cfg.heading is not None)
+    assert (slam.heading is not None) == (cfg.heading is not None)
     kind = {"learned": LearnedTransition, "kinematic": KinematicTransition}[cfg.transition.kind]
     assert isinstance(slam.model.transition, kind)
     assert slam.pf.weighting.kind == cfg.filter.weighting
@@ -337,10 +337,10 @@ def test_raycast_preset_weighs_per_beam_and_writes_scans(maze_traversal):
     assert slam.pf.weighting.per_beam and slam.pf.weighting.outlier_prob == 0.1
     assert slam.elbo.pf.weighting.per_beam and slam.elbo.pf.weighting.outlier_prob == 0
     assert isinstance(slam.inserter, ScanInserter) and not slam.inserter.inserted.any()
-    assert slam.headings is None and not slam.model.learn_emission
+    assert slam.heading is None and not slam.model.learn_emission
     res = slam.run("online", progress=False)
     assert np.isfinite(res["mean"]).all() and slam.inserter.inserted.any()
-    assert SLAM(maze_traversal, presets.get("manhattan").config).headings is not None
+    assert SLAM(maze_traversal, presets.get("manhattan").config).heading is not None
 
 
 def test_paper_preset_loads_the_shipped_emission_frozen_and_the_learned_transition(

@@ -24,9 +24,11 @@ from pyro_slam.slam import (
     SLAMConfig,
     TrainingConfig,
     build_model,
+    presets,
 )
 from pyro_slam.slam.insertion import ScanInserter
 from simulators import simulate_traversal
+from simulators.world import LidarConfig
 
 # a small online SLAM configuration of the ray-cast emission
 SMALL = SLAMConfig(
@@ -247,7 +249,7 @@ def test_heading_observation_pins_the_heading_to_the_walls(small_traversal):
     err = {}
     for heading in (None, HeadingConfig(sigma=1e-3)):
         slam = ray_slam(tr, replace(base, heading=heading))
-        assert (slam.headings is None) == (heading is None)
+        assert (slam.heading is None) == (heading is None)
         res = slam.run("online", progress=False)
         d = torch.as_tensor(res["mean"][:, 2] - tr.poses[:, 2])
         err[heading] = float(wrap_angle(d).abs().max())
@@ -257,3 +259,34 @@ def test_heading_observation_pins_the_heading_to_the_walls(small_traversal):
         HeadingConfig(sigma=0.0)
     with pytest.raises(ConfigError, match="heading.support must be an integer >= 2"):
         HeadingConfig(support=1)
+
+
+def test_manhattan_frame_is_found_in_a_rotated_world_with_a_noisy_lidar():
+    """The walls' frame is estimated, not assumed: in mazes turned by 0.3 rad that the filter is
+    not told, with range noise of 0.5 % of the maximum range plus 1 % short returns and 1 %
+    dropouts, the frame from the first scans is within 1e-2 rad (modulo a quarter turn) in
+    each of four mazes, within 1e-3 noise-free; the fitted noise is of the simulated one's
+    order; a frame refined with exact headings converges to the truth; and where no scan has
+    enough agreeing segments the observation is off (nan) and no frame is claimed."""
+    cfg = presets.get("manhattan").config
+    q = math.pi / 2
+    for noise in (0.0, 0.005):
+        lidar = LidarConfig(range_noise=noise, short_prob=0.01, dropout_prob=0.01)
+        errs = []
+        for seed in range(1, 5):
+            tr = simulate_traversal("moderate-medium", steps=200, seed=seed, lidar=lidar,
+                                    rotation=0.3)  # fmt: skip
+            heading = SLAM(tr, cfg).heading
+            errs.append(abs((heading.frame - 0.3 + q / 2) % q - q / 2))
+        # measured noise-free <= 2e-4; noisy 0.0047, 0.0005, 0.0009, 0.0026
+        assert max(errs) < (1e-3 if noise == 0 else 1e-2)
+        if noise:
+            assert 0.3 < heading.noise / (noise * tr.max_range) < 1.5  # measured 0.9
+    ok = torch.nonzero(heading.ok).flatten()
+    true = torch.as_tensor(tr.poses[:, 2])
+    for t in ok[:100].tolist():  # refining with the true headings
+        heading.refine(t, float(true[t]), 1e-3)
+    assert abs((heading.frame - 0.3 + q / 2) % q - q / 2) < 5e-3
+    strict = SLAM(tr, replace(cfg, heading=HeadingConfig(support=21))).heading  # > 20 beams
+    assert not bool(strict.ok.any()) and math.isnan(strict.frame)
+    assert bool(strict.observation().value.isnan().all())
