@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import multiprocessing as mp
 import time
 from pathlib import Path
@@ -56,18 +57,48 @@ MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
 TUNING_SEEDS = (991, 992, 993, 994, 995, 996)
 
 
-def _traversal(maze_seed: int, seed: int, steps: int, per_maze_noise: bool = False):
+def _traversal(maze_seed: int, seed: int, steps: int, per_maze_noise: bool = False,
+               world: dict | None = None):  # fmt: skip
+    """``world``: ``{"lidar": LidarConfig fields, "rotation": rad}`` (None: the paper's)."""
     from simulators import simulate_traversal
     from simulators.maze import make_maze
+    from simulators.world import LidarConfig
 
+    world = world or {}
     maze = make_maze("moderate-medium", maze_seed)
     noise_seed = (seed, maze_seed) if per_maze_noise else None  # None: the noise follows seed
-    return simulate_traversal(maze, steps=steps, seed=seed, noise_seed=noise_seed)
+    return simulate_traversal(maze, steps=steps, seed=seed, noise_seed=noise_seed,
+                              lidar=LidarConfig(**world.get("lidar", {})),
+                              rotation=world.get("rotation", 0.0))  # fmt: skip
+
+
+def _add_world_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("sensor and world (default: the paper's noise-free LiDAR)")
+    helps = {
+        "range-noise": "Gaussian range noise std, a fraction of the maximum range (e.g. 0.01)",
+        "short-prob": "probability of a random short return per beam",
+        "dropout-prob": "probability of no return (max range) per beam",
+        "rotation": "turn each maze by this angle (rad), which the filter is not told",
+    }
+    for name, text in helps.items():
+        g.add_argument(f"--{name}", type=float, default=0.0, help=text)
+
+
+def _world(p: argparse.ArgumentParser, args) -> tuple[dict, str]:
+    """The simulated world's options and the tag they add to run names."""
+    lidar = {k: getattr(args, k) for k in ("range_noise", "short_prob", "dropout_prob")}
+    for k, v in lidar.items():
+        if not 0.0 <= v < 1.0:
+            p.error(f"--{k.replace('_', '-')} must be in [0, 1), got {v}")
+    lidar = {k: v for k, v in lidar.items() if v}
+    world = {"lidar": lidar, "rotation": args.rotation} if lidar or args.rotation else {}
+    tag = "".join(f"_{k[0]}{v:g}" for k, v in lidar.items())
+    return world, tag + (f"_rot{args.rotation:g}" if args.rotation else "")
 
 
 def run_one(job) -> dict:
     """One SLAM run (in a worker process, 1 thread); returns errors over time."""
-    mode, maze_seed, seed, steps, config, map_poses, path, per_maze_noise = job
+    mode, maze_seed, seed, steps, config, map_poses, path, per_maze_noise, world = job
     import torch
 
     torch.set_num_threads(1)
@@ -75,7 +106,7 @@ def run_one(job) -> dict:
     from pyro_slam import metrics
     from pyro_slam.slam import SLAM, path_integration
 
-    tr = _traversal(maze_seed, seed, steps, per_maze_noise)
+    tr = _traversal(maze_seed, seed, steps, per_maze_noise, world)
     t0 = time.perf_counter()
     slam = SLAM(tr, config, seed=seed)
     pi = path_integration(tr, slam.model.transition)
@@ -94,6 +125,9 @@ def run_one(job) -> dict:
         "pi_poses": np.asarray(pi, dtype=np.float32),
         "std": np.asarray(res["std"], dtype=np.float32),  # [T, 3] the filter's posterior std
     }
+    if slam.heading is not None:  # the Manhattan frame's error (modulo a quarter turn)
+        q = math.pi / 2
+        out["frame_error"] = (slam.heading.frame - world.get("rotation", 0.0) + q / 2) % q - q / 2
     np.savez(path, **out)
     return {"mode": mode, "maze": maze_seed, "seed": seed, "final": float(out["slam"][-1]),
             "pi": float(out["pi"][-1]), "wall_s": wall}  # fmt: skip
@@ -120,6 +154,7 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--modes", default="online,offline")
     add_config_args(p, "raycast")
+    _add_world_args(p)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument(
         "--map-poses",
@@ -160,18 +195,19 @@ def main(argv=None) -> int:
     runs.mkdir(parents=True, exist_ok=True)
     # the run names carry mode, maze, traversal, steps and the diagnostics; the configuration
     # must match the folder's
-    check_out_config(args.out / "config.json", {"config": config.to_dict()})
+    world, world_tag = _world(p, args)
+    check_out_config(args.out / "config.json", {"config": config.to_dict(), **world})
     jobs, files = [], {}
     for mode in modes:
         for m in mazes:
             for s in seeds:
                 tag = "" if args.map_poses == "filter" else f"_map-{args.map_poses}"
-                tag += "_pn" if args.per_maze_noise else ""
+                tag += ("_pn" if args.per_maze_noise else "") + world_tag
                 f = runs / f"{mode}{tag}_m{m}_t{s}_T{args.steps}.npz"
                 files.setdefault(mode, []).append(f)
                 if not f.is_file():
                     jobs.append((mode, m, s, args.steps, config, args.map_poses, f,
-                                 args.per_maze_noise))  # fmt: skip
+                                 args.per_maze_noise, world))  # fmt: skip
     with mp.get_context("spawn").Pool(args.workers) as pool:
         for r in tqdm(pool.imap_unordered(run_one, jobs), total=len(jobs), desc="SLAM runs"):
             tqdm.write(json.dumps(r))
@@ -179,7 +215,7 @@ def main(argv=None) -> int:
                "mazes": mazes,
                "preset": args.preset, "config": config.to_dict(),
                "map_poses": args.map_poses,
-               "per_maze_noise": args.per_maze_noise}  # fmt: skip
+               "per_maze_noise": args.per_maze_noise, **world}  # fmt: skip
     curves = {}
     for mode in modes:
         data = [np.load(f) for f in files[mode]]
@@ -201,6 +237,8 @@ def main(argv=None) -> int:
         summary[mode]["aligned_final_mean"] = float(np.mean([a[0][-1] for a in al]))
         summary[mode]["aligned_final_std"] = float(np.std([a[0][-1] for a in al]))
         summary[mode]["aligning_rotation_abs_mean"] = float(np.mean([abs(a[1]) for a in al]))
+        if all("frame_error" in d for d in data):  # the heading observation's frame
+            summary[mode]["frame_error_abs_max"] = float(max(abs(d["frame_error"]) for d in data))
         if all("std" in d for d in data):  # runs from before the std was saved lack it
             pos_std = np.stack([np.hypot(d["std"][:, 0], d["std"][:, 1]) for d in data])
             # calibration: the filter's position std over its actual error (1: calibrated)

@@ -8,7 +8,8 @@ that:
 
 * **the frame** ``phi`` is estimated from the data: from the first scans with a straight wall,
   each paired with the heading that odometry integrates from the known start, weighted by how
-  little odometry has drifted by then; and refined online with the filter's posterior headings;
+  little odometry has drifted by then; and refined online with the filter's posterior headings,
+  its uncertainty widening the observation's std;
 * **the tolerance** within which wall segments agree, and the observation's std, fit the
   sensor's noise, estimated from the scans themselves (:func:`~pyro_slam.geometry.range_noise`):
   a segment of length ``L`` has a direction error of about ``sqrt(2) sigma_r / L``;
@@ -69,8 +70,7 @@ class ManhattanHeading:
         self.direction = direction  # [T] in [0, pi / 2)
         self.ok = support >= config.support  # [T]
         self.sigma = std.clamp_min(config.sigma)  # [T] the observation's std
-        self.frame = self._initial_frame(traversal, drift)
-        self._acc = torch.zeros(2, dtype=torch.float64)  # refinement: weighted (cos, sin) of 4 phi
+        self.frame, self.frame_var = self._initial_frame(traversal, drift)  # its mean, variance
 
     def _lidar(self, traversal, obs, mask, angles, config: HeadingConfig):
         """Wall directions of the scans, with the agreement tolerance fitted to the noise."""
@@ -83,15 +83,16 @@ class ManhattanHeading:
             tol = max(tol, 2 * math.sqrt(2) * self.noise / typical)
         return wall_direction(obs, angles, max_range, mask, min(tol, QUARTER / 4))
 
-    def _initial_frame(self, traversal: Traversal, drift: float) -> float:
+    def _initial_frame(self, traversal: Traversal, drift: float) -> tuple[float, float]:
         """The walls' frame from the first supported scans: each gives ``y_t`` = odometry
         heading plus wall direction (modulo a quarter turn) = ``phi + w_t + e_t``, with
         odometry's drift ``w_t`` a random walk (step std ``drift``) from the known start
         (``w_0 = 0``) and ``e_t`` the scan's error (std ``sigma_t``). A Kalman filter run
-        backwards in time, from the last of those scans to the first step, ends at ``phi``."""
+        backwards in time, from the last of those scans to the first step, ends at ``phi``
+        (mean and variance)."""
         steps = torch.nonzero(self.ok).flatten()[:FRAME_SCANS]
         if not len(steps):
-            return float("nan")
+            return float("nan"), float("inf")
         heading = torch.as_tensor(odometry_poses(traversal)[:, 2], dtype=self.direction.dtype)
         y = heading[steps] + self.direction[steps]  # [n] phi + drift, modulo a quarter turn
         y = y[0] + _wrap_quarter(y - y[0])  # unwrapped about the first
@@ -101,34 +102,33 @@ class ManhattanHeading:
             var += (t - int(steps[k])) * drift**2  # back to step steps[k]
             gain = var / (var + float(sigma2[k]))
             mean, var, t = mean + gain * (float(y[k]) - mean), (1 - gain) * var, int(steps[k])
-        # the drift at step 0 is zero: the level there is the frame
-        return float(torch.remainder(torch.tensor(mean), QUARTER))
+        var += t * drift**2  # the drift at step 0 is zero: the level there is the frame
+        return float(torch.remainder(torch.tensor(mean), QUARTER)), var
 
     def observation(self, t=None) -> HeadingObservation:
         """Step ``t``'s observation (all steps, ``value [T]``, with ``t=None``); its value is nan
-        where the scan has no straight wall or no frame is known yet."""
+        where the scan has no straight wall or no frame is known yet. Its std adds the frame's
+        own uncertainty to the scan's, so an uncertain frame pins the heading less."""
         value = torch.remainder(self.frame - self.direction, QUARTER)
         value = torch.where(self.ok, value, torch.full_like(value, math.nan))
-        out = HeadingObservation(value, self.sigma, QUARTER, self.outlier_prob)
+        sigma = (self.sigma**2 + self.frame_var).sqrt()  # [T]
+        out = HeadingObservation(value, sigma, QUARTER, self.outlier_prob)
         return out if t is None else out.at(t)
 
     def refine(self, t: int, heading: float, heading_std: float) -> None:
-        """Refine the frame with step ``t``'s posterior heading (mean and std): one more
-        ``heading + direction`` (modulo a quarter turn), weighted by ``1 / (sigma_t^2 +
-        heading_std^2)``, into a running circular mean that starts at the initial frame."""
+        """Refine the frame with step ``t``'s posterior heading (mean and std): ``heading +
+        direction`` (modulo a quarter turn) observes the frame with variance ``sigma_t^2 +
+        heading_std^2``; one scalar Kalman update of the frame's mean and variance."""
         if not bool(self.ok[t]) or math.isnan(self.frame):
             return
-        w = 1.0 / (float(self.sigma[t]) ** 2 + heading_std**2 + 1e-12)
-        if not self._acc.any():  # the initial estimate counts as one such observation
-            self._acc += w * torch.tensor([math.cos(4 * self.frame), math.sin(4 * self.frame)],
-                                          dtype=torch.float64)  # fmt: skip
-        theta = 4 * (heading + float(self.direction[t]))
-        self._acc += w * torch.tensor([math.cos(theta), math.sin(theta)], dtype=torch.float64)
-        self.frame = float(torch.remainder(torch.atan2(self._acc[1], self._acc[0]) / 4, QUARTER))
+        v = float(self.sigma[t]) ** 2 + heading_std**2
+        r = float(_wrap_quarter(torch.tensor(heading + float(self.direction[t]) - self.frame)))
+        gain = self.frame_var / (self.frame_var + v)
+        self.frame = float(torch.remainder(torch.tensor(self.frame + gain * r), QUARTER))
+        self.frame_var *= 1 - gain
 
     def state_dict(self) -> dict:
-        return {"frame": self.frame, "acc": self._acc.clone()}
+        return {"frame": self.frame, "frame_var": self.frame_var}
 
     def load_state_dict(self, d: dict) -> None:
-        self.frame = float(d["frame"])
-        self._acc.copy_(d["acc"])
+        self.frame, self.frame_var = float(d["frame"]), float(d["frame_var"])
