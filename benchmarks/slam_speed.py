@@ -16,7 +16,8 @@ is one JSON object.
 side by side (absolute times on a shared machine vary from day to day). A commit without
 presets takes the preset's settings as ``--against-config`` (its own JSON format) and
 ``--against-transition`` (its learned transition file, if the preset uses one). Threads:
-``--threads`` for both (torch intra-op threads).
+``--threads`` for both (torch intra-op threads). ``--smc`` also times the online run with Pyro's
+``SMCFilter`` as the filter, next to ours with the same per-particle weights.
 """
 
 from __future__ import annotations
@@ -35,7 +36,8 @@ from pathlib import Path
 import torch
 
 from benchmarks._common import add_config_args, slam_config
-from pyro_slam.slam import SLAM, presets
+from pyro_slam.metrics import localisation_error
+from pyro_slam.slam import SLAM, presets, with_overrides
 from simulators import simulate_traversal
 from simulators.maze import make_maze
 
@@ -53,12 +55,14 @@ def traversal(steps: int):
     return simulate_traversal(maze, steps=steps, seed=DRIVER_SEED, noise_seed=(DRIVER_SEED, MAZE))
 
 
-def time_run(tr, config, mode: str) -> float:
-    """Wall seconds of one SLAM run (no progress bar, seed 1)."""
-    slam = SLAM(tr, config, seed=1)
+def time_run(tr, config, mode: str, smc: bool = False) -> tuple[float, float]:
+    """Wall seconds of one SLAM run (no progress bar, seed 1) and its final position error;
+    ``smc``: Pyro's ``SMCFilter`` as the online filter."""
+    slam = SLAM(tr, config, seed=1, smc=smc)
     t0 = time.perf_counter()
-    slam.run(mode, progress=False)
-    return time.perf_counter() - t0
+    res = slam.run(mode, progress=False)
+    wall = time.perf_counter() - t0
+    return wall, float(localisation_error(res["mean"], tr.poses)[-1])
 
 
 def breakdown(tr, config, steps: int) -> dict:
@@ -112,6 +116,9 @@ def parse(argv):
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--profile-steps", type=int, default=300)
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--smc", action="store_true",
+                   help="also time the online run with Pyro's SMCFilter as the filter, and ours "
+                   "with the same (per-particle, 'marginal') weights")  # fmt: skip
     p.add_argument("--against", metavar="REV", help="also time this commit's code")
     p.add_argument("--against-config", default="{}", metavar="JSON",
                    help="the preset's settings in that commit's --config format")  # fmt: skip
@@ -128,6 +135,8 @@ def parse(argv):
     if args.steps < 2 or args.profile_steps < 2 or args.threads < 1:
         p.error("--steps and --profile-steps must be >= 2, --threads >= 1")
     configs = {n: slam_config(p, n, args.config) for n in names}
+    if args.smc and (on := [n for n in names if configs[n].heading is not None]):
+        p.error(f"--smc: Pyro's SMCFilter does not take the heading observation ({on})")
     return args, names, modes, configs
 
 
@@ -139,10 +148,18 @@ def main(argv=None) -> int:
                "threads": args.threads, "presets": {}}  # fmt: skip
     for name in names:
         row = {}
-        for mode in modes:
-            wall = time_run(tr, configs[name], mode)
-            row[mode] = {"wall_s": round(wall, 1), "steps_per_s": round(args.steps / wall, 2)}
-            print(f"{name} {mode}: {wall:.1f} s, {args.steps / wall:.1f} steps/s", flush=True)
+        cfg = configs[name]
+        runs = [(mode, mode, cfg, False) for mode in modes]
+        if args.smc:  # SMCFilter weighs each particle alone: both filters with marginal weights
+            marginal = with_overrides(cfg, {"filter": {"weighting": "marginal"}})
+            runs += [("online_marginal", "online", marginal, False),
+                     ("online_smc", "online", marginal, True)]  # fmt: skip
+        for key, mode, config, smc in runs:
+            wall, err = time_run(tr, config, mode, smc)
+            row[key] = {"wall_s": round(wall, 1), "steps_per_s": round(args.steps / wall, 2),
+                        "final_error": round(err, 4)}  # fmt: skip
+            print(f"{name} {key}: {wall:.1f} s, {args.steps / wall:.1f} steps/s, "
+                  f"final error {err:.4f}", flush=True)  # fmt: skip
         row["breakdown_online"] = breakdown(tr, configs[name], min(args.profile_steps, args.steps))
         print(f"{name} online breakdown: {row['breakdown_online']}", flush=True)
         summary["presets"][name] = row

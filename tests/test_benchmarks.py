@@ -632,3 +632,17 @@ def test_slam_speed_times_presets_and_another_commit_side_by_side():
     )
     bad = bench("slam_speed", "--presets", "nope")
     assert bad.returncode == 2 and "nope" in bad.stderr
+
+
+def test_slam_speed_times_pyros_smcfilter_on_the_same_run():
+    """``--smc``: the online run with Pyro's SMCFilter as the filter and with ours, both with
+    per-particle ('marginal') weights, timed and scored alike (30 steps stay well within 0.1 of
+    the truth); a preset with the heading observation, which SMCFilter cannot take, is a usage
+    error."""
+    args = ["--presets", "raycast", "--modes", "online", "--steps", "30", "--profile-steps", "10",
+            "--threads", "1", "--smc"]  # fmt: skip
+    row = last_json(run("slam_speed", *args))["presets"]["raycast"]
+    for key in ("online", "online_marginal", "online_smc"):
+        assert row[key]["steps_per_s"] > 0 and 0 <= row[key]["final_error"] < 0.1
+    bad = bench("slam_speed", "--presets", "manhattan", "--smc")
+    assert bad.returncode == 2 and "heading" in bad.stderr
