@@ -202,9 +202,10 @@ class OfflineConfig:
 @dataclass(frozen=True)
 class HeadingConfig:
     """The Manhattan-world heading observation (not the paper's model): each scan's straight
-    walls give its heading modulo a quarter turn wherever at least ``support`` wall segments
-    agree within ``sigma`` rad; the filter samples the heading conditioned on it with std
-    ``sigma`` (:mod:`pyro_slam.slam.heading`)."""
+    walls give its heading modulo a quarter turn, relative to a walls' frame estimated from the
+    data, wherever at least ``support`` wall segments agree; the agreement tolerance and the
+    observation's std fit the sensor's noise, with ``sigma`` rad as their floor
+    (:mod:`pyro_slam.slam.heading`)."""
 
     sigma: float = 1e-3
     support: int = 2
