@@ -118,6 +118,7 @@ def test_presets_differ_from_each_other_as_documented():
         paper,
         emission=EmissionConfig("raycast", resolution=1 / 63, insert=ScanInsertionConfig()),
         filter=replace(paper.filter, outlier_prob=0.1),
+        training=replace(paper.training, every=4),
     )
     assert presets.get("manhattan").config == replace(raycast, heading=HeadingConfig(1e-3))
     visual = presets.get("visual").config
