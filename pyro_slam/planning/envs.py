@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pyro
 import torch
-from pyro.infer import Predictive
+from pyro import poutine
 from scipy.optimize import minimize
 
 from simulators import LidarConfig, World, raycast, simulate_traversal
@@ -25,7 +25,40 @@ from .planner import SAFETY_DELTA, inside_scan
 
 
 # --------------------------------------------------------------------------- environments
-class LearnedEnv:
+class _Rollouts:
+    """Memoised rollouts, shared by both environments. A rollout is a deterministic function of
+    its start pose, so :meth:`rollout` keeps each start pose's result per set of controls (up
+    to ``memo_limit`` of them, the oldest dropped first): plans from one start, or through one
+    pose, share them, and so do copies made by ``with_observation``. ``rollout_batch`` start
+    poses cost about as much as one (the planner rolls out its next open nodes with it)."""
+
+    rollout_batch = 1
+    memo_limit = 20_000
+
+    def rollout(self, z0, controls: torch.Tensor):
+        """Roll out ``controls [P, L, 2]`` from a pose ``z0 [3]`` or from poses ``[K, 3]``.
+
+        Returns final poses ``[(K,) P, 3]``, travel ``[(K,) P]``, end scans ``[(K,) P, B]``
+        (a tensor) and step paths ``[(K,) P, L + 1, 3]``."""
+        z = np.asarray(z0, dtype=np.float64)
+        single = z.ndim == 1
+        z = np.atleast_2d(z)  # [K, 3]
+        memo = self._memos.setdefault(controls.numpy().tobytes(), {})
+        keys = [row.tobytes() for row in z]
+        new = list(dict.fromkeys(k for k in keys if k not in memo))
+        if new:
+            out = self._rollout(z[[keys.index(k) for k in new]], controls)
+            for j, k in enumerate(new):
+                memo[k] = tuple(v[j] for v in out)
+            for old in list(memo)[: max(0, len(memo) - self.memo_limit)]:
+                del memo[old]
+        rows = [memo[k] for k in keys]
+        if single:
+            return rows[0]
+        return tuple(torch.stack(v) if torch.is_tensor(v[0]) else np.stack(v) for v in zip(*rows))
+
+
+class LearnedEnv(_Rollouts):
     """The DVBF-LM model with a fixed map ``M`` (mean of ``q(M)``) as planning environment.
 
     Args:
@@ -36,6 +69,7 @@ class LearnedEnv:
     """
 
     name = "learned"
+    rollout_batch = 16  # one model run for 16 start poses costs ~2 x one for a single pose
 
     def __init__(
         self,
@@ -55,6 +89,7 @@ class LearnedEnv:
                                     noise=model.noise)  # fmt: skip
         self.bounds = bounds if bounds is not None else model.grid.extent()
         self.seen: list[tuple] = []  # (pose [3], real scan [B], margin, radius)
+        self._memos: dict = {}  # rollouts per controls and start pose (see _Rollouts)
 
     def with_observation(
         self, pose, scan, margin: float = SAFETY_DELTA, radius: float = 0.1
@@ -92,32 +127,25 @@ class LearnedEnv:
         return ok
 
     @torch.no_grad()
-    def rollout(self, z0: np.ndarray, controls: torch.Tensor):
-        """Roll the model out under ``controls [P, L, 2]`` from pose ``z0 [3]``:
-        :class:`pyro.infer.Predictive` on ``DVBFLM.model`` with the map at ``M``, the planner's
+    def _rollout(self, z0: np.ndarray, controls: torch.Tensor):
+        """One run of ``DVBFLM.model`` for start poses ``z0 [K, 3]`` under ``controls [P, L,
+        2]``, traced with the map conditioned on ``M`` and ``z_0`` on the starts: the planner's
         transition (kinematics that stop short of predicted walls, no noise) and the model's
-        emission, prior and noise; the predicted scans are its ``scan_t`` sites.
-
-        Returns final poses ``[P, 3]``, travel ``[P]``, end scans ``[P, B]``, paths
-        ``[P, L + 1, 3]``.
-        """
-        P, L, _ = controls.shape
-        z0 = torch.as_tensor(z0, dtype=controls.dtype)
-        sites = [f"z_{t}" for t in range(L + 1)] + [f"scan_{L}"]
-        predictive = Predictive(
-            self.planner_model.model,
-            posterior_samples={"map": self.M[None], "z_0": z0[None]},
-            return_sites=sites,
-        )
+        emission, prior and noise; the predicted scans are its ``scan_t`` sites. Returns
+        ``[K, P, ...]`` (see :meth:`rollout`)."""
+        K, (P, L, _) = len(z0), controls.shape
+        init = torch.as_tensor(z0, dtype=controls.dtype)[:, None]  # [K, 1, 3]
+        model = poutine.condition(self.planner_model.model, {"map": self.M, "z_0": init})
         with pyro.validation_enabled(False):  # (a noise-free transition)
-            s = predictive(None, controls, z0)
-        path = torch.stack([s[f"z_{t}"].reshape(-1, 3).expand(P, 3) for t in range(L + 1)], 1)
-        travel = (path[:, 1:, :2] - path[:, :-1, :2]).norm(dim=-1).sum(-1)  # [P]
-        scans = s[f"scan_{L}"].reshape(P, -1)  # [P, B]
-        return path[:, -1].numpy(), travel.numpy(), scans, path.numpy()  # path [P, L + 1, 3]
+            tr = poutine.trace(model).get_trace(None, controls, init)
+        z = [tr.nodes[f"z_{t}"]["value"].expand(K, P, 3) for t in range(L + 1)]
+        path = torch.stack(z, 2)  # [K, P, L + 1, 3]
+        travel = (path[..., 1:, :2] - path[..., :-1, :2]).norm(dim=-1).sum(-1)  # [K, P]
+        scans = tr.nodes[f"scan_{L}"]["value"].expand(K, P, -1)  # [K, P, B]
+        return path[:, :, -1].numpy(), travel.numpy(), scans, path.numpy()
 
 
-class GroundTruthEnv:
+class GroundTruthEnv(_Rollouts):
     """The simulator's truth: analytic raycast on the walls, exact pymunk kinematics."""
 
     name = "ground_truth"
@@ -128,6 +156,7 @@ class GroundTruthEnv:
         self.world = World(maze, self.lidar, odometry_noise=0, seed=0)
         self.bounds = maze_bounds(maze)
         self._grid_key, self._grid = None, None  # places(): the ray-cast search grid
+        self._memos: dict = {}  # rollouts per controls and start pose (see _Rollouts)
 
     def scan(self, z) -> torch.Tensor:
         z = np.atleast_2d(np.asarray(z, dtype=np.float64))
@@ -135,17 +164,20 @@ class GroundTruthEnv:
         r = raycast(self.maze.walls, z[:, :2], ang, self.lidar.max_range)
         return torch.as_tensor(r, dtype=torch.get_default_dtype())
 
-    def rollout(self, z0: np.ndarray, controls: torch.Tensor):
+    def _rollout(self, z0: np.ndarray, controls: torch.Tensor):
+        """The pymunk world stepped through ``controls [P, L, 2]`` from each pose of ``z0 [K,
+        3]``: ``[K, P, ...]`` (see :meth:`rollout`)."""
         c = controls.numpy()
-        P, L, _ = c.shape
-        paths = np.zeros((P, L + 1, 3))
-        for p in range(P):
-            self.world.reset(z0)
-            paths[p, 0] = self.world.pose
+        (P, L, _), K = c.shape, len(z0)
+        paths = np.zeros((K, P, L + 1, 3))
+        for i, p in np.ndindex(K, P):
+            self.world.reset(z0[i])
+            paths[i, p, 0] = self.world.pose
             for k in range(L):
-                paths[p, k + 1] = self.world.step(c[p, k]) if c[p, k].any() else paths[p, k]
-        travel = np.linalg.norm(np.diff(paths[:, :, :2], axis=1), axis=-1).sum(1)
-        return paths[:, -1], travel, self.scan(paths[:, -1]), paths
+                paths[i, p, k + 1] = self.world.step(c[p, k]) if c[p, k].any() else paths[i, p, k]
+        travel = np.linalg.norm(np.diff(paths[..., :2], axis=-2), axis=-1).sum(-1)  # [K, P]
+        scans = self.scan(paths[:, :, -1].reshape(-1, 3)).reshape(K, P, -1)
+        return paths[:, :, -1], travel, scans, paths
 
     def valid(self, z) -> np.ndarray:
         return np.ones(len(z), dtype=bool)

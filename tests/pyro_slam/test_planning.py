@@ -3,6 +3,8 @@ the learned model on a small maze."""
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -65,6 +67,54 @@ def test_learned_plan_on_simple_maze():
     ex, _ = execute(maze, start, r.controls)
     assert not segments_cross(ex[:, :2], maze.walls)
     assert np.hypot(*(ex[-1, :2] - pts[2])) <= 0.05
+
+
+def test_learned_rollouts_are_the_pyro_models_and_batched_plans_are_exact_a_star():
+    """``LearnedEnv.rollout`` runs ``DVBFLM.model`` once for a batch of start poses: each row
+    equals the model's own prediction (``pyro.infer.Predictive``) from that pose; rollouts are
+    kept per start pose, so a repeated plan runs the model no more; and a search that rolls
+    out its next open nodes in batches returns exactly the plan of one node at a time."""
+    import pyro
+    from pyro.infer import Predictive
+
+    from pyro_slam.planning import Primitives
+
+    torch.manual_seed(0)
+    maze = make_maze("simple-medium", 3)
+    env, _, _ = learned_env(maze, steps=600, fit_steps=100)
+    prims = Primitives().padded()  # [P, L, 2]
+    P, L, _ = prims.shape
+    z0 = np.array([[0.08, 0.08, 0.0], [0.25, 0.1, 1.2], [0.4, 0.42, -2.0]])
+    ends, travel, scans, paths = env.rollout(z0, prims)
+    assert ends.shape == (3, P, 3) and scans.shape == (3, P, 20) and paths.shape == (3, P, L + 1, 3)
+    for i, z in enumerate(torch.as_tensor(z0, dtype=prims.dtype)):
+        sites = [f"z_{t}" for t in range(L + 1)] + [f"scan_{L}"]
+        pred = Predictive(env.planner_model.model, {"map": env.M[None], "z_0": z[None]},
+                          return_sites=sites)  # fmt: skip
+        with pyro.validation_enabled(False):
+            s = pred(None, prims, z)
+        want = torch.stack([s[f"z_{t}"].reshape(-1, 3).expand(P, 3) for t in range(L + 1)], 1)
+        assert np.allclose(paths[i], want.numpy(), atol=1e-6)
+        assert torch.allclose(scans[i], s[f"scan_{L}"].reshape(P, -1), atol=1e-6)
+        single = env.rollout(z0[i], prims)
+        assert np.array_equal(single[0], ends[i]) and np.array_equal(single[3], paths[i])
+    assert (travel > 0).any() and np.all(travel <= 5 * 0.008 + 1e-6)  # 5 steps at most
+
+    pts = free_grid(maze, 3)
+    start, runs = np.array([*pts[0], 0.0]), []
+    env._rollout = lambda z, c, f=env._rollout: runs.append(len(z)) or f(z, c)
+    first = plan(env, start, pts[8], max_expansions=400)
+    assert first.success and max(runs) > 1  # several nodes per model run
+    n = len(runs)
+    again = plan(env, start, pts[8], max_expansions=400)
+    assert len(runs) == n  # every rollout of the repeated search was kept
+    seen = env.with_observation(start, GroundTruthEnv(maze).scan(start)[0].numpy())
+    assert seen._memos is env._memos  # and shared by the copies that trust a real scan
+    assert np.array_equal(again.controls, first.controls)
+    one = copy.copy(env)  # the same model and map, nothing kept, one node per model run
+    one._memos, one.rollout_batch = {}, 1
+    exact = plan(one, start, pts[8], max_expansions=400)
+    assert exact.expansions == first.expansions and np.array_equal(exact.controls, first.controls)
 
 
 def test_learned_env_fitted_emission_beats_shipped_on_its_maze():
