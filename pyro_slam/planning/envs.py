@@ -218,15 +218,11 @@ class GroundTruthEnv(_Rollouts):
         scans = np.atleast_2d(np.asarray(scans, dtype=np.float64))  # [N, B]
         if scans.shape[-1] != B:
             raise ValueError(f"scans have {scans.shape[-1]} beams, the LiDAR {B}: {scans.shape}")
-        xy, rays = self._ray_grid(spacing, n_headings)  # [P, 2], [P, H]
+        xy, rays, ranked = self._ray_grid(spacing, n_headings)  # [P, 2], [P, H], [P, B, s]
         angles = 2 * np.pi * np.arange(n_headings) / n_headings  # [H]
-        step = n_headings // B
         out = []
         for x in scans:
-            d = torch.zeros_like(rays)  # [P, H]: grid pose (p, h) reads ray h + step * i
-            for i in range(B):
-                d += (torch.roll(rays, -i * step, dims=1) - float(x[i])).abs()
-            best, h = (d / B).min(1)  # [P]
+            best, h = self._coarse(x, rays, ranked, coarse_tol)  # [P], [P]
             reps: list[int] = []
             for p in torch.argsort(best).tolist():
                 if best[p] > coarse_tol:
@@ -253,9 +249,37 @@ class GroundTruthEnv(_Rollouts):
             out.append((np.array(poses).reshape(-1, 3)[keep], np.array(diffs)[keep]))
         return out
 
+    @staticmethod
+    def _coarse(x: np.ndarray, rays: torch.Tensor, ranked: torch.Tensor, tol: float):
+        """The best grid heading of each grid position for scan ``x [B]``: mean absolute
+        difference ``[P]`` (``inf`` where it exceeds ``tol``) and heading index ``[P]``.
+
+        Grid pose ``(p, h)`` reads ray ``h + s i`` for beam ``i`` (``s = H / B``); with ``h = s
+        q + r`` that is entry ``(q + i) mod B`` of row ``r`` of the rays reshaped ``[P, B, s]``,
+        so every heading of one ``r`` sees the same multiset of ranges. The mean absolute
+        difference between the sorted ranges and the sorted scan is a lower bound (sorted
+        pairing minimises it), so only positions whose bound is within ``tol`` for some ``r``
+        are compared heading by heading -- the same result as comparing them all. ``ranked
+        [P, B, s]``: the rays so reshaped, sorted along ``B``."""
+        (P, H), B = rays.shape, len(x)
+        step = H // B
+        xs = torch.as_tensor(np.sort(x), dtype=rays.dtype)[:, None]  # [B, 1]
+        bound = (ranked - xs).abs().mean(1).min(1).values  # [P]
+        cand = torch.nonzero(bound <= tol + 1e-9).squeeze(1)  # [C]
+        sub = rays[cand]  # [C, H]
+        d = torch.zeros_like(sub)  # [C, H]: grid pose (p, h) reads ray h + step * i
+        for i in range(B):
+            d += (torch.roll(sub, -i * step, dims=1) - float(x[i])).abs()
+        best = torch.full((P,), float("inf"), dtype=rays.dtype)
+        h = torch.zeros(P, dtype=torch.long)
+        best[cand], h[cand] = (d / B).min(1)
+        return best, h
+
     def _ray_grid(self, spacing: float, n_headings: int):
-        """Cached: the wall-free positions ``[P, 2]`` of a ``spacing`` grid over the maze and
-        their ranges ``[P, n_headings]`` at ``n_headings`` evenly spaced directions from 0."""
+        """Cached: the wall-free positions ``[P, 2]`` of a ``spacing`` grid over the maze, their
+        ranges ``[P, n_headings]`` at ``n_headings`` evenly spaced directions from 0, and those
+        ranges reshaped ``[P, B, n_headings / B]`` and sorted along the beams (see
+        :meth:`_coarse`)."""
         key = (spacing, n_headings)
         if self._grid_key != key:
             xs = np.arange(spacing / 2, self.maze.side, spacing)
@@ -264,7 +288,10 @@ class GroundTruthEnv(_Rollouts):
             ang = 2 * np.pi * np.arange(n_headings) / n_headings
             rays = raycast(self.maze.walls, xy, np.broadcast_to(ang, (len(xy), n_headings)),
                            self.lidar.max_range)  # fmt: skip
-            self._grid_key, self._grid = key, (xy, torch.as_tensor(rays))
+            rays = torch.as_tensor(rays)
+            B = self.lidar.n_beams
+            ranked = torch.sort(rays.reshape(len(xy), B, n_headings // B), dim=1).values
+            self._grid_key, self._grid = key, (xy, rays, ranked)
         return self._grid
 
 
