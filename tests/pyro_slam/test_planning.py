@@ -235,3 +235,23 @@ def test_ground_truth_places_finds_every_exact_look_alike():
         env.places(env.scan(np.array([0.1, 0.1, 0.0])), n_headings=50)
     with pytest.raises(ValueError, match="19 beams"):
         env.places(np.zeros((1, 19)))
+
+
+def test_ground_truth_coarse_search_skips_only_positions_that_cannot_match():
+    """The coarse search of ``places`` compares only positions whose sorted ranges are within
+    the tolerance of the sorted scan: for every position whose best heading is within it, the
+    same difference and heading as comparing every position at every heading."""
+    maze = make_maze("moderate-medium", 1001)
+    env = GroundTruthEnv(maze)
+    xy, rays, ranked = env._ray_grid(0.02, 360)
+    rng = np.random.default_rng(0)
+    z = np.concatenate([free_grid(maze)[:6], rng.uniform(-np.pi, np.pi, (6, 1))], 1)
+    beams = (np.arange(360)[:, None] + 18 * np.arange(20)) % 360  # [H, B]
+    for x in env.scan(z).numpy().astype(np.float64):
+        full = np.abs(rays.numpy()[:, beams] - x).mean(-1)  # [P, H]: every pose
+        best, h = env._coarse(x, rays, ranked, 0.03)
+        near = full.min(1) <= 0.03
+        assert near.any() and (best.numpy()[~near] > 0.03).all()
+        assert np.allclose(best.numpy()[near], full.min(1)[near], atol=1e-12)
+        assert np.array_equal(h.numpy()[near], full.argmin(1)[near])
+        assert (best.numpy() < np.inf).sum() < 0.5 * len(xy)  # most positions were skipped
