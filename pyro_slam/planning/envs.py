@@ -332,7 +332,10 @@ def learned_env(
     :func:`~pyro_slam.slam.pretrain_emission` (``n_world`` world directions, from scratch, at
     the same ``poses``), after which ``q(M)`` is refitted under it.
 
+    Everything is seeded by ``seed``, whatever ran before in the process.
+
     Returns ``(env, (q_loc, q_scale), traversal)``."""
+    torch.manual_seed(seed)  # the new emission's initial weights
     if traversal is None:
         traversal = simulate_traversal(maze, steps=steps, seed=seed, tour=tour)
     cfg = SLAMConfig()  # the paper's LiDAR emission MLP
