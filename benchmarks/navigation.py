@@ -137,6 +137,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--n-world", type=int, default=60, help="world directions of a fitted emission")
     p.add_argument("--max-std", type=float, default=0.6, help="explored: chart std below this")
     p.add_argument(
+        "--hit-margin", type=float, default=0.0,
+        help="the learned planner keeps this far from the mapping scans' returns (0: off)",
+    )  # fmt: skip
+    p.add_argument(
         "--check-path", action=argparse.BooleanOptionalAction, default=True,
         help="every step of a primitive must be explored (not only its end pose)",
     )  # fmt: skip
@@ -464,7 +468,7 @@ def _fit_models(maze, ms: int, args) -> SimpleNamespace:
     lenv, _, traversal = learned_env(
         maze, traversal=traversal, poses=poses, steps=args.traversal_steps,
         fit_steps=args.fit_steps, emission_steps=args.emission_steps, n_world=args.n_world,
-        max_std=args.max_std, tour=tour,
+        max_std=args.max_std, tour=tour, hit_margin=args.hit_margin,
     )  # fmt: skip
     t = time.perf_counter()
     inv = fit_inverse(

@@ -352,6 +352,23 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     assert json.loads((tmp_path / "runs.json").read_text()) == runs
 
 
+@pytest.mark.slow
+def test_navigation_workers_give_the_rows_of_a_serial_run(tmp_path):
+    """``--workers 2``: the mazes run in two processes, each maze's rows the same as when the
+    mazes run one after the other in one process (the fits are seeded per maze)."""
+    args = ("--maze-seeds", "1002,1001", "--pairs-limit", "1", "--traversal-steps", "300",
+            "--emission-steps", "30", "--fit-steps", "30", "--sleep-steps", "30",
+            "--inverse-steps", "10", "--max-expansions", "60")  # fmt: skip
+    rows = {}
+    for workers in ("1", "2"):
+        out = tmp_path / workers
+        run("navigation", *args, "--workers", workers, "--out", str(out))
+        runs = json.loads((out / "runs.json").read_text())
+        rows[workers] = [{k: v for k, v in r.items() if k != "plan_s"} for r in runs]
+    assert [r["maze"] for r in rows["2"]] == [1002] * 4 + [1001] * 4  # in the order asked
+    assert rows["1"] == rows["2"]
+
+
 @pytest.mark.parametrize(
     "args, message",
     [

@@ -79,8 +79,12 @@ class LearnedEnv(_Rollouts):
         bounds=None,
         scale: torch.Tensor | None = None,
         max_std: float = 0.6,
+        hits: np.ndarray | None = None,
+        hit_margin: float = 0.0,
     ):
         self.model, self.M, self.scale, self.max_std = model, M, scale, max_std
+        # the mapping scans' returns (ScanHits) and the clearance a position keeps from them
+        self.hits, self.hit_margin = hits, hit_margin
         # the planner's copy of the model: its emission, map prior and noise, with kinematics
         # that stop short of predicted walls and no transition noise
         self.transition = KinematicTransition(0.0, "rotate_forward", clip_margin=clip_margin)
@@ -117,11 +121,15 @@ class LearnedEnv(_Rollouts):
         return var.mean(-1).sqrt().numpy()
 
     def valid(self, z) -> np.ndarray:
-        """Explored positions: chart std under ``q(M)`` below ``max_std`` of the prior's; the
-        model's predicted scans are extrapolations elsewhere."""
+        """Explored positions: chart std under ``q(M)`` below ``max_std`` of the prior's (the
+        model's predicted scans are extrapolations elsewhere) and, with ``hits``, at least
+        ``hit_margin`` from every return of the mapping scans; or inside the free space of a
+        real scan (:meth:`with_observation`)."""
         if self.scale is None:
             return np.ones(len(z), dtype=bool)
         ok = self.std(z) < self.max_std
+        if self.hits is not None and self.hit_margin > 0:
+            ok &= self.hits.clearance(np.asarray(z)[:, :2], self.hit_margin) >= self.hit_margin
         for pose, scan, margin, radius in self.seen:
             ok |= inside_scan(np.asarray(z)[:, :2], pose, scan, margin, radius)
         return ok
@@ -295,6 +303,34 @@ class GroundTruthEnv(_Rollouts):
         return self._grid
 
 
+class ScanHits:
+    """The returns of a traversal's scans placed from its poses (the true ones, or a SLAM
+    run's): a point set ``[H, 2]`` of the walls as the scans saw them, every wall face that
+    a scan hit, wall ends included, whatever the map belief made of them.
+
+    Args:
+        traversal: a :class:`~pyro_slam.data.Traversal` (``observations [T, B]``).
+        poses: ``[T, 3]`` the scans are placed from (default: the traversal's true poses).
+    """
+
+    def __init__(self, traversal, poses=None):
+        from scipy.spatial import cKDTree
+
+        z = np.asarray(traversal.poses if poses is None else poses, dtype=np.float64)  # [T, 3]
+        x = np.asarray(traversal.observations, dtype=np.float64)  # [T, B]
+        hit = x < traversal.max_range * (1 - 1e-3)  # [T, B]: readings at the range are misses
+        ang = z[:, 2:3] + np.asarray(traversal.beam_angles)[None]  # [T, B]
+        pts = z[:, None, :2] + x[..., None] * np.stack([np.cos(ang), np.sin(ang)], -1)
+        self.points = pts[hit]  # [H, 2]
+        self.tree = cKDTree(self.points)
+
+    def clearance(self, xy, upto: float = np.inf) -> np.ndarray:
+        """Distance ``[N]`` from positions ``xy [N, 2]`` to the nearest return (``inf`` where
+        none is within ``upto``)."""
+        d, _ = self.tree.query(np.asarray(xy, dtype=np.float64), k=1, distance_upper_bound=upto)
+        return d
+
+
 def lookalikes(poses, diffs, target, tol: float = 1e-6, radius: float = 0.05) -> tuple[int, float]:
     """Perceptual aliasing of a target pose ``target [2 or 3]`` from its
     :meth:`GroundTruthEnv.places` ``(poses [k, 3], diffs [k])``: the number of look-alike places
@@ -320,6 +356,7 @@ def learned_env(
     emission_steps: int = 0,
     n_world: int = 20,
     tour=None,
+    hit_margin: float = 0.0,
 ):
     """A :class:`LearnedEnv` for ``maze``: simulate a traversal (unless given; ``steps``
     exploring steps, then a tour through the positions ``tour`` ``[P, 2]`` it missed, see
@@ -331,6 +368,9 @@ def learned_env(
     or, with ``emission_steps > 0``, one fitted to this traversal together with a map by
     :func:`~pyro_slam.slam.pretrain_emission` (``n_world`` world directions, from scratch, at
     the same ``poses``), after which ``q(M)`` is refitted under it.
+
+    ``hit_margin > 0``: the planner also keeps this far from the traversal's returns placed
+    from ``poses`` (:class:`ScanHits`), so a wall the map belief lost is still avoided.
 
     Everything is seeded by ``seed``, whatever ran before in the process.
 
@@ -348,7 +388,9 @@ def learned_env(
         em = load_emission(PRETRAINED / EMISSION_FILE, traversal)
     model, _ = build_model(traversal, cfg, emission=em)
     loc, scale = fit_map(traversal, model, poses, fit_steps, seed=seed, progress=progress)
-    env = LearnedEnv(model, loc, bounds=maze_bounds(maze), scale=scale, max_std=max_std)
+    hits = ScanHits(traversal, poses) if hit_margin > 0 else None
+    env = LearnedEnv(model, loc, bounds=maze_bounds(maze), scale=scale, max_std=max_std,
+                     hits=hits, hit_margin=hit_margin)  # fmt: skip
     return env, (loc, scale), traversal
 
 

@@ -11,6 +11,7 @@ import torch
 
 from pyro_slam.planning import (
     GroundTruthEnv,
+    ScanHits,
     execute,
     free_grid,
     inside_scan,
@@ -22,6 +23,7 @@ from pyro_slam.planning import (
     segments_cross,
 )
 from simulators import make_maze
+from simulators.world import point_segment_distance
 
 
 def test_safety_monotone_decreasing():
@@ -144,6 +146,37 @@ def test_learned_env_is_seeded_whatever_ran_before():
     _, (b, _), _ = learned_env(maze, **kw)
     _, (c, _), _ = learned_env(maze, seed=2, **kw)
     assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_scan_hits_keep_the_planner_off_walls_that_the_map_belief_lost():
+    """A map belief fitted in an empty room knows none of the maze's inner walls: its plan
+    goes straight through one. With the returns of the maze's own mapping scans
+    (``ScanHits``, placed from the true poses: they lie on the walls), every step keeps
+    ``hit_margin`` from them, and the plan goes round."""
+    from simulators import simulate_traversal
+    from simulators.maze import Maze
+
+    maze = make_maze("simple-medium", 3)  # 3 x 3 cells, side 0.5; a wall at y = 1/6
+    h, v = np.zeros((3, 4), bool), np.zeros((4, 3), bool)
+    h[:, [0, 3]], v[[0, 3], :] = True, True  # the same square, outer walls only
+    torch.manual_seed(0)
+    room, _, _ = learned_env(Maze("room", 0, 3, maze.corridor_width, h, v), steps=600,
+                             fit_steps=100)  # fmt: skip
+    hits = ScanHits(simulate_traversal(maze, steps=600, seed=1))
+    on_wall = [point_segment_distance(q, maze.walls).min() for q in hits.points]
+    assert len(hits.points) > 1000 and max(on_wall) < 1e-6
+    assert np.isinf(hits.clearance(np.array([[0.25, 0.25]]), upto=0.05))[0]
+    assert hits.clearance(np.array([[0.25, 1 / 6 + 0.004]]))[0] == pytest.approx(0.004, abs=1e-3)
+    pts = free_grid(maze, 3)
+    start = np.array([*pts[1], np.pi / 2])
+    blind = plan(room, start, pts[4], max_expansions=400)
+    assert blind.success and segments_cross(blind.path[:, :2], maze.walls)
+    kept = copy.copy(room)
+    kept.hits, kept.hit_margin, kept._memos = hits, 0.01, {}
+    r = plan(kept, start, pts[4], max_expansions=2000)
+    assert r.success and not segments_cross(r.path[:, :2], maze.walls)
+    assert hits.clearance(r.path[1:, :2]).min() >= 0.01
+    assert r.path[:, 0].min() < 1 / 6  # round the wall's open end, on the left
 
 
 class _StripEnv(GroundTruthEnv):
