@@ -266,8 +266,15 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     out = last_json(run("navigation", *args))
     s = json.loads((tmp_path / "summary.json").read_text())
     assert "args" not in out and out["per_maze"] == s["per_maze"] and out["pairs"] == s["pairs"]
-    assert s["pairs"] == 2 and s["budgets"][-1] == 60
+    # the headline figures come first, by name
+    assert list(out)[:6] == [
+        "obs_failure_ratio_obs_space", "obs_failure_ratio_position_unaliased",
+        "unaliased_targets", "pose_success_ratio_known_pose_map", "pose_success_ratio_slam_map",
+        "wall_s",
+    ]  # fmt: skip
+    assert s["pairs"] == 2 and s["budgets"][-1] == 60 and s["map_poses"] == "true"
     assert s["slam_preset"] is None and s["slam_config"] is None  # mapped at the true poses
+    assert s["pose_success_ratio_slam_map"] is None and s["wall_s"] > 0
     for name in ("learned", "ground_truth", "learned_obs", "ground_truth_obs"):
         curve = s[f"{name}_noiseless"]
         assert len(curve) == len(s["budgets"]) and all(0 <= v <= 1 for v in curve)
@@ -282,38 +289,51 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     planners = {"learned", "ground_truth", "learned_obs", "ground_truth_obs"}
     assert len(runs) == 8 and {r["planner"] for r in runs} == planners
     # the truth's inverse finds every target's exact scan; the oracle's expected failure is 0
-    # on targets without an exact look-alike 0.05 away and below 1 on the others
+    # on targets without an exact look-alike 0.05 away and below 1 on the others; an exact
+    # look-alike is a look-alike within --alias-tol too
     for t in targets:
         assert t["gt_inverse_diff"] < 1e-6
         assert (t["oracle_failure"] > 0) == (t["lookalikes_exact"] > 0) and t["oracle_failure"] < 1
+        assert t["lookalikes_tol"] >= t["lookalikes_exact"]
+        assert t["aliased"] == (t["lookalikes_tol"] > 0)
     assert inv["lookalike_exact"] == np.mean([t["lookalikes_exact"] > 0 for t in targets])
     assert 0 <= s["obs_oracle_expected_failure"] <= s["obs_target_aliased_exact"]
     assert (tmp_path / "navigation.png").stat().st_size > 10_000
+    # one observation-target run drawn per maze: plan over the belief next to its execution
+    assert (tmp_path / "plots" / "m1001_obs.png").stat().st_size > 10_000
     assert s["resumed_mazes"] == []
     # observation runs judged in observation space too: reaching the target counts as reaching
     # its observation, so that failure ratio can only be lower
+    obs = [r for r in runs if r["planner"] == "learned_obs"]
     for r in (r for r in runs if r["planner"].endswith("_obs")):
         for nz in ("noiseless", "noisy"):
             assert r[f"scan_diff_{nz}"] >= 0
             assert r[f"scan_success_{nz}"] >= r[f"success_{nz}"]
             if r[f"success_{nz}"]:  # the target is within the radius, up to the search's grid
                 assert r[f"scan_diff_{nz}"] < 0.01
-    assert s["obs_failure_ratio_scan_noiseless"] <= s["obs_failure_ratio"]
-    by_tol = s["obs_failure_ratio_scan_noiseless_by_tol"]  # a looser tolerance forgives more
+    assert s["obs_failure_ratio_obs_space"] <= s["obs_failure_ratio_position"]
+    by_tol = s["obs_failure_ratio_obs_space_by_tol"]  # a looser tolerance forgives more
     assert list(by_tol) == ["0.0025", "0.005", "0.01"]
-    assert by_tol["0.01"] == s["obs_failure_ratio_scan_noiseless"]
+    assert by_tol["0.01"] == s["obs_failure_ratio_obs_space"]
     assert list(by_tol.values()) == sorted(by_tol.values(), reverse=True)
     # the counts behind the ratios
     c = s["per_maze"]
     assert set(c) == {"1001", "all"} and c["all"] == c["1001"] and c["all"]["pairs"] == 2
     if c["all"]["gt_solved"]:
         assert (
-            s["learned_success_on_gt_solved"]
+            s["pose_success_ratio_known_pose_map"]
             == c["all"]["learned_on_gt_solved"] / c["all"]["gt_solved"]
         )
-    assert s["obs_failure_ratio"] == c["all"]["obs_missed"] / 2
-    assert s["obs_failure_ratio_scan_noiseless"] == c["all"]["obs_missed_scan"] / 2
-    assert s["ground_truth_obs_failure_ratio"] == c["all"]["gt_obs_missed"] / 2
+    assert s["obs_failure_ratio_position"] == c["all"]["obs_missed"] / 2
+    assert s["obs_failure_ratio_obs_space"] == c["all"]["obs_missed_scan"] / 2
+    assert s["ground_truth_obs_failure_ratio_position"] == c["all"]["gt_obs_missed"] / 2
+    assert s["unaliased_targets"] == c["all"]["obs_unaliased"]
+    assert s["unaliased_targets"] == sum(r["target_lookalikes_tol"] == 0 for r in obs)
+    if s["unaliased_targets"]:
+        assert (
+            s["obs_failure_ratio_position_unaliased"]
+            == c["all"]["obs_unaliased_missed"] / c["all"]["obs_unaliased"]
+        )
     # a second run resumes from the finished maze: the same rows, timings included
     run("navigation", *args)
     assert json.loads((tmp_path / "runs.json").read_text()) == runs
@@ -325,24 +345,59 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
     drawn = maze_pairs(2, 0)
     assert len(drawn[1001]) == 2 and len(maze_pairs(0, 0)[1002]) == 25 * 24  # 5 x 5 grid
     assert maze_pairs(2, 0) == drawn and maze_pairs(2, 1) != drawn
+    assert set(drawn) == {1001, 1002, 1003, 1004, 1005, 1006, 991, 992, 993, 994, 995, 996}
     assert {(r["start"], r["goal"]) for r in runs} == set(drawn[1001])
     run("navigation", *args[2:], "--maze-seeds", "1001")
     assert json.loads((tmp_path / "summary.json").read_text())["resumed_mazes"] == [1001]
     assert json.loads((tmp_path / "runs.json").read_text()) == runs
-    err = bench("navigation", "--maze-seeds", "1002,7", timeout=60)
-    assert err.returncode == 2 and "--maze-seeds [7]: not test mazes" in err.stderr
+
+
+@pytest.mark.slow
+def test_navigation_workers_give_the_rows_of_a_serial_run(tmp_path):
+    """``--workers 2``: the mazes run in two processes, each maze's rows the same as when the
+    mazes run one after the other in one process (the fits are seeded per maze)."""
+    args = ("--maze-seeds", "1002,1001", "--pairs-limit", "1", "--traversal-steps", "300",
+            "--emission-steps", "30", "--fit-steps", "30", "--sleep-steps", "30",
+            "--inverse-steps", "10", "--max-expansions", "60")  # fmt: skip
+    rows = {}
+    for workers in ("1", "2"):
+        out = tmp_path / workers
+        run("navigation", *args, "--workers", workers, "--out", str(out))
+        runs = json.loads((out / "runs.json").read_text())
+        rows[workers] = [{k: v for k, v in r.items() if k != "plan_s"} for r in runs]
+    assert [r["maze"] for r in rows["2"]] == [1002] * 4 + [1001] * 4  # in the order asked
+    assert rows["1"] == rows["2"]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (("--maze-seeds", "1002,7"), "--maze-seeds [7]: not test mazes"),
+        (("--quick", "--mazes", "3"), "--quick sets --mazes 2 and --pairs-limit 10"),
+        (("--quick", "--pairs-limit", "5"), "--quick sets --mazes 2 and --pairs-limit 10"),
+        (("--pairs-limit", "601"), "--pairs-limit 601: must be 0 to 600"),
+        (("--mazes", "7"), "--mazes 7: must be 1 to 6"),
+        (("--workers", "0"), "--workers 0: must be at least 1"),
+        (("--alias-tol", "0"), "--alias-tol and --exact-tol must be positive"),
+    ],
+)
+def test_navigation_bad_arguments_exit_2_with_one_line(args, message):
+    err = bench("navigation", *args, "--out", "/nonexistent/never", timeout=60)
+    assert err.returncode == 2 and message in err.stderr
+    assert "Traceback" not in err.stderr
 
 
 def test_navigation_counts_sort_the_missed_observation_targets_by_cause():
-    from benchmarks.navigation import _counts
+    from benchmarks.navigation import _counts, headline
 
     def row(maze, goal, planner, ok, **kw):
         return {"maze": maze, "start": 0, "goal": goal, "planner": planner,
                 "success_noiseless": ok, "found": True, **kw}  # fmt: skip
 
-    def obs(maze, goal, ok, scan_ok, found=True, inference_error=0.01, aliased=0):
+    def obs(maze, goal, ok, scan_ok, found=True, inference_error=0.01, aliased=0, near=0):
         return row(maze, goal, "learned_obs", ok, scan_success_noiseless=scan_ok, found=found,
-                   inference_error=inference_error, target_lookalikes_exact=aliased)  # fmt: skip
+                   inference_error=inference_error, target_lookalikes_exact=aliased,
+                   target_lookalikes_tol=max(near, aliased))  # fmt: skip
 
     runs = [
         *(row(1001, g, "ground_truth", g != 4) for g in range(1, 6)),  # 4 solved by the truth
@@ -351,7 +406,7 @@ def test_navigation_counts_sort_the_missed_observation_targets_by_cause():
         obs(1001, 2, False, True, inference_error=0.3, aliased=2),  # a look-alike: reached
         *(row(1001, g, "ground_truth_obs", g not in (2, 4)) for g in range(1, 6)),
         obs(1001, 3, False, False, found=False),
-        obs(1001, 4, False, False, inference_error=0.3),  # a wrong goal
+        obs(1001, 4, False, False, inference_error=0.3, near=1),  # a wrong goal, near-alike
         obs(1001, 5, False, False),  # right goal, ended elsewhere
         row(1002, 1, "ground_truth", True),
         row(1002, 1, "learned", True),
@@ -361,15 +416,26 @@ def test_navigation_counts_sort_the_missed_observation_targets_by_cause():
     assert c["1001"] == {
         "pairs": 5, "gt_solved": 4, "learned_on_gt_solved": 3, "obs_missed": 4,
         "obs_missed_scan": 3, "obs_missed_scan_not_found": 1, "obs_missed_scan_wrong_goal": 1,
-        "obs_missed_scan_execution": 1, "obs_target_aliased": 1, "gt_obs_missed": 2,
+        "obs_missed_scan_execution": 1, "obs_unaliased": 3, "obs_unaliased_missed": 2,
+        "obs_target_aliased": 1, "gt_obs_missed": 2,
     }  # fmt: skip
     assert c["1002"]["obs_missed_scan_wrong_goal"] == 1 and c["1002"]["gt_solved"] == 1
     assert c["all"]["pairs"] == 6 and c["all"]["obs_missed_scan"] == 4
     assert c["all"]["learned_on_gt_solved"] == 4
+    # the headline: 4 of 6 observation runs missed in observation space; by position 3 of the
+    # 4 runs whose target has no look-alike within the tolerance; pose targets 4 of the 5
+    # pairs the truth solves, named by the map they were planned in
+    h = headline(runs, "slam")
+    assert h == {
+        "obs_failure_ratio_obs_space": 4 / 6, "obs_failure_ratio_position_unaliased": 3 / 4,
+        "unaliased_targets": 4, "pose_success_ratio_known_pose_map": None,
+        "pose_success_ratio_slam_map": 4 / 5,
+    }  # fmt: skip
+    assert headline(runs, "true")["pose_success_ratio_known_pose_map"] == 4 / 5
 
 
 def test_navigation_scan_match_finds_the_target_view_near_it_and_not_elsewhere():
-    from benchmarks.navigation import _scan_match
+    from benchmarks.navigation import scan_match
     from pyro_slam.planning import GroundTruthEnv, free_grid
     from simulators import make_maze
 
@@ -377,11 +443,44 @@ def test_navigation_scan_match_finds_the_target_view_near_it_and_not_elsewhere()
     env, pts = GroundTruthEnv(maze), free_grid(maze)
     scan = env.scan(np.array([*pts[3], 0.7]))[0].numpy()  # a target seen with heading 0.7
     # at the target, or within the 0.05 success radius, some heading sees (almost) that scan
-    assert _scan_match(env, maze, pts[3], scan) < 0.01
-    assert _scan_match(env, maze, pts[3] + 0.03, scan) < 0.01
+    assert scan_match(env, pts[3], scan) < 0.01
+    assert scan_match(env, pts[3] + 0.03, scan) < 0.01
     # the other grid points of this maze do not look like it
-    others = [_scan_match(env, maze, q, scan, headings=72) for i, q in enumerate(pts[:8]) if i != 3]
+    others = [scan_match(env, q, scan) for i, q in enumerate(pts[:8]) if i != 3]
     assert min(others) > 0.02
+    # every heading's scan is a rotation of the rays cast from each position: the exact scan
+    # at a grid heading is found to float precision
+    h = 2 * np.pi * 37 / 360 - np.pi
+    exact = env.scan(np.array([*pts[3], h]))[0].numpy()
+    assert scan_match(env, pts[3], exact) < 1e-6
+    with pytest.raises(ValueError, match="multiple of the 20 beams"):
+        scan_match(env, pts[3], scan, headings=72)
+
+
+def test_observation_space_verdict_counts_both_places_of_an_aliased_pair():
+    """In an empty square room a scan is seen identically at four places (the room's quarter
+    turns): an agent that stops at any of them has reached the observation, although only one
+    is within 0.05 of the target; a place that looks different has not."""
+    from benchmarks.navigation import scan_reached
+    from pyro_slam.planning import GroundTruthEnv
+    from simulators.maze import Maze
+
+    n = 6
+    h, v = np.zeros((n, n + 1), bool), np.zeros((n + 1, n), bool)
+    h[:, [0, n]], v[[0, n], :] = True, True  # outer walls only
+    env = GroundTruthEnv(Maze("room", 0, n, 1 / n, h, v))
+    target = np.array([0.3, 0.4, 0.7])
+    scan = env.scan(target)[0].numpy()
+    here, d_here = scan_reached(env, target[:2], scan)
+    there, d_there = scan_reached(env, np.array([0.7, 0.6]), scan)  # turned by half a turn
+    assert here and there and d_here < 0.01 and d_there < 0.01
+    assert np.hypot(*(np.array([0.7, 0.6]) - target[:2])) > 0.05  # missed by position
+    # nearby, within the 0.05 radius, still reached; elsewhere in the room, not
+    assert scan_reached(env, np.array([0.73, 0.6]), scan)[0]
+    far, d_far = scan_reached(env, np.array([0.5, 0.5]), scan)
+    assert not far and d_far > 0.01
+    # the tolerance decides: the verdict at the twin place flips below its difference
+    assert not scan_reached(env, np.array([0.7, 0.6]), scan, tol=d_there / 2)[0]
 
 
 def test_navigation_benchmark_maps_at_slam_poses(tmp_path):
@@ -401,10 +500,34 @@ def test_navigation_benchmark_maps_at_slam_poses(tmp_path):
     assert 0 < err["mean"] <= err["max"] < 0.1 and 0 <= err["pi_final"] < 0.1
     targets = json.loads((tmp_path / "targets.json").read_text())
     assert {t["traversal_steps"] for t in targets} == {200}
+    # the SLAM run's poses are kept for the maze, under its configuration and traversal
+    kept = json.loads((tmp_path / "mazes" / "slam_m1001.json").read_text())
+    assert len(kept["poses"]) == 200 and kept["summary"] == err
+    assert kept["key"]["slam_config"] == s["slam_config"] and kept["key"]["steps"] == 200
     err = bench("navigation", *args, "--slam-config", '{"heading": {"support": 1}}', timeout=60)
     assert err.returncode == 2 and "--slam-config: heading.support must be" in err.stderr
     err = bench("navigation", *args, "--slam-preset", "nope", timeout=60)
     assert err.returncode == 2 and "--slam-preset: invalid choice: 'nope'" in err.stderr
+
+
+def test_navigation_reuses_kept_slam_poses_only_for_the_same_run(tmp_path):
+    """``_slam_poses`` returns the poses kept in ``OUT/mazes/slam_m<seed>.json`` when the SLAM
+    configuration and the traversal match, without running SLAM."""
+    from types import SimpleNamespace
+
+    from benchmarks.navigation import _slam_poses
+    from pyro_slam.slam import presets
+    from simulators import make_maze
+
+    args = SimpleNamespace(out=tmp_path, traversal_steps=50, slam=presets.get("paper").config)
+    (tmp_path / "mazes").mkdir()
+    key = {"slam_config": args.slam.to_dict(), "steps": 50, "seed": 1, "cover_grid": False}
+    fake = np.full((50, 3), 0.25)
+    f = tmp_path / "mazes" / "slam_m991.json"
+    f.write_text(json.dumps({"key": json.loads(json.dumps(key)), "poses": fake.tolist(),
+                             "summary": {"mean": -1.0}}))  # fmt: skip
+    tr, poses, summary = _slam_poses(make_maze("moderate-medium", 991), 991, None, args)
+    assert len(tr.poses) == 50 and np.array_equal(poses, fake) and summary == {"mean": -1.0}
 
 
 def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):

@@ -6,6 +6,7 @@ environments (:mod:`.envs`), the inverse model ``q(z | x)`` for observation targ
 from .envs import (
     GroundTruthEnv,
     LearnedEnv,
+    ScanHits,
     execute,
     free_grid,
     learned_env,
@@ -27,6 +28,7 @@ __all__ = [
     "LearnedEnv",
     "PlanResult",
     "Primitives",
+    "ScanHits",
     "execute",
     "free_grid",
     "inside_scan",

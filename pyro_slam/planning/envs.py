@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pyro
 import torch
-from pyro.infer import Predictive
+from pyro import poutine
 from scipy.optimize import minimize
 
 from simulators import LidarConfig, World, raycast, simulate_traversal
@@ -25,7 +25,40 @@ from .planner import SAFETY_DELTA, inside_scan
 
 
 # --------------------------------------------------------------------------- environments
-class LearnedEnv:
+class _Rollouts:
+    """Memoised rollouts, shared by both environments. A rollout is a deterministic function of
+    its start pose, so :meth:`rollout` keeps each start pose's result per set of controls (up
+    to ``memo_limit`` of them, the oldest dropped first): plans from one start, or through one
+    pose, share them, and so do copies made by ``with_observation``. ``rollout_batch`` start
+    poses cost about as much as one (the planner rolls out its next open nodes with it)."""
+
+    rollout_batch = 1
+    memo_limit = 20_000
+
+    def rollout(self, z0, controls: torch.Tensor):
+        """Roll out ``controls [P, L, 2]`` from a pose ``z0 [3]`` or from poses ``[K, 3]``.
+
+        Returns final poses ``[(K,) P, 3]``, travel ``[(K,) P]``, end scans ``[(K,) P, B]``
+        (a tensor) and step paths ``[(K,) P, L + 1, 3]``."""
+        z = np.asarray(z0, dtype=np.float64)
+        single = z.ndim == 1
+        z = np.atleast_2d(z)  # [K, 3]
+        memo = self._memos.setdefault(controls.numpy().tobytes(), {})
+        keys = [row.tobytes() for row in z]
+        new = list(dict.fromkeys(k for k in keys if k not in memo))
+        if new:
+            out = self._rollout(z[[keys.index(k) for k in new]], controls)
+            for j, k in enumerate(new):
+                memo[k] = tuple(v[j] for v in out)
+            for old in list(memo)[: max(0, len(memo) - self.memo_limit)]:
+                del memo[old]
+        rows = [memo[k] for k in keys]
+        if single:
+            return rows[0]
+        return tuple(torch.stack(v) if torch.is_tensor(v[0]) else np.stack(v) for v in zip(*rows))
+
+
+class LearnedEnv(_Rollouts):
     """The DVBF-LM model with a fixed map ``M`` (mean of ``q(M)``) as planning environment.
 
     Args:
@@ -36,6 +69,7 @@ class LearnedEnv:
     """
 
     name = "learned"
+    rollout_batch = 16  # one model run for 16 start poses costs ~2 x one for a single pose
 
     def __init__(
         self,
@@ -45,8 +79,12 @@ class LearnedEnv:
         bounds=None,
         scale: torch.Tensor | None = None,
         max_std: float = 0.6,
+        hits: np.ndarray | None = None,
+        hit_margin: float = 0.0,
     ):
         self.model, self.M, self.scale, self.max_std = model, M, scale, max_std
+        # the mapping scans' returns (ScanHits) and the clearance a position keeps from them
+        self.hits, self.hit_margin = hits, hit_margin
         # the planner's copy of the model: its emission, map prior and noise, with kinematics
         # that stop short of predicted walls and no transition noise
         self.transition = KinematicTransition(0.0, "rotate_forward", clip_margin=clip_margin)
@@ -55,6 +93,7 @@ class LearnedEnv:
                                     noise=model.noise)  # fmt: skip
         self.bounds = bounds if bounds is not None else model.grid.extent()
         self.seen: list[tuple] = []  # (pose [3], real scan [B], margin, radius)
+        self._memos: dict = {}  # rollouts per controls and start pose (see _Rollouts)
 
     def with_observation(
         self, pose, scan, margin: float = SAFETY_DELTA, radius: float = 0.1
@@ -82,42 +121,39 @@ class LearnedEnv:
         return var.mean(-1).sqrt().numpy()
 
     def valid(self, z) -> np.ndarray:
-        """Explored positions: chart std under ``q(M)`` below ``max_std`` of the prior's; the
-        model's predicted scans are extrapolations elsewhere."""
+        """Explored positions: chart std under ``q(M)`` below ``max_std`` of the prior's (the
+        model's predicted scans are extrapolations elsewhere) and, with ``hits``, at least
+        ``hit_margin`` from every return of the mapping scans; or inside the free space of a
+        real scan (:meth:`with_observation`)."""
         if self.scale is None:
             return np.ones(len(z), dtype=bool)
         ok = self.std(z) < self.max_std
+        if self.hits is not None and self.hit_margin > 0:
+            ok &= self.hits.clearance(np.asarray(z)[:, :2], self.hit_margin) >= self.hit_margin
         for pose, scan, margin, radius in self.seen:
             ok |= inside_scan(np.asarray(z)[:, :2], pose, scan, margin, radius)
         return ok
 
     @torch.no_grad()
-    def rollout(self, z0: np.ndarray, controls: torch.Tensor):
-        """Roll the model out under ``controls [P, L, 2]`` from pose ``z0 [3]``:
-        :class:`pyro.infer.Predictive` on ``DVBFLM.model`` with the map at ``M``, the planner's
+    def _rollout(self, z0: np.ndarray, controls: torch.Tensor):
+        """One run of ``DVBFLM.model`` for start poses ``z0 [K, 3]`` under ``controls [P, L,
+        2]``, traced with the map conditioned on ``M`` and ``z_0`` on the starts: the planner's
         transition (kinematics that stop short of predicted walls, no noise) and the model's
-        emission, prior and noise; the predicted scans are its ``scan_t`` sites.
-
-        Returns final poses ``[P, 3]``, travel ``[P]``, end scans ``[P, B]``, paths
-        ``[P, L + 1, 3]``.
-        """
-        P, L, _ = controls.shape
-        z0 = torch.as_tensor(z0, dtype=controls.dtype)
-        sites = [f"z_{t}" for t in range(L + 1)] + [f"scan_{L}"]
-        predictive = Predictive(
-            self.planner_model.model,
-            posterior_samples={"map": self.M[None], "z_0": z0[None]},
-            return_sites=sites,
-        )
+        emission, prior and noise; the predicted scans are its ``scan_t`` sites. Returns
+        ``[K, P, ...]`` (see :meth:`rollout`)."""
+        K, (P, L, _) = len(z0), controls.shape
+        init = torch.as_tensor(z0, dtype=controls.dtype)[:, None]  # [K, 1, 3]
+        model = poutine.condition(self.planner_model.model, {"map": self.M, "z_0": init})
         with pyro.validation_enabled(False):  # (a noise-free transition)
-            s = predictive(None, controls, z0)
-        path = torch.stack([s[f"z_{t}"].reshape(-1, 3).expand(P, 3) for t in range(L + 1)], 1)
-        travel = (path[:, 1:, :2] - path[:, :-1, :2]).norm(dim=-1).sum(-1)  # [P]
-        scans = s[f"scan_{L}"].reshape(P, -1)  # [P, B]
-        return path[:, -1].numpy(), travel.numpy(), scans, path.numpy()  # path [P, L + 1, 3]
+            tr = poutine.trace(model).get_trace(None, controls, init)
+        z = [tr.nodes[f"z_{t}"]["value"].expand(K, P, 3) for t in range(L + 1)]
+        path = torch.stack(z, 2)  # [K, P, L + 1, 3]
+        travel = (path[..., 1:, :2] - path[..., :-1, :2]).norm(dim=-1).sum(-1)  # [K, P]
+        scans = tr.nodes[f"scan_{L}"]["value"].expand(K, P, -1)  # [K, P, B]
+        return path[:, :, -1].numpy(), travel.numpy(), scans, path.numpy()
 
 
-class GroundTruthEnv:
+class GroundTruthEnv(_Rollouts):
     """The simulator's truth: analytic raycast on the walls, exact pymunk kinematics."""
 
     name = "ground_truth"
@@ -128,6 +164,7 @@ class GroundTruthEnv:
         self.world = World(maze, self.lidar, odometry_noise=0, seed=0)
         self.bounds = maze_bounds(maze)
         self._grid_key, self._grid = None, None  # places(): the ray-cast search grid
+        self._memos: dict = {}  # rollouts per controls and start pose (see _Rollouts)
 
     def scan(self, z) -> torch.Tensor:
         z = np.atleast_2d(np.asarray(z, dtype=np.float64))
@@ -135,17 +172,20 @@ class GroundTruthEnv:
         r = raycast(self.maze.walls, z[:, :2], ang, self.lidar.max_range)
         return torch.as_tensor(r, dtype=torch.get_default_dtype())
 
-    def rollout(self, z0: np.ndarray, controls: torch.Tensor):
+    def _rollout(self, z0: np.ndarray, controls: torch.Tensor):
+        """The pymunk world stepped through ``controls [P, L, 2]`` from each pose of ``z0 [K,
+        3]``: ``[K, P, ...]`` (see :meth:`rollout`)."""
         c = controls.numpy()
-        P, L, _ = c.shape
-        paths = np.zeros((P, L + 1, 3))
-        for p in range(P):
-            self.world.reset(z0)
-            paths[p, 0] = self.world.pose
+        (P, L, _), K = c.shape, len(z0)
+        paths = np.zeros((K, P, L + 1, 3))
+        for i, p in np.ndindex(K, P):
+            self.world.reset(z0[i])
+            paths[i, p, 0] = self.world.pose
             for k in range(L):
-                paths[p, k + 1] = self.world.step(c[p, k]) if c[p, k].any() else paths[p, k]
-        travel = np.linalg.norm(np.diff(paths[:, :, :2], axis=1), axis=-1).sum(1)
-        return paths[:, -1], travel, self.scan(paths[:, -1]), paths
+                paths[i, p, k + 1] = self.world.step(c[p, k]) if c[p, k].any() else paths[i, p, k]
+        travel = np.linalg.norm(np.diff(paths[..., :2], axis=-2), axis=-1).sum(-1)  # [K, P]
+        scans = self.scan(paths[:, :, -1].reshape(-1, 3)).reshape(K, P, -1)
+        return paths[:, :, -1], travel, scans, paths
 
     def valid(self, z) -> np.ndarray:
         return np.ones(len(z), dtype=bool)
@@ -186,15 +226,11 @@ class GroundTruthEnv:
         scans = np.atleast_2d(np.asarray(scans, dtype=np.float64))  # [N, B]
         if scans.shape[-1] != B:
             raise ValueError(f"scans have {scans.shape[-1]} beams, the LiDAR {B}: {scans.shape}")
-        xy, rays = self._ray_grid(spacing, n_headings)  # [P, 2], [P, H]
+        xy, rays, ranked = self._ray_grid(spacing, n_headings)  # [P, 2], [P, H], [P, B, s]
         angles = 2 * np.pi * np.arange(n_headings) / n_headings  # [H]
-        step = n_headings // B
         out = []
         for x in scans:
-            d = torch.zeros_like(rays)  # [P, H]: grid pose (p, h) reads ray h + step * i
-            for i in range(B):
-                d += (torch.roll(rays, -i * step, dims=1) - float(x[i])).abs()
-            best, h = (d / B).min(1)  # [P]
+            best, h = self._coarse(x, rays, ranked, coarse_tol)  # [P], [P]
             reps: list[int] = []
             for p in torch.argsort(best).tolist():
                 if best[p] > coarse_tol:
@@ -221,9 +257,37 @@ class GroundTruthEnv:
             out.append((np.array(poses).reshape(-1, 3)[keep], np.array(diffs)[keep]))
         return out
 
+    @staticmethod
+    def _coarse(x: np.ndarray, rays: torch.Tensor, ranked: torch.Tensor, tol: float):
+        """The best grid heading of each grid position for scan ``x [B]``: mean absolute
+        difference ``[P]`` (``inf`` where it exceeds ``tol``) and heading index ``[P]``.
+
+        Grid pose ``(p, h)`` reads ray ``h + s i`` for beam ``i`` (``s = H / B``); with ``h = s
+        q + r`` that is entry ``(q + i) mod B`` of row ``r`` of the rays reshaped ``[P, B, s]``,
+        so every heading of one ``r`` sees the same multiset of ranges. The mean absolute
+        difference between the sorted ranges and the sorted scan is a lower bound (sorted
+        pairing minimises it), so only positions whose bound is within ``tol`` for some ``r``
+        are compared heading by heading -- the same result as comparing them all. ``ranked
+        [P, B, s]``: the rays so reshaped, sorted along ``B``."""
+        (P, H), B = rays.shape, len(x)
+        step = H // B
+        xs = torch.as_tensor(np.sort(x), dtype=rays.dtype)[:, None]  # [B, 1]
+        bound = (ranked - xs).abs().mean(1).min(1).values  # [P]
+        cand = torch.nonzero(bound <= tol + 1e-9).squeeze(1)  # [C]
+        sub = rays[cand]  # [C, H]
+        d = torch.zeros_like(sub)  # [C, H]: grid pose (p, h) reads ray h + step * i
+        for i in range(B):
+            d += (torch.roll(sub, -i * step, dims=1) - float(x[i])).abs()
+        best = torch.full((P,), float("inf"), dtype=rays.dtype)
+        h = torch.zeros(P, dtype=torch.long)
+        best[cand], h[cand] = (d / B).min(1)
+        return best, h
+
     def _ray_grid(self, spacing: float, n_headings: int):
-        """Cached: the wall-free positions ``[P, 2]`` of a ``spacing`` grid over the maze and
-        their ranges ``[P, n_headings]`` at ``n_headings`` evenly spaced directions from 0."""
+        """Cached: the wall-free positions ``[P, 2]`` of a ``spacing`` grid over the maze, their
+        ranges ``[P, n_headings]`` at ``n_headings`` evenly spaced directions from 0, and those
+        ranges reshaped ``[P, B, n_headings / B]`` and sorted along the beams (see
+        :meth:`_coarse`)."""
         key = (spacing, n_headings)
         if self._grid_key != key:
             xs = np.arange(spacing / 2, self.maze.side, spacing)
@@ -232,8 +296,39 @@ class GroundTruthEnv:
             ang = 2 * np.pi * np.arange(n_headings) / n_headings
             rays = raycast(self.maze.walls, xy, np.broadcast_to(ang, (len(xy), n_headings)),
                            self.lidar.max_range)  # fmt: skip
-            self._grid_key, self._grid = key, (xy, torch.as_tensor(rays))
+            rays = torch.as_tensor(rays)
+            B = self.lidar.n_beams
+            ranked = torch.sort(rays.reshape(len(xy), B, n_headings // B), dim=1).values
+            self._grid_key, self._grid = key, (xy, rays, ranked)
         return self._grid
+
+
+class ScanHits:
+    """The returns of a traversal's scans placed from its poses (the true ones, or a SLAM
+    run's): a point set ``[H, 2]`` of the walls as the scans saw them, every wall face that
+    a scan hit, wall ends included, whatever the map belief made of them.
+
+    Args:
+        traversal: a :class:`~pyro_slam.data.Traversal` (``observations [T, B]``).
+        poses: ``[T, 3]`` the scans are placed from (default: the traversal's true poses).
+    """
+
+    def __init__(self, traversal, poses=None):
+        from scipy.spatial import cKDTree
+
+        z = np.asarray(traversal.poses if poses is None else poses, dtype=np.float64)  # [T, 3]
+        x = np.asarray(traversal.observations, dtype=np.float64)  # [T, B]
+        hit = x < traversal.max_range * (1 - 1e-3)  # [T, B]: readings at the range are misses
+        ang = z[:, 2:3] + np.asarray(traversal.beam_angles)[None]  # [T, B]
+        pts = z[:, None, :2] + x[..., None] * np.stack([np.cos(ang), np.sin(ang)], -1)
+        self.points = pts[hit]  # [H, 2]
+        self.tree = cKDTree(self.points)
+
+    def clearance(self, xy, upto: float = np.inf) -> np.ndarray:
+        """Distance ``[N]`` from positions ``xy [N, 2]`` to the nearest return (``inf`` where
+        none is within ``upto``)."""
+        d, _ = self.tree.query(np.asarray(xy, dtype=np.float64), k=1, distance_upper_bound=upto)
+        return d
 
 
 def lookalikes(poses, diffs, target, tol: float = 1e-6, radius: float = 0.05) -> tuple[int, float]:
@@ -261,6 +356,7 @@ def learned_env(
     emission_steps: int = 0,
     n_world: int = 20,
     tour=None,
+    hit_margin: float = 0.0,
 ):
     """A :class:`LearnedEnv` for ``maze``: simulate a traversal (unless given; ``steps``
     exploring steps, then a tour through the positions ``tour`` ``[P, 2]`` it missed, see
@@ -273,7 +369,13 @@ def learned_env(
     :func:`~pyro_slam.slam.pretrain_emission` (``n_world`` world directions, from scratch, at
     the same ``poses``), after which ``q(M)`` is refitted under it.
 
+    ``hit_margin > 0``: the planner also keeps this far from the traversal's returns placed
+    from ``poses`` (:class:`ScanHits`), so a wall the map belief lost is still avoided.
+
+    Everything is seeded by ``seed``, whatever ran before in the process.
+
     Returns ``(env, (q_loc, q_scale), traversal)``."""
+    torch.manual_seed(seed)  # the new emission's initial weights
     if traversal is None:
         traversal = simulate_traversal(maze, steps=steps, seed=seed, tour=tour)
     cfg = SLAMConfig()  # the paper's LiDAR emission MLP
@@ -286,7 +388,9 @@ def learned_env(
         em = load_emission(PRETRAINED / EMISSION_FILE, traversal)
     model, _ = build_model(traversal, cfg, emission=em)
     loc, scale = fit_map(traversal, model, poses, fit_steps, seed=seed, progress=progress)
-    env = LearnedEnv(model, loc, bounds=maze_bounds(maze), scale=scale, max_std=max_std)
+    hits = ScanHits(traversal, poses) if hit_margin > 0 else None
+    env = LearnedEnv(model, loc, bounds=maze_bounds(maze), scale=scale, max_std=max_std,
+                     hits=hits, hit_margin=hit_margin)  # fmt: skip
     return env, (loc, scale), traversal
 
 

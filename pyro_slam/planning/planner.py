@@ -117,6 +117,8 @@ def plan(
     distance to the goal. The goal test (end pose within ``goal_tol``) is applied when a
     successor is generated; ``expansions`` counts popped nodes. ``check_path``: every step of a
     primitive (not only its end pose) must be ``env.valid``, except turning on the spot.
+    The search is exact A*; successors are computed ahead, for the popped node together with
+    the next open ones (``env.rollout_batch`` poses per rollout).
     """
     primitives = primitives or Primitives()
     prims = primitives.padded()
@@ -124,7 +126,7 @@ def plan(
     start = np.asarray(start, dtype=np.float64)
     goal = np.asarray(goal, dtype=np.float64)[:2]
     x0, x1, y0, y1 = env.bounds
-    safety_kw = safety_kw or {}
+    succ = _Successors(env, prims, safety_weight, safety_kw or {}, check_path)
 
     def key(z):
         return (int(math.floor(z[0] / cell)), int(math.floor(z[1] / cell)))
@@ -144,16 +146,8 @@ def plan(
             continue
         closed.add(k)
         expansions += 1
-        z, g = nodes[k][0], nodes[k][1]
-        ends, travel, scans, paths = env.rollout(z, prims)
-        cost = travel + safety_weight * safety_cost(scans, **safety_kw).double().numpy()
-        if check_path:  # every step of the primitive must be valid, not only its end;
-            # turning on the spot stays valid (the search may start in unexplored space)
-            steps = paths[:, 1:]  # [P, L, 3]
-            here = np.hypot(*(steps[..., :2] - z[:2]).transpose(2, 0, 1)) < 1e-5
-            ok = (env.valid(steps.reshape(-1, 3)).reshape(here.shape) | here).all(1)
-        else:
-            ok = env.valid(ends)
+        g = nodes[k][1]
+        ends, cost, ok, paths = succ(k, nodes, heap, closed)
         for p in range(len(ends)):
             e = ends[p]
             ke = key(e)
@@ -171,6 +165,42 @@ def plan(
         empty = np.zeros((0, 2))
         return PlanResult(False, expansions, empty, start[None], start[None], visited=visited)
     return _backtrack(nodes, found, start, unpadded, expansions, visited)
+
+
+class _Successors:
+    """The successors of the search's nodes: end poses ``[P, 3]``, edge costs ``[P]``, validity
+    ``[P]`` and step paths ``[P, L + 1, 3]`` of the primitives ``prims [P, L, 2]``. A node not
+    yet rolled out is rolled out together with the best open nodes of the heap, up to
+    ``env.rollout_batch`` of them (a rollout depends only on the node's pose)."""
+
+    def __init__(self, env, prims, safety_weight: float, safety_kw: dict, check_path: bool):
+        self.env, self.prims, self.check_path = env, prims, check_path
+        self.safety_weight, self.safety_kw = safety_weight, safety_kw
+        self.batch = max(1, int(getattr(env, "rollout_batch", 1)))
+        self.done: dict = {}  # node key -> rollout of its pose
+
+    def __call__(self, k, nodes: dict, heap: list, closed: set):
+        if k not in self.done:
+            keys = [k]
+            for _, _, c in heapq.nsmallest(4 * self.batch, heap):
+                if len(keys) == self.batch:
+                    break
+                if c not in closed and c not in self.done and c not in keys:
+                    keys.append(c)
+            out = self.env.rollout(np.stack([nodes[c][0] for c in keys]), self.prims)
+            for i, c in enumerate(keys):
+                self.done[c] = tuple(v[i] for v in out)
+        ends, travel, scans, paths = self.done.pop(k)
+        cost = travel + self.safety_weight * safety_cost(scans, **self.safety_kw).double().numpy()
+        z = nodes[k][0]
+        if self.check_path:  # every step of the primitive must be valid, not only its end;
+            # turning on the spot stays valid (the search may start in unexplored space)
+            steps = paths[:, 1:]  # [P, L, 3]
+            here = np.hypot(*(steps[..., :2] - z[:2]).transpose(2, 0, 1)) < 1e-5
+            ok = (self.env.valid(steps.reshape(-1, 3)).reshape(here.shape) | here).all(1)
+        else:
+            ok = self.env.valid(ends)
+        return ends, cost, ok, paths
 
 
 def _backtrack(nodes: dict, found, start, unpadded, expansions: int, visited) -> PlanResult:

@@ -3,12 +3,15 @@ the learned model on a small maze."""
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
 
 from pyro_slam.planning import (
     GroundTruthEnv,
+    ScanHits,
     execute,
     free_grid,
     inside_scan,
@@ -20,6 +23,7 @@ from pyro_slam.planning import (
     segments_cross,
 )
 from simulators import make_maze
+from simulators.world import point_segment_distance
 
 
 def test_safety_monotone_decreasing():
@@ -67,6 +71,54 @@ def test_learned_plan_on_simple_maze():
     assert np.hypot(*(ex[-1, :2] - pts[2])) <= 0.05
 
 
+def test_learned_rollouts_are_the_pyro_models_and_batched_plans_are_exact_a_star():
+    """``LearnedEnv.rollout`` runs ``DVBFLM.model`` once for a batch of start poses: each row
+    equals the model's own prediction (``pyro.infer.Predictive``) from that pose; rollouts are
+    kept per start pose, so a repeated plan runs the model no more; and a search that rolls
+    out its next open nodes in batches returns exactly the plan of one node at a time."""
+    import pyro
+    from pyro.infer import Predictive
+
+    from pyro_slam.planning import Primitives
+
+    torch.manual_seed(0)
+    maze = make_maze("simple-medium", 3)
+    env, _, _ = learned_env(maze, steps=600, fit_steps=100)
+    prims = Primitives().padded()  # [P, L, 2]
+    P, L, _ = prims.shape
+    z0 = np.array([[0.08, 0.08, 0.0], [0.25, 0.1, 1.2], [0.4, 0.42, -2.0]])
+    ends, travel, scans, paths = env.rollout(z0, prims)
+    assert ends.shape == (3, P, 3) and scans.shape == (3, P, 20) and paths.shape == (3, P, L + 1, 3)
+    for i, z in enumerate(torch.as_tensor(z0, dtype=prims.dtype)):
+        sites = [f"z_{t}" for t in range(L + 1)] + [f"scan_{L}"]
+        pred = Predictive(env.planner_model.model, {"map": env.M[None], "z_0": z[None]},
+                          return_sites=sites)  # fmt: skip
+        with pyro.validation_enabled(False):
+            s = pred(None, prims, z)
+        want = torch.stack([s[f"z_{t}"].reshape(-1, 3).expand(P, 3) for t in range(L + 1)], 1)
+        assert np.allclose(paths[i], want.numpy(), atol=1e-6)
+        assert torch.allclose(scans[i], s[f"scan_{L}"].reshape(P, -1), atol=1e-6)
+        single = env.rollout(z0[i], prims)
+        assert np.array_equal(single[0], ends[i]) and np.array_equal(single[3], paths[i])
+    assert (travel > 0).any() and np.all(travel <= 5 * 0.008 + 1e-6)  # 5 steps at most
+
+    pts = free_grid(maze, 3)
+    start, runs = np.array([*pts[0], 0.0]), []
+    env._rollout = lambda z, c, f=env._rollout: runs.append(len(z)) or f(z, c)
+    first = plan(env, start, pts[8], max_expansions=400)
+    assert first.success and max(runs) > 1  # several nodes per model run
+    n = len(runs)
+    again = plan(env, start, pts[8], max_expansions=400)
+    assert len(runs) == n  # every rollout of the repeated search was kept
+    seen = env.with_observation(start, GroundTruthEnv(maze).scan(start)[0].numpy())
+    assert seen._memos is env._memos  # and shared by the copies that trust a real scan
+    assert np.array_equal(again.controls, first.controls)
+    one = copy.copy(env)  # the same model and map, nothing kept, one node per model run
+    one._memos, one.rollout_batch = {}, 1
+    exact = plan(one, start, pts[8], max_expansions=400)
+    assert exact.expansions == first.expansions and np.array_equal(exact.controls, first.controls)
+
+
 def test_learned_env_fitted_emission_beats_shipped_on_its_maze():
     """``emission_steps > 0``: an emission with ``n_world`` directions fitted to the mapping
     traversal predicts that traversal's scans better than the shipped 20-direction one."""
@@ -81,6 +133,50 @@ def test_learned_env_fitted_emission_beats_shipped_on_its_maze():
         rms = [(e.model.emission_mean(m, z) - x).pow(2).mean().sqrt() for e, m in
                ((shipped, loc0), (fitted, loc1))]  # fmt: skip
     assert rms[1] < 0.8 * rms[0], rms
+
+
+def test_learned_env_is_seeded_whatever_ran_before():
+    """The fitted emission and map depend on ``seed`` only, not on the random numbers drawn
+    before in the process (e.g. a SLAM run, or another maze in the same worker)."""
+    maze = make_maze("simple-medium", 3)
+    kw = dict(steps=200, fit_steps=20, emission_steps=20, n_world=20)
+    torch.manual_seed(1)
+    _, (a, _), _ = learned_env(maze, **kw)
+    torch.rand(1000)  # something else ran
+    _, (b, _), _ = learned_env(maze, **kw)
+    _, (c, _), _ = learned_env(maze, seed=2, **kw)
+    assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_scan_hits_keep_the_planner_off_walls_that_the_map_belief_lost():
+    """A map belief fitted in an empty room knows none of the maze's inner walls: its plan
+    goes straight through one. With the returns of the maze's own mapping scans
+    (``ScanHits``, placed from the true poses: they lie on the walls), every step keeps
+    ``hit_margin`` from them, and the plan goes round."""
+    from simulators import simulate_traversal
+    from simulators.maze import Maze
+
+    maze = make_maze("simple-medium", 3)  # 3 x 3 cells, side 0.5; a wall at y = 1/6
+    h, v = np.zeros((3, 4), bool), np.zeros((4, 3), bool)
+    h[:, [0, 3]], v[[0, 3], :] = True, True  # the same square, outer walls only
+    torch.manual_seed(0)
+    room, _, _ = learned_env(Maze("room", 0, 3, maze.corridor_width, h, v), steps=600,
+                             fit_steps=100)  # fmt: skip
+    hits = ScanHits(simulate_traversal(maze, steps=600, seed=1))
+    on_wall = [point_segment_distance(q, maze.walls).min() for q in hits.points]
+    assert len(hits.points) > 1000 and max(on_wall) < 1e-6
+    assert np.isinf(hits.clearance(np.array([[0.25, 0.25]]), upto=0.05))[0]
+    assert hits.clearance(np.array([[0.25, 1 / 6 + 0.004]]))[0] == pytest.approx(0.004, abs=1e-3)
+    pts = free_grid(maze, 3)
+    start = np.array([*pts[1], np.pi / 2])
+    blind = plan(room, start, pts[4], max_expansions=400)
+    assert blind.success and segments_cross(blind.path[:, :2], maze.walls)
+    kept = copy.copy(room)
+    kept.hits, kept.hit_margin, kept._memos = hits, 0.01, {}
+    r = plan(kept, start, pts[4], max_expansions=2000)
+    assert r.success and not segments_cross(r.path[:, :2], maze.walls)
+    assert hits.clearance(r.path[1:, :2]).min() >= 0.01
+    assert r.path[:, 0].min() < 1 / 6  # round the wall's open end, on the left
 
 
 class _StripEnv(GroundTruthEnv):
@@ -185,3 +281,23 @@ def test_ground_truth_places_finds_every_exact_look_alike():
         env.places(env.scan(np.array([0.1, 0.1, 0.0])), n_headings=50)
     with pytest.raises(ValueError, match="19 beams"):
         env.places(np.zeros((1, 19)))
+
+
+def test_ground_truth_coarse_search_skips_only_positions_that_cannot_match():
+    """The coarse search of ``places`` compares only positions whose sorted ranges are within
+    the tolerance of the sorted scan: for every position whose best heading is within it, the
+    same difference and heading as comparing every position at every heading."""
+    maze = make_maze("moderate-medium", 1001)
+    env = GroundTruthEnv(maze)
+    xy, rays, ranked = env._ray_grid(0.02, 360)
+    rng = np.random.default_rng(0)
+    z = np.concatenate([free_grid(maze)[:6], rng.uniform(-np.pi, np.pi, (6, 1))], 1)
+    beams = (np.arange(360)[:, None] + 18 * np.arange(20)) % 360  # [H, B]
+    for x in env.scan(z).numpy().astype(np.float64):
+        full = np.abs(rays.numpy()[:, beams] - x).mean(-1)  # [P, H]: every pose
+        best, h = env._coarse(x, rays, ranked, 0.03)
+        near = full.min(1) <= 0.03
+        assert near.any() and (best.numpy()[~near] > 0.03).all()
+        assert np.allclose(best.numpy()[near], full.min(1)[near], atol=1e-12)
+        assert np.array_equal(h.numpy()[near], full.argmin(1)[near])
+        assert (best.numpy() < np.inf).sum() < 0.5 * len(xy)  # most positions were skipped
