@@ -235,6 +235,32 @@ def benchmark_log(
     return rows
 
 
+def headline(result: dict) -> dict:
+    """The figures the results page quotes, first in the JSON object: Intel's relation error
+    (mean translation, m) for DVBF-LM and odometry, CSAIL's mean scan consistency for DVBF-LM
+    and MRPT (null without MRPT), each log's path ratio (DVBF-LM path length / odometry's) and
+    DVBF-LM's wall-clock ms per scan over both logs."""
+    csail, intel = result["mit-csail"], result["intel"]
+
+    def ratio(rows):
+        return rows["DVBF-LM"]["path_length_m"] / rows["odometry"]["path_length_m"]
+
+    mrpt = csail.get("MRPT icp-slam", {}).get("scan_consistency", {}).get("mean")
+    scans = result["scans"]
+    wall = sum(rows["DVBF-LM"]["seconds_per_scan"] * scans[log] for log, rows in
+               (("mit-csail", csail), ("intel", intel)))  # fmt: skip
+    return {
+        "intel_relation_error_trans_m": intel["DVBF-LM"]["relation_error"]["trans_mean"],
+        "intel_odometry_relation_error_trans_m": intel["odometry"]["relation_error"]["trans_mean"],
+        "csail_scan_consistency_mean_m": csail["DVBF-LM"]["scan_consistency"]["mean"],
+        "csail_odometry_scan_consistency_mean_m": csail["odometry"]["scan_consistency"]["mean"],
+        "csail_mrpt_scan_consistency_mean_m": mrpt,
+        "csail_path_ratio": ratio(csail),
+        "intel_path_ratio": ratio(intel),
+        "ms_per_scan": 1000 * wall / sum(scans.values()),
+    }
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(
         prog="python -m benchmarks.real_data", description=__doc__.split("\n")[0]
@@ -270,6 +296,7 @@ def main(argv=None):
         "mrpt": why or "icp-slam (MRPT) with icp-slam_demo_classic.ini, localization gates 0",
         "intel_odometry": "GMapping poses + Gaussian noise (no raw odometry in intel.gfs.log)",
         "steps": args.steps or "all",
+        "scans": {"mit-csail": csail.num_steps, "intel": intel.num_steps},
     }
     # the log's own ODOM stream, for reference (drifts far: not used as raw odometry)
     raw = cut(read_any(args.data / "intel.gfs.log"))
@@ -278,7 +305,7 @@ def main(argv=None):
         odometry_poses(raw, raw.poses[0]),
         relations_from_reference(raw.timestamps, raw.poses, n_random=1000, max_steps=50),
     )
-    text = json.dumps(result, indent=2, default=float)
+    text = json.dumps({**headline(result), **result}, indent=2, default=float)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "real_data.json").write_text(text)
     print(text)

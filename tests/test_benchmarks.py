@@ -731,6 +731,17 @@ def test_real_data_runs_the_real_preset_on_both_logs(tmp_path):
         assert out[log]["DVBF-LM"]["path_length_m"] > 0
         assert (tmp_path / "img" / f"real_{log}.png").is_file()
     assert "ate_aligned" in out["intel"]["DVBF-LM"]
+    # the headline figures come first and are read off the per-log rows
+    head = list(out)[:8]
+    assert head[:2] == ["intel_relation_error_trans_m", "intel_odometry_relation_error_trans_m"]
+    intel, csail = out["intel"], out["mit-csail"]
+    assert out["intel_relation_error_trans_m"] == intel["DVBF-LM"]["relation_error"]["trans_mean"]
+    assert out["csail_scan_consistency_mean_m"] == csail["DVBF-LM"]["scan_consistency"]["mean"]
+    assert out["csail_mrpt_scan_consistency_mean_m"] is None  # --no-mrpt
+    ratio = csail["DVBF-LM"]["path_length_m"] / csail["odometry"]["path_length_m"]
+    assert out["csail_path_ratio"] == pytest.approx(ratio)
+    per_scan = [out[log]["DVBF-LM"]["seconds_per_scan"] for log in ("intel", "mit-csail")]
+    assert min(per_scan) <= out["ms_per_scan"] / 1000 <= max(per_scan)
     err = bench("real_data", *args, "--config", '{"filter": {"weighting": "best"}}', timeout=60)
     assert err.returncode == 2 and "filter.weighting must be one of" in err.stderr
 

@@ -6,12 +6,13 @@
                           learned transition
 ``raycast`` (default)     ray-cast LiDAR emission with occupancy scan insertion and
                           beam-mixture weights
-``manhattan``             ``raycast`` plus the Manhattan-world heading observation (for
-                          noise-free sensors: it trusts every straight wall)
+``manhattan``             ``raycast`` plus the Manhattan-world heading observation in a
+                          walls' frame estimated from the scans
 ``visual``                the paper's visual model (row MLPs)
 ``visual-raycast``        the ray camera
 ``visual-manhattan``      the ray camera plus the heading observation read from the frames
-``real``                  real laser logs (CARMEN, ROS): settings derived from the log
+``real``                  real laser logs (CARMEN, ROS): ray-cast emission on a metric grid,
+                          heading observation; sensor settings derived from the log
 ========================  ===============================================================
 
 The figures of each are on the results page (``docs/results.md``).
@@ -135,10 +136,17 @@ VISUAL_RAYCAST = replace(
     VISUAL, emission=EmissionConfig("ray_camera", resolution=1 / 63, margin=0.0)
 )
 VISUAL_MANHATTAN = replace(VISUAL_RAYCAST, heading=HeadingConfig(sigma=1e-3))
+# real logs (metres): the ray-cast emission on a 0.1 m grid with scan insertion (hits farther
+# apart than 0.5 m are separate walls), tempered beam-mixture weights at 0.3 m (real scans
+# disagree with any map by more than the model's 0.1 m) and the heading observation in the
+# frame estimated from the log, which switches itself off where the walls do not support it
 REAL = SLAMConfig(
-    emission=EmissionConfig("mlp", resolution=0.5, margin=0.0, sigma=0.5),
-    filter=FilterConfig(weighting="tempered", sigma=1.0, outlier_prob=0.05),
-    training=TrainingConfig(chunks=8, objective="filter-sigma"),
+    emission=EmissionConfig(
+        "raycast", resolution=0.1, margin=0.0, sigma=0.1, insert=ScanInsertionConfig(gap=0.5)
+    ),
+    filter=FilterConfig(weighting="tempered", sigma=0.3, outlier_prob=0.1),
+    training=TrainingConfig(chunks=8, objective="filter-sigma", every=4),
+    heading=HeadingConfig(),
 )
 
 PRESETS: dict[str, Preset] = {
@@ -146,15 +154,18 @@ PRESETS: dict[str, Preset] = {
     for p in (
         Preset("paper", "the paper's model: pretrained emission MLP, learned transition", PAPER),
         Preset("raycast", "ray-cast LiDAR emission with scan insertion (default)", RAYCAST),
-        Preset(
-            "manhattan", "raycast + Manhattan heading observation (noise-free LiDAR)", MANHATTAN
-        ),
+        Preset("manhattan", "raycast + heading observation (walls' frame estimated)", MANHATTAN),
         Preset("visual", "the paper's visual model: row MLPs on camera frames", VISUAL),
         Preset("visual-raycast", "ray camera on camera frames", VISUAL_RAYCAST),
         Preset(
             "visual-manhattan", "ray camera + heading observation from the frames", VISUAL_MANHATTAN
         ),
-        Preset("real", "real laser logs (settings derived from the log)", REAL, adapt_real_log),
+        Preset(
+            "real",
+            "real laser logs: metric ray-cast grid + heading observation",
+            REAL,
+            adapt_real_log,
+        ),
     )
 }
 
