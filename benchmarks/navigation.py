@@ -137,7 +137,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--n-world", type=int, default=60, help="world directions of a fitted emission")
     p.add_argument("--max-std", type=float, default=0.6, help="explored: chart std below this")
     p.add_argument(
-        "--hit-margin", type=float, default=0.0,
+        "--hit-margin", type=float, default=0.02,
         help="the learned planner keeps this far from the mapping scans' returns (0: off)",
     )  # fmt: skip
     p.add_argument(
