@@ -134,9 +134,13 @@ def test_presets_differ_from_each_other_as_documented():
         visual, emission=ray_camera, heading=HeadingConfig(1e-3)
     )
     real = presets.get("real").config
-    assert real.emission == EmissionConfig("mlp", resolution=0.5, margin=0.0, sigma=0.5)
-    assert real.filter == FilterConfig(weighting="tempered", sigma=1.0, outlier_prob=0.05)
-    assert real.training.chunks == 8 and real.transition.kind == "kinematic"
+    insert = ScanInsertionConfig(gap=0.5)
+    assert real.emission == EmissionConfig(
+        "raycast", resolution=0.1, margin=0.0, sigma=0.1, insert=insert
+    )
+    assert real.filter == FilterConfig(weighting="tempered", sigma=0.3, outlier_prob=0.1)
+    assert real.training == TrainingConfig(chunks=8, objective="filter-sigma", every=4)
+    assert real.transition.kind == "kinematic" and real.heading is None
 
 
 def test_unknown_preset_lists_the_names():

@@ -8,13 +8,11 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 from pyro_slam import cli, metrics
 from pyro_slam.data import Traversal
 from pyro_slam.io import write_carmen
 from pyro_slam.io.common import relative
-from pyro_slam.model import EmissionMLP
 from pyro_slam.slam import (
     SLAM,
     SLAMConfig,
@@ -96,7 +94,7 @@ def test_odometry_sigma_scales_with_motion():
 def test_real_preset_adapts_to_the_log_and_sizes_the_model():
     tr, poses = room_log()
     cfg = presets.get("real").for_traversal(tr)
-    assert cfg.beam_stride == 8 and cfg.emission.resolution == 0.5
+    assert cfg.beam_stride == 8 and cfg.emission.resolution == 0.1
     assert cfg.range_clip == pytest.approx(np.percentile(tr.valid_ranges(), 99), abs=0.01)
     assert cfg.transition.sigma == pytest.approx(odometry_sigma(tr.controls, 0.1, 0.1))
     assert with_overrides(cfg, {"beam_stride": 4}).beam_stride == 4  # overrides win
@@ -104,13 +102,13 @@ def test_real_preset_adapts_to_the_log_and_sizes_the_model():
     prepared = prepare_traversal(tr, cfg)
     assert prepared.num_beams == 46
     model, _ = build_model(prepared, cfg)
-    assert model.emission.scale == pytest.approx(cfg.range_clip)
-    assert model.emission.n_world == 46 and model.beam_angles.shape == (46,)
+    assert model.emission.max_range == pytest.approx(cfg.range_clip)
+    assert model.beam_angles.shape == (46,)
     x0, x1, y0, y1 = model.grid.extent()
     path = metrics.odometry_poses(prepared)[:, :2]
     assert x0 == pytest.approx(path[:, 0].min() - cfg.range_clip)
     assert y1 == pytest.approx(path[:, 1].max() + cfg.range_clip)
-    assert (x1 - x0) / (model.grid.cells[0] - 1) == pytest.approx(0.5, rel=0.05)
+    assert (x1 - x0) / (model.grid.cells[0] - 1) == pytest.approx(0.1, rel=0.05)
     # the simulator's defaults are unchanged
     assert SLAMConfig().beam_stride == 1 and SLAMConfig().range_clip is None
 
@@ -118,9 +116,7 @@ def test_real_preset_adapts_to_the_log_and_sizes_the_model():
 def test_slam_runs_on_subsampled_metric_log():
     tr, _ = room_log(T=12)
     cfg = with_overrides(presets.get("real").for_traversal(tr), SMALL)
-    torch.manual_seed(0)
-    emission = EmissionMLP(4, 46, hidden=16, layers=2, scale=cfg.range_clip)
-    slam = SLAM(tr, cfg, emission=emission, learn_emission=True)
+    slam = SLAM(tr, cfg, seed=0)
     assert slam.obs.shape == (12, 46) and slam.mask.shape == (12, 46)
     res = slam.run("online", progress=False)
     assert res["mean"].shape == (12, 3) and np.isfinite(res["mean"]).all()
@@ -156,7 +152,7 @@ def test_cli_slam_on_carmen_log(tmp_path, capsys):
     report = json.loads((out / "metrics.json").read_text())
     config = report["config"]
     assert report["preset"] == "real" and config["beam_stride"] == 8
-    assert config["emission"]["resolution"] == 0.5 and config["filter"]["particles"] == 16
+    assert config["emission"]["resolution"] == 0.1 and config["filter"]["particles"] == 16
     sigma = odometry_sigma(tr.controls, 0.2, 0.2)
     np.testing.assert_allclose(config["transition"]["sigma"], sigma, rtol=1e-4)
     assert report["scan_consistency"]["slam"]["mean"] >= 0
