@@ -140,7 +140,7 @@ def test_presets_differ_from_each_other_as_documented():
     )
     assert real.filter == FilterConfig(weighting="tempered", sigma=0.3, outlier_prob=0.1)
     assert real.training == TrainingConfig(chunks=8, objective="filter-sigma", every=4)
-    assert real.transition.kind == "kinematic" and real.heading is None
+    assert real.transition.kind == "kinematic" and real.heading == HeadingConfig()
 
 
 def test_unknown_preset_lists_the_names():
