@@ -242,8 +242,9 @@ def headline(result: dict) -> dict:
     DVBF-LM's wall-clock ms per scan over both logs."""
     csail, intel = result["mit-csail"], result["intel"]
 
-    def ratio(rows):
-        return rows["DVBF-LM"]["path_length_m"] / rows["odometry"]["path_length_m"]
+    def ratio(rows):  # null where odometry did not move (a log's first scans, --steps)
+        odo = rows["odometry"]["path_length_m"]
+        return rows["DVBF-LM"]["path_length_m"] / odo if odo > 0 else None
 
     mrpt = csail.get("MRPT icp-slam", {}).get("scan_consistency", {}).get("mean")
     scans = result["scans"]
