@@ -124,7 +124,9 @@ RAYCAST = replace(
     filter=FilterConfig(weighting="shared", outlier_prob=0.1),
     training=replace(SHARPENED, every=4),
 )
-MANHATTAN = replace(RAYCAST, heading=HeadingConfig(sigma=1e-3))
+# SVI at every time step: with 1 % range noise on a rotated maze, every 4th step ended at
+# 0.031 +- 0.016 against 0.021 +- 0.012 (12 held-out runs, paired -0.011 +- 0.007)
+MANHATTAN = replace(RAYCAST, heading=HeadingConfig(sigma=1e-3), training=SHARPENED)
 VISUAL = SLAMConfig(
     emission=EmissionConfig("image_mlp", resolution=1 / 24, margin=0.0),
     transition=TransitionConfig("kinematic", scale=(0.6, 0.6, 0.15)),

@@ -120,7 +120,9 @@ def test_presets_differ_from_each_other_as_documented():
         filter=replace(paper.filter, outlier_prob=0.1),
         training=replace(paper.training, every=4),
     )
-    assert presets.get("manhattan").config == replace(raycast, heading=HeadingConfig(1e-3))
+    assert presets.get("manhattan").config == replace(
+        raycast, heading=HeadingConfig(1e-3), training=paper.training
+    )
     visual = presets.get("visual").config
     assert visual.emission == EmissionConfig("image_mlp", resolution=1 / 24, margin=0.0)
     assert visual.emission.observation == "image" and paper.emission.observation == "lidar"
