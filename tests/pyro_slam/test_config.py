@@ -213,9 +213,10 @@ def test_with_overrides_switches_the_heading_observation_on_and_off():
     raycast, manhattan = presets.get("raycast").config, presets.get("manhattan").config
     on = with_overrides(raycast, {"heading": {"sigma": 0.002}})
     assert on.heading == HeadingConfig(sigma=0.002, support=2)  # from the defaults
-    assert with_overrides(raycast, {"heading": {}}) == manhattan
+    every = {"training": {"every": 1}}
+    assert with_overrides(raycast, {"heading": {}, **every}) == manhattan
     assert with_overrides(manhattan, {"heading": {"support": 3}}).heading == HeadingConfig(1e-3, 3)
-    assert with_overrides(manhattan, {"heading": None}) == raycast
+    assert with_overrides(manhattan, {"heading": None, "training": {"every": 4}}) == raycast
     assert with_overrides(raycast, {"emission": {"insert": None}}).emission.insert is None
 
 
