@@ -15,8 +15,12 @@ that:
   a segment of length ``L`` has a direction error of about ``sqrt(2) sigma_r / L``;
 * the observation applies only where a scan **supports** it (a straight wall of at least three
   hits, and at least ``support`` agreeing segments), with an exact proposal
-  (:func:`~pyro_slam.inference.proposals.heading_conditioned`). The observation is Gaussian: a
-  mixture with an outlier component measured worse on the held-out mazes (results page).
+  (:func:`~pyro_slam.inference.proposals.heading_conditioned`);
+* with a noise-free sensor a straight run of hits gives its wall's direction exactly and the
+  observation is Gaussian; where the scans show range noise a segment may be a false wall
+  (clutter, people, glass), and the observation is a mixture with an outlier component (the
+  filter's ``outlier_prob``), so a scan whose walls disagree with the frame barely moves the
+  particles.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from .config import HeadingConfig
 
 QUARTER = math.pi / 2
 FRAME_SCANS = 50  # at most this many early scans estimate the frame
+NOISY = 1e-4  # range noise above this fraction of the median reading: outliers are possible
 
 
 def _wrap_quarter(a: torch.Tensor) -> torch.Tensor:
@@ -45,14 +50,16 @@ class ManhattanHeading:
     Args:
         config: the :class:`~pyro_slam.slam.config.HeadingConfig` (``sigma``: the std floor;
             ``support``: agreeing segments needed).
+        outlier_prob: the outlier component's weight where the scans show range noise (the
+            filter's); a noise-free sensor's observation is Gaussian.
         image: camera frames (the walls' edges) instead of LiDAR ranges.
         drift: the heading's odometry noise per step (rad), which weighs the early scans.
     """
 
     def __init__(self, traversal: Traversal, obs, mask, config: HeadingConfig, image: bool,
-                 drift: float):  # fmt: skip
+                 drift: float, outlier_prob: float = 0.0):  # fmt: skip
         angles = torch.as_tensor(traversal.beam_angles, dtype=obs.dtype)
-        self.noise = 0.0
+        self.noise, self.outlier_prob = 0.0, 0.0
         if image:  # the walls' edges in each frame
             frames = obs.reshape(obs.shape[0], *traversal.metadata["image_shape"])  # [T, H, W]
             columns = angles.reshape(frames.shape[1:])[0]  # [W] column bearings
@@ -66,6 +73,8 @@ class ManhattanHeading:
             # the sensor's noise through the agreeing segments' lengths, or their own scatter
             std = torch.maximum(math.sqrt(2) * self.noise / wall.length2.clamp_min(1e-30).sqrt(),
                                 wall.scatter)  # fmt: skip
+        if not image and self.noise > NOISY * float(obs[mask].median()):  # false walls possible
+            self.outlier_prob = float(outlier_prob)
         self.direction = direction  # [T] in [0, pi / 2)
         self.ok = support >= config.support  # [T]
         self.sigma = std.clamp_min(config.sigma)  # [T] the observation's std
@@ -111,7 +120,7 @@ class ManhattanHeading:
         value = torch.remainder(self.frame - self.direction, QUARTER)
         value = torch.where(self.ok, value, torch.full_like(value, math.nan))
         sigma = (self.sigma**2 + self.frame_var).sqrt()  # [T]
-        out = HeadingObservation(value, sigma, QUARTER)
+        out = HeadingObservation(value, sigma, QUARTER, self.outlier_prob)
         return out if t is None else out.at(t)
 
     def refine(self, t: int, heading: float, heading_std: float) -> None:

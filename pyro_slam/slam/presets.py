@@ -142,7 +142,7 @@ VISUAL_MANHATTAN = replace(VISUAL_RAYCAST, heading=HeadingConfig(sigma=1e-3))
 # apart than 0.5 m are separate walls), tempered beam-mixture weights at 0.3 m (real scans
 # disagree with any map by more than the model's 0.1 m) and the heading observation in the
 # walls' frame estimated from the log, which switches itself off where the walls do not support
-# it
+# it (on Intel it cut the aligned trajectory error from 4.8 m to 1.5 m)
 REAL = SLAMConfig(
     emission=EmissionConfig(
         "raycast", resolution=0.1, margin=0.0, sigma=0.1, insert=ScanInsertionConfig(gap=0.5)

@@ -160,7 +160,7 @@ class SLAM:
             image = self.cfg.emission.observation == "image"
             drift = float(self.model.transition.sigma[2] / self.cfg.transition.scale[2])
             self.heading = ManhattanHeading(self.tr, self.obs, self.mask, self.cfg.heading, image,
-                                            drift)  # fmt: skip
+                                            drift, self.cfg.filter.outlier_prob)  # fmt: skip
         self.inserter = None
         if self.cfg.emission.insert is not None:
             if not isinstance(self.guide, MapGuide):

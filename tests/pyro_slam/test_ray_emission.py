@@ -266,7 +266,8 @@ def test_manhattan_frame_is_found_in_a_rotated_world_with_a_noisy_lidar():
     not told, with range noise of 0.5 % of the maximum range plus 1 % short returns and 1 %
     dropouts, the frame from the first scans is within 1e-2 rad (modulo a quarter turn) in
     each of four mazes, within 1e-3 noise-free; the fitted noise is of the simulated one's
-    order; a frame refined with exact headings converges to the truth; and where no scan has
+    order, and only then does the observation get an outlier component; a frame refined with
+    exact headings converges to the truth; and where no scan has
     enough agreeing segments the observation is off (nan) and no frame is claimed."""
     cfg = presets.get("manhattan").config
     q = math.pi / 2
@@ -282,6 +283,10 @@ def test_manhattan_frame_is_found_in_a_rotated_world_with_a_noisy_lidar():
         assert max(errs) < (1e-3 if noise == 0 else 1e-2)
         if noise:
             assert 0.3 < heading.noise / (noise * tr.max_range) < 1.5  # measured 0.9
+        # noisy ranges: a segment may be a false wall, so the observation gets the filter's
+        # outlier component; a noise-free sensor's (short returns aside) is Gaussian
+        assert heading.outlier_prob == (cfg.filter.outlier_prob if noise else 0.0)
+        assert heading.observation().outlier_prob == heading.outlier_prob
     ok = torch.nonzero(heading.ok).flatten()
     true = torch.as_tensor(tr.poses[:, 2])
     for t in ok[:100].tolist():  # refining with the true headings
