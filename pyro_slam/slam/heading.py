@@ -50,10 +50,10 @@ class ManhattanHeading:
     Args:
         config: the :class:`~pyro_slam.slam.config.HeadingConfig` (``sigma``: the std floor;
             ``support``: agreeing segments needed).
-        outlier_prob: the outlier component's weight where the scans show range noise (the
-            filter's); a noise-free sensor's observation is Gaussian.
         image: camera frames (the walls' edges) instead of LiDAR ranges.
         drift: the heading's odometry noise per step (rad), which weighs the early scans.
+        outlier_prob: the outlier component's weight where the scans show range noise (the
+            filter's); a noise-free sensor's observation is Gaussian.
     """
 
     def __init__(self, traversal: Traversal, obs, mask, config: HeadingConfig, image: bool,
