@@ -1,31 +1,30 @@
 """Inference for DVBF-LM: weighted particles (:mod:`.particles`), resampling
-(:mod:`.resampling`), particle weights under a map belief (:mod:`.weighting`), proposals
-(:mod:`.proposals`), the particle filter (:mod:`.filter`), the asynchronous particle cache
-(:mod:`.cache`), the particle-chunk ELBO (:mod:`.elbo`) and Pyro's SMCFilter behind the same
-interface (:mod:`.smc`)."""
+(:mod:`.resampling`), pose proposals as SMC guides (:mod:`.proposals`), the particle filter
+(:mod:`.filter`), the asynchronous particle cache (:mod:`.cache`), the particle-chunk ELBO
+(:mod:`.elbo`) and Pyro's SMCFilter behind the same interface (:mod:`.smc`)."""
 
 from . import resampling
 from .cache import ParticleCache
 from .elbo import ChunkBatch, ParticleChunkELBO
 from .filter import ParticleFilter
 from .particles import Particles, pose_moments, weighted_pose_mean
-from .proposals import HeadingObservation
+from .proposals import PROPOSALS, HeadingProposal, Proposal, TransitionProposal
 from .resampling import ParticleFilterFailed
-from .smc import PyroSMCFilter
-from .weighting import WEIGHTINGS, MapBelief, Weighting
+from .smc import ProposalGuide, PyroSMCFilter
 
 __all__ = [
-    "WEIGHTINGS",
+    "PROPOSALS",
     "ChunkBatch",
-    "HeadingObservation",
-    "MapBelief",
+    "HeadingProposal",
     "ParticleCache",
     "ParticleChunkELBO",
     "ParticleFilter",
     "ParticleFilterFailed",
     "Particles",
+    "Proposal",
+    "ProposalGuide",
     "PyroSMCFilter",
-    "Weighting",
+    "TransitionProposal",
     "pose_moments",
     "resampling",
     "weighted_pose_mean",

@@ -48,8 +48,9 @@ class ParticleCache:
         circular, :func:`~pyro_slam.inference.pose_moments`)."""
         return pose_moments(self.z[t])
 
-    def propose(self, t: torch.Tensor, K: int, kind="gaussian", noise=1e-3, min_std=1e-4,
-                generator=None):  # fmt: skip
+    def propose(
+        self, t: torch.Tensor, K: int, kind="gaussian", noise=1e-3, min_std=1e-4, generator=None
+    ):
         """``K`` start particles ``[C, K, 3]`` for chunks starting at ``t [C]``."""
         if not bool(self.filled[t].all()):
             missing = t[~self.filled[t]].tolist()

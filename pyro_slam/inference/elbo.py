@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from pyro import poutine
 from pyro.infer import ELBO
 from torch.distributions import kl_divergence
 
+from ..model.model import HeadingEvidence
 from .cache import ParticleCache
 from .filter import ParticleFilter
 from .particles import Particles
-from .proposals import HeadingObservation
 
 
 @dataclass
@@ -26,16 +26,18 @@ class ChunkBatch:
 class ParticleChunkELBO(ELBO):
     """Negative ELBO of paper eq. (3) for :class:`pyro.infer.SVI`, on chunks of one traversal.
 
-    ``model`` must sample the site ``"map"`` (e.g. :meth:`DVBFLM.map_model`) and ``guide`` any
-    guide over it (:class:`~pyro_slam.model.MapGuide`, an autoguide, ...). For each chunk the
-    start particles come from the cache, the particle filter runs ``length`` steps under one
-    reparameterised map sample, and the cache is refreshed with the filtered particles (and one
-    step beyond the chunk through the transition). The loss, divided by ``T`` to keep the scale
-    per time step, is
+    ``model`` samples the global sites -- the site ``"map"`` and, with a heading factor,
+    ``"frame"`` (:meth:`DVBFLM.global_model`) -- and ``guide`` is any guide over them
+    (:class:`~pyro_slam.model.MapGuide`, an autoguide, with
+    :class:`~pyro_slam.model.FrameGuide`, ...). For each chunk the start particles come from
+    the cache, the particle filter runs ``length`` steps under one reparameterised sample of
+    the globals, and the cache is refreshed with the filtered particles (and one step beyond
+    the chunk through the transition). The loss, divided by ``T`` to keep the scale per time
+    step, is
 
-        -(T / (C L)) sum_chunks log p^(x_chunk | M) + KL(q(M) || p(M)),
+        -(T / (C L)) sum_chunks log p^(x_chunk | M, phi) + KL(q(M, phi) || p(M, phi)),
 
-    with an analytic KL when both sides are Normal (Monte Carlo otherwise).
+    with an analytic KL per site where both sides have one (Monte Carlo otherwise).
 
     Args:
         pf: the :class:`~.filter.ParticleFilter` (shares the model).
@@ -44,8 +46,9 @@ class ParticleChunkELBO(ELBO):
         num_particles: particles per chunk during training.
         proposal: the cache's chunk proposal, ``"gaussian"`` (eq. 3) or ``"categorical"``.
         refresh: also refresh the cache one step beyond each chunk.
-        headings: a :class:`~.proposals.HeadingObservation` with ``value [T]`` (nan where none):
-            each chunk step samples its heading conditioned on it, as the online filter does.
+        headings: the wall directions seen in the scans, a
+            :class:`~pyro_slam.model.HeadingEvidence` with ``direction [T]`` (nan where none),
+            observed under the model's heading factor in the sampled frame.
     """
 
     def __init__(
@@ -58,7 +61,7 @@ class ParticleChunkELBO(ELBO):
         num_particles: int = 32,
         proposal: str = "gaussian",
         refresh: bool = True,
-        headings: HeadingObservation | None = None,
+        headings: HeadingEvidence | None = None,
     ):
         super().__init__(num_particles=1)
         self.pf, self.cache, self.headings = pf, cache, headings
@@ -67,17 +70,24 @@ class ParticleChunkELBO(ELBO):
         self.num_steps_seen = observations.shape[0]
         self.last_log_evidence = None
 
-    def chunk_log_evidence(self, M, batch: ChunkBatch):
-        """Run the filter over the chunks; returns ``log p^ [C]`` and refreshes the cache."""
+    def chunk_log_evidence(self, M, batch: ChunkBatch, frame=None):
+        """Run the filter over the chunks under the map ``M`` and the frame ``frame`` (a sample;
+        with heading evidence); returns ``log p^ [C]`` and refreshes the cache."""
         obs, ctl, mask = self.observations, self.controls, self.mask
         t = batch.starts
         z0 = self.cache.propose(t, self.K, self.proposal, generator=self.pf.generator)
         z0 = z0.to(obs.dtype)
-        p, ev = self.pf.init(z0, M, obs[t], None if mask is None else mask[t], step=int(t[0]))
+        headings = None
+        if self.headings is not None and frame is not None:
+            headings = replace(self.headings, frame=frame, frame_var=0.0)
+        h0 = None if headings is None else headings.at(t)
+        p, ev = self.pf.init(
+            z0, M, obs[t], None if mask is None else mask[t], step=int(t[0]), heading=h0
+        )
         self.cache.store(t, p, self.pf.generator)
         for l in range(1, batch.length):
             tl = t + l
-            heading = None if self.headings is None else self.headings.at(tl)  # value [C]
+            heading = None if headings is None else headings.at(tl)  # direction [C]
             m = None if mask is None else mask[tl]
             p, inc = self.pf.step(p, M, obs[tl], ctl[tl - 1], m, step=int(tl[0]), heading=heading)
             ev = ev + inc
@@ -100,17 +110,21 @@ class ParticleChunkELBO(ELBO):
     def differentiable_loss(self, model, guide, batch: ChunkBatch, *args, **kwargs):
         guide_tr = poutine.trace(guide).get_trace()
         model_tr = poutine.trace(poutine.replay(model, trace=guide_tr)).get_trace()
-        g, m = guide_tr.nodes["map"], model_tr.nodes["map"]
-        M = g["value"]
-        try:
-            kl = kl_divergence(g["fn"], m["fn"]).sum()
-        except NotImplementedError:
-            kl = g["fn"].log_prob(M).sum() - m["fn"].log_prob(M).sum()
-        # other guide sites (e.g. an autoguide's auxiliary latent) enter by Monte Carlo
-        for name, site in guide_tr.nodes.items():
-            if site["type"] == "sample" and name != "map" and not site["is_observed"]:
-                kl = kl + site["fn"].log_prob(site["value"]).sum()
-        ev = self.chunk_log_evidence(M, batch)  # [C]
+        kl = 0.0
+        for name, g in guide_tr.nodes.items():
+            if g["type"] != "sample" or g["is_observed"]:
+                continue
+            m = model_tr.nodes.get(name)
+            if m is None:  # a guide-only site (an autoguide's auxiliary latent): Monte Carlo
+                kl = kl + g["fn"].log_prob(g["value"]).sum()
+                continue
+            try:
+                kl = kl + kl_divergence(g["fn"], m["fn"]).sum()
+            except NotImplementedError:
+                kl = kl + (g["fn"].log_prob(g["value"]) - m["fn"].log_prob(g["value"])).sum()
+        M = guide_tr.nodes["map"]["value"]
+        frame = guide_tr.nodes["frame"]["value"] if "frame" in guide_tr.nodes else None
+        ev = self.chunk_log_evidence(M, batch, frame)  # [C]
         self.last_log_evidence = ev.detach()
         T = self.num_steps_seen
         C, L = len(batch.starts), batch.length

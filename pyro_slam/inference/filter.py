@@ -1,12 +1,14 @@
 """The differentiable, batched particle filter over DVBF-LM poses.
 
 :class:`ParticleFilter` is the custom SMC guide over poses of DVBF-LM (paper III-C): particles
-are proposed from the transition (:mod:`.proposals`) and weighted by the emission likelihood
-under a (sampled) map (:mod:`.weighting`), in log space, with ESS-triggered resampling. Unlike
-:class:`pyro.infer.SMCFilter` it keeps the autograd graph from the map and emission parameters
-to the log-evidence estimate
+are proposed by a :class:`~.proposals.Proposal` (the transition, or a guide with its importance
+correction) and weighted by the model's likelihood of the step's observations -- the emission
+under a map (or, under a map belief ``q(M)``, the model's stated marginalisation over it,
+:meth:`~pyro_slam.model.DVBFLM.marginal_emission`) and the heading factor where the model has
+one -- in log space, with ESS-triggered resampling. Unlike :class:`pyro.infer.SMCFilter` it keeps
+the autograd graph from the map and emission parameters to the log-evidence estimate
 
-    log p^(x_{1:T} | M) = sum_t log sum_k w_{t-1,k} p(x_t | z_t^k, M)
+    log p^(x_{1:T} | M) = sum_t log sum_k w_{t-1,k} p(x_t | z_t^k, M) p(z_t^k | .) / q(z_t^k | .)
 
 (resampling indices and particle positions are treated as samples, i.e. no gradient flows
 through them), so the same step serves training (:class:`~.elbo.ParticleChunkELBO`) and
@@ -19,10 +21,10 @@ import math
 
 import torch
 
-from . import proposals, resampling
+from ..model.model import HeadingEvidence, MapBelief
+from . import resampling
 from .particles import Particles
-from .proposals import HeadingObservation
-from .weighting import MapBelief, Weighting
+from .proposals import Proposal, TransitionProposal
 
 
 class ParticleFilter:
@@ -30,49 +32,61 @@ class ParticleFilter:
 
     Args:
         model: the :class:`~pyro_slam.model.DVBFLM`.
-        weighting: how particles are weighed (:class:`~.weighting.Weighting`; default: the
-            model's emission likelihood, ``"marginal"`` under a map belief).
+        proposal: the pose proposal (:class:`~.proposals.Proposal`; default the transition).
         generator: ``torch.Generator`` for reproducible noise and resampling.
         ess_threshold: resample when ``ESS < ess_threshold * K``.
         scheme: ``"systematic"`` or ``"multinomial"`` (:mod:`.resampling`).
+        shared: under a map belief, one variance per reading for the whole cloud (its
+            weighted mean), :meth:`~pyro_slam.model.DVBFLM.marginal_emission`.
         autocast_dtype: e.g. ``torch.bfloat16``: run the emission in reduced precision when no
-            gradient is needed (filtering); ~2-3x faster on CPU, range error ~1e-3.
+            gradient is needed (filtering under a fixed map); ~2-3x faster on CPU.
     """
 
     def __init__(
         self,
         model,
-        weighting: Weighting | None = None,
+        proposal: Proposal | None = None,
         generator: torch.Generator | None = None,
         ess_threshold: float = 0.5,
         scheme: str = "systematic",
+        shared: bool = False,
         autocast_dtype: torch.dtype | None = None,
     ):
         if scheme not in resampling.SCHEMES:
             raise ValueError(f"unknown resampling scheme {scheme!r}")
         self.model = model
-        self.weighting = Weighting() if weighting is None else weighting
-        self.weighting.check(model)
+        self.proposal = TransitionProposal() if proposal is None else proposal
         self.generator = generator
         self.ess_threshold, self.scheme = ess_threshold, scheme
-        self.autocast_dtype = autocast_dtype
-        self.last_cloud_trust: torch.Tensor | None = None  # [...] set by each weighing
+        self.shared, self.autocast_dtype = shared, autocast_dtype
 
-    def trust(self, z: torch.Tensor, M: MapBelief) -> torch.Tensor:
-        """The weights' trust in ``M`` at poses ``z [..., K, 3]`` (:meth:`Weighting.trust`)."""
-        return self.weighting.trust(self.model, z, M)
+    def log_likelihood(self, z, M, x, mask=None, logw=None, heading=None):
+        """The model's log-likelihood of the step's observations at poses ``z [..., K, 3]``:
+        the scan ``x [..., B]`` (``mask [..., B]``) under the map ``M [w, h, D]`` or marginalised
+        over a :class:`~pyro_slam.model.MapBelief` (``logw [..., K]``: the cloud's weights, read
+        where one variance serves the cloud), plus the heading factor's log-density of
+        ``heading`` (:class:`~pyro_slam.model.HeadingEvidence`, batch ``[...]``). Returns
+        ``(loglik [..., K], scan [..., K, B])``, the scans predicted at the map (mean)."""
+        m = self.model
+        eps = None
+        if isinstance(M, MapBelief):
+            scan, eps = m.marginal_emission(M, z, logw if self.shared else None)
+        elif self.autocast_dtype is not None and not torch.is_grad_enabled():
+            with torch.autocast(z.device.type, dtype=self.autocast_dtype):
+                scan = m.emission_mean(M, z).to(z.dtype)  # [..., K, B]
+        else:
+            scan = m.emission_mean(M, z)  # [..., K, B]
+        mask = None if mask is None else mask.unsqueeze(-2)
+        ll = m.emission_log_prob(x.unsqueeze(-2), scan, mask, outlier_prob=eps)
+        if heading is not None and m.heading is not None:
+            ll = ll + m.heading_log_prob(z[..., 2], heading.per_particle())
+        return ll, scan
 
-    def cloud_trust(self, p: Particles, M: MapBelief) -> torch.Tensor:
-        """The weighted mean of :meth:`trust` over the particles ``p``: ``[...]``."""
-        return (p.logw.exp() * self.trust(p.z, M).mean(-1)).sum(-1)
-
-    def _weigh(self, z, M, x, mask, logw, step, correction=None):
-        """Weigh poses ``z [..., K, 3]`` (plus ``correction [..., K]``, a proposal's log
+    def _weigh(self, z, M, x, mask, logw, step, correction=None, heading=None):
+        """Weigh poses ``z [..., K, 3]`` (plus ``correction [..., K]``, the proposal's log
         transition-over-proposal density ratio). Returns new particles and the log-evidence
         increment ``[...]``."""
-        loglik, scan, trust = self.weighting.log_likelihood(
-            self.model, z, M, x, mask, logw, self.autocast_dtype
-        )
+        loglik, scan = self.log_likelihood(z, M, x, mask, logw, heading)
         if correction is not None:
             loglik = loglik + correction
         joint = logw + loglik
@@ -80,25 +94,20 @@ class ParticleFilter:
         inc = torch.logsumexp(joint, -1)  # [...]
         # normalised weights keep their graph: without resampling, the next step's evidence
         # depends on the map through them too (resampling resets them to constants)
-        out = Particles(z, joint - inc.unsqueeze(-1), scan.detach())
-        if trust is not None:  # the cloud's trust in the map belief it was weighed under
-            self.last_cloud_trust = (out.logw.detach().exp() * trust.mean(-1)).sum(-1)
-        return out, inc
+        return Particles(z, joint - inc.unsqueeze(-1), scan.detach()), inc
 
-    def init(self, z0, M, x, mask=None, step=0):
-        """Weigh initial particles ``z0 [..., K, 3]`` by ``x [..., B]``.
+    def init(self, z0, M, x, mask=None, step=0, heading: HeadingEvidence | None = None):
+        """Weigh initial particles ``z0 [..., K, 3]`` by ``x [..., B]`` (and ``heading``).
 
         Returns ``(particles, log_evidence [...])`` with ``log p^(x_0) = log mean_k p(x_0|z^k)``.
         """
         K = z0.shape[-2]
         logw = z0.new_full(z0.shape[:-1], -math.log(K))
-        return self._weigh(z0.detach(), M, x, mask, logw, step)
+        return self._weigh(z0.detach(), M, x, mask, logw, step, heading=heading)
 
-    def propagate(self, p: Particles, u: torch.Tensor, sigma=None) -> torch.Tensor:
-        """Sample ``z_{t+1} ~ p(. | z_t, u_t, mu_E(m_t))``: ``[..., K, 3]`` (no gradient).
-
-        ``sigma``: the transition std instead of the model's (``[3]`` or ``[..., 1, 3]``)."""
-        return proposals.bootstrap(self.model, p, u, sigma, self.generator)
+    def propagate(self, p: Particles, u: torch.Tensor) -> torch.Tensor:
+        """Sample ``z_{t+1} ~ p(. | z_t, u_t, mu_E(m_t))``: ``[..., K, 3]`` (no gradient)."""
+        return TransitionProposal().propose(self.model, p, u, self.generator)[0]
 
     def resample_if_needed(self, p: Particles) -> Particles:
         """Resample the batch elements whose ESS is below ``ess_threshold * K``."""
@@ -108,22 +117,17 @@ class ParticleFilter:
         r = p.resample(self.generator, self.scheme)
         return r if bool(need.all()) else r.where(need, p)
 
-    def step(self, p: Particles, M, x, u, mask=None, step=None, sigma=None,
-             heading: HeadingObservation | None = None):  # fmt: skip
-        """One filtering step: resample if needed, propagate with ``u [..., D_u]`` (transition
-        std ``sigma``, default the model's), weigh ``x``. ``heading``: an observation of the
-        new heading, sampled exactly (:func:`~.proposals.heading_conditioned`).
+    def step(self, p: Particles, M, x, u, mask=None, step=None, heading=None):
+        """One filtering step: resample if needed, propose with ``u [..., D_u]`` (the proposal
+        may read the scan ``x [..., B]``, the map and the step's ``heading`` evidence), weigh.
 
         Returns ``(particles, log_evidence_increment [...])``.
         """
         p = self.resample_if_needed(p)
-        if heading is None:
-            z, correction = self.propagate(p, u, sigma), None
-        else:
-            z, correction = proposals.heading_conditioned(
-                self.model, p, u, heading, sigma, self.generator
-            )
-        return self._weigh(z, M, x, mask, p.logw, step, correction)
+        z, correction = self.proposal.propose(
+            self.model, p, u, self.generator, x=x, mask=mask, M=M, heading=heading
+        )
+        return self._weigh(z, M, x, mask, p.logw, step, correction, heading)
 
     @torch.no_grad()
     def run(self, M, observations, controls, init_pose, num_particles, mask=None, init_scale=None):

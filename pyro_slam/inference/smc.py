@@ -1,20 +1,40 @@
 """Pyro's :class:`pyro.infer.SMCFilter` on the same model, with the interface of
-:class:`~.filter.ParticleFilter` (``init``, ``step``, ``cloud_trust``): a drop-in, slower filter
-for the SLAM loop (``SLAM(..., smc=True)``). The proposal is the model's transition
-(:class:`~pyro_slam.model.BootstrapGuide`) and the weights are the SLAM filter's
-(:class:`~.weighting.Weighting`, from the model's emission noise) through
-:class:`~pyro_slam.model.FilterModel`. It keeps no autograd graph, so the training ELBO keeps
-our filter; per-cloud weights (``"shared"``) and the heading observation need the cloud's
-weights inside the model step and are refused."""
+:class:`~.filter.ParticleFilter` (``init``, ``step``): a drop-in, slower filter for the SLAM loop
+(``SLAM(..., smc=True)``). The model step is :class:`~pyro_slam.model.FilterModel` (the
+transition, the scan under the map belief through the model's stated marginalisation, the
+heading factor) and the guide step samples the same :class:`~.proposals.Proposal` as ours
+(:class:`ProposalGuide`), so SMCFilter's own ``p / q`` weights are ours. It keeps no autograd
+graph, so the training ELBO keeps our filter."""
 
 from __future__ import annotations
 
+import pyro
+import pyro.distributions as dist
 import torch
 from pyro.infer import SMCFilter
 
-from ..model import BootstrapGuide, FilterModel
+from ..model import FilterModel
 from .particles import Particles
-from .weighting import MapBelief, Weighting
+from .proposals import Proposal, TransitionProposal
+
+
+class ProposalGuide:
+    """A :class:`~.proposals.Proposal` as the guide object of :class:`pyro.infer.SMCFilter`:
+    ``init`` draws the initial poses from the model's prior, ``step`` samples the site ``"z"``
+    from the proposal at the state's particles (``M``: the map or map belief the proposal may
+    read, set by the caller before each step)."""
+
+    def __init__(self, model, proposal: Proposal, M=None):
+        self.m, self.proposal, self.M = model, proposal, M
+
+    def init(self, state, init_pose, x=None, mask=None, heading=None):
+        pyro.sample("z", dist.Normal(init_pose, self.m.init_scale).to_event(1))
+
+    def step(self, state, x, u, mask=None, heading=None):
+        q = self.proposal.dist(
+            self.m, state["z"], state["scan"], u, x=x, mask=mask, M=self.M, heading=heading
+        )
+        pyro.sample("z", q)
 
 
 class PyroSMCFilter:
@@ -22,51 +42,57 @@ class PyroSMCFilter:
 
     Args:
         model: the :class:`~pyro_slam.model.DVBFLM`.
-        weighting: the particle weights (``"marginal"`` or ``"tempered"``).
+        proposal: the pose proposal (default: the transition).
         ess_threshold: resample when ``ESS < ess_threshold * K``.
+        shared: one variance per reading for the cloud under a map belief (as our filter's).
     """
 
-    def __init__(self, model, weighting: Weighting | None = None, ess_threshold: float = 0.5):
+    def __init__(
+        self,
+        model,
+        proposal: Proposal | None = None,
+        ess_threshold: float = 0.5,
+        shared: bool = False,
+    ):
         self.model = model
-        self.weighting = Weighting() if weighting is None else weighting
-        if self.weighting.kind == "shared":
-            raise ValueError("Pyro's SMCFilter weighs each particle alone: 'shared' is refused")
-        self.ess_threshold = ess_threshold
+        self.proposal = TransitionProposal() if proposal is None else proposal
+        self.ess_threshold, self.shared = ess_threshold, shared
         self.smc: SMCFilter | None = None
-        self._belief: MapBelief | torch.Tensor | None = None
-        self.last_cloud_trust: torch.Tensor | None = None  # (not tracked: computed on demand)
+        self._fm: FilterModel | None = None
+        self._guide: ProposalGuide | None = None
 
-    def _weights(self, z, x, mask):
-        log_lik, scan, _ = self.weighting.log_likelihood(self.model, z, self._belief, x, mask)
-        return log_lik, scan
-
-    def trust(self, z, M: MapBelief) -> torch.Tensor:
-        return self.weighting.trust(self.model, z, M)
-
-    def cloud_trust(self, p: Particles, M: MapBelief) -> torch.Tensor:
-        return (p.logw.exp() * self.trust(p.z, M).mean(-1)).sum(-1)
+    def _logw(self) -> torch.Tensor:
+        """The cloud's normalised log weights ``[K]`` (a copy: SMCFilter updates in place)."""
+        logw = self.smc.get_empirical()["z"].log_weights.clone()
+        return logw - torch.logsumexp(logw, -1)
 
     def _particles(self) -> Particles:
-        logw = self.smc.get_empirical()["z"].log_weights.clone()  # (updated in place)
-        logw = logw - torch.logsumexp(logw, -1)
-        return Particles(self.smc.state["z"].clone(), logw, self.smc.state["scan"].clone())
+        return Particles(self.smc.state["z"].clone(), self._logw(), self.smc.state["scan"].clone())
+
+    def _set_map(self, M) -> None:
+        self._fm.M = self._guide.M = M
 
     @torch.no_grad()
-    def init(self, z0, M, x, mask=None, step=0):
+    def init(self, z0, M, x, mask=None, step=0, heading=None):
         """Start from the initial pose prior around the mean of ``z0 [K, 3]`` and weigh ``x``.
         Returns ``(particles, nan)`` (SMCFilter tracks no evidence)."""
-        self._belief = M
-        fm = FilterModel(self.model, None, self._weights)
-        self.smc = SMCFilter(fm, BootstrapGuide(self.model), z0.shape[-2], max_plate_nesting=0,
-                             ess_threshold=self.ess_threshold)  # fmt: skip
-        self.smc.init(init_pose=z0.mean(-2), x=x, mask=mask)
+        self._fm = FilterModel(self.model, M, self._logw if self.shared else None)
+        self._guide = ProposalGuide(self.model, self.proposal, M)
+        self.smc = SMCFilter(
+            self._fm,
+            self._guide,
+            z0.shape[-2],
+            max_plate_nesting=0,
+            ess_threshold=self.ess_threshold,
+        )
+        shared, self._fm.cloud_logw = self._fm.cloud_logw, None  # no weights before the first
+        self.smc.init(init_pose=z0.mean(-2), x=x, mask=mask, heading=heading)
+        self._fm.cloud_logw = shared
         return self._particles(), torch.tensor(float("nan"))
 
     @torch.no_grad()
-    def step(self, p, M, x, u, mask=None, step=None, sigma=None, heading=None):
+    def step(self, p, M, x, u, mask=None, step=None, heading=None):
         """One SMCFilter step (``p`` is its own state, returned by the last call)."""
-        if heading is not None:
-            raise ValueError("Pyro's SMCFilter drop-in does not take the heading observation")
-        self._belief = M
-        self.smc.step(x, u, mask=mask, sigma=sigma)
+        self._set_map(M)
+        self.smc.step(x, u, mask=mask, heading=heading)
         return self._particles(), torch.tensor(float("nan"))

@@ -10,27 +10,35 @@ from .emissions import (
     RayImageEmission,
     rotate_scan,
 )
-from .guide import BootstrapGuide, MapGuide, autoguide, map_marginals
-from .model import DVBFLM, FilterModel, MapGrid
+from .guide import FrameGuide, GlobalGuide, MapGuide, autoguide, map_marginals
+from .model import DVBFLM, FilterModel, HeadingEvidence, MapBelief, MapGrid, WallHeading
 from .networks import EmissionMLP, TransitionMLP, mlp
+from .noise import BeamMixture, CircularUniform, WrappedMixture
 from .transitions import KinematicTransition, LearnedTransition, Transition, pretrain_transition
 
 __all__ = [
     "DVBFLM",
-    "BootstrapGuide",
+    "BeamMixture",
+    "CircularUniform",
     "Emission",
     "EmissionMLP",
     "FilterModel",
+    "FrameGuide",
+    "GlobalGuide",
+    "HeadingEvidence",
     "ImageEmission",
     "KinematicTransition",
     "LearnedTransition",
     "LidarEmission",
+    "MapBelief",
     "MapGrid",
     "MapGuide",
     "RayEmission",
     "RayImageEmission",
     "Transition",
     "TransitionMLP",
+    "WallHeading",
+    "WrappedMixture",
     "autoguide",
     "map_marginals",
     "mlp",

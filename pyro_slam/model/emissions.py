@@ -60,9 +60,12 @@ class Emission(nn.Module):
 
     map_dim: int
     event_shape: tuple[int, ...]
-    # the particle filter's trust in the map (ParticleFilter.trust) reads the variance of the
-    # first trust_features features of the chart at the pose (None: all of them)
+    # how unknown a reading is (read_moments) is the variance of the first trust_features
+    # features of the chart at the pose (None: all of them)
     trust_features: int | None = None
+    # the width of the interval a reading lies in (a range finder's range, a pixel's [0, 1]):
+    # a reading the map does not determine is taken as uniform over it (read_moments)
+    reading_range: float = 1.0
 
     @property
     def event_size(self) -> int:
@@ -79,6 +82,16 @@ class Emission(nn.Module):
         :meth:`mean`. An emission that reads the map elsewhere (:class:`RayEmission`)
         overrides this."""
         return self.mean(grid.attend(M, z[..., :2]), z)
+
+    def read_moments(self, grid, loc: torch.Tensor, scale: torch.Tensor, z: torch.Tensor):
+        """The reading at poses ``z [..., 3]`` under a Gaussian map belief, mean ``loc`` and
+        std ``scale`` relative to the prior's (``[w, h, D_m]``): ``(mean [..., N], v)`` with
+        ``v`` how unknown the reading is, in ``[0, 1]``: the chart's variance relative to the
+        prior's (``[..., 1]``, the same for every entry), which
+        :meth:`~pyro_slam.model.DVBFLM.marginal_emission` turns into a variance."""
+        n = self.trust_features
+        var = grid.relative_variance(scale if n is None else scale[..., :n], z[..., :2])
+        return self.read(grid, loc, z), var
 
 
 class LidarEmission(Emission):
@@ -103,6 +116,10 @@ class LidarEmission(Emission):
     @property
     def scale(self) -> float:
         return self.net.scale
+
+    @property
+    def reading_range(self) -> float:
+        return float(self.net.scale)
 
     def forward(self, m: torch.Tensor) -> torch.Tensor:
         return self.net(m)
@@ -198,18 +215,16 @@ class RayEmission(Emission):
     def read(self, grid, M, z):
         return self.expected_range(grid, M, z)
 
-    def beam_variance(self, grid, loc: torch.Tensor, scale: torch.Tensor, z: torch.Tensor):
-        """How unknown each beam's reading is under a mean-field ``q(M) = N(loc, scale^2)``:
-        ``[..., B]`` in ``[0, 1]``, the map variance relative to the prior's (as
-        :meth:`~pyro_slam.inference.Weighting.trust` measures it at a chart) where the ray
-        stops under ``loc``, averaged over the stopping point (passing rays: the last point).
-        A beam that ends on a mapped wall is trusted even where the pose is new; one that runs
-        into unmapped space is not."""
-        return self.range_and_variance(grid, loc, scale, z)[1]
+    @property
+    def reading_range(self) -> float:
+        return self.max_range
 
-    def range_and_variance(self, grid, loc, scale, z):
-        """Each beam's expected range under ``loc`` and its :meth:`beam_variance`, from one
-        march along the beams: both ``[..., B]``."""
+    def read_moments(self, grid, loc, scale, z):
+        """Each beam's expected range under ``loc`` and how unknown it is, both ``[..., B]``,
+        from one march along the beams: the occupancy's variance relative to the prior's
+        (``scale``) where the ray stops under ``loc``, averaged over the stopping point
+        (passing rays: the last point). A beam that ends on a mapped wall is known even where
+        the pose is new; one that runs into unmapped space is not."""
         pts, stop, passes = self._stops(grid, loc, z)  # [..., B, S, 2], [..., B, S], [..., B]
         var = grid.relative_variance(scale[..., :1], pts)[..., 0]  # [..., B, S] occupancy's
         rng = (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range
@@ -348,6 +363,15 @@ class RayImageEmission(RayEmission):
         self.log_fog = nn.Parameter(torch.tensor(math.log(0.25)))
         self.background = nn.Parameter(torch.full((self.rows,), 0.5))
         self.far_albedo = nn.Parameter(torch.tensor(0.0))
+
+    reading_range = 1.0  # pixel intensities
+
+    def read_moments(self, grid, loc, scale, z):
+        """The predicted image under ``loc`` ``[..., rows * cols]`` and how unknown each pixel
+        is: its column's ray's (:meth:`RayEmission.read_moments`), ``[..., rows * cols]``."""
+        var = RayEmission.read_moments(self, grid, loc, scale, z)[1]  # [..., C]
+        var = var.unsqueeze(-2).expand(*var.shape[:-1], self.rows, self.cols)
+        return self.read(grid, loc, z), var.flatten(-2)
 
     def read(self, grid, M, z):
         """Predicted image at poses ``z [..., 3]``, flattened row-major: ``[..., rows * cols]``."""

@@ -4,20 +4,23 @@
   ``pyro.param`` mean and scale (paper III-C). Any Pyro guide over the site ``"map"`` can
   replace it (:func:`autoguide` builds Pyro's autoguides over the map site alone); the particle
   filter reads a guide's marginal mean and std through :func:`map_marginals`.
-* :class:`BootstrapGuide` -- the pose proposal of a bootstrap particle filter, as a guide object
-  with ``init``/``step`` for :class:`pyro.infer.SMCFilter`.
-* The custom SMC guide over poses used for *training* is the differentiable particle filter of
-  :mod:`pyro_slam.inference`; it is bootstrap, so its weights are the emission likelihoods under
-  the sampled map.
+* :class:`FrameGuide` -- ``q(phi) = N(mean, var)`` of the walls' frame of the heading factor,
+  fitted by Kalman updates from the data (:mod:`pyro_slam.slam.heading`) rather than by SVI.
+* :class:`GlobalGuide` -- a map guide and (with a heading factor) the frame guide: the guide of
+  :meth:`~pyro_slam.model.DVBFLM.global_model`.
+* The SMC guides over poses are the proposals of :mod:`pyro_slam.inference.proposals`.
 """
 
 from __future__ import annotations
+
+import math
 
 import pyro
 import pyro.distributions as dist
 import torch
 from pyro import poutine
 from pyro.distributions import constraints
+from torch.distributions import biject_to
 
 from .model import DVBFLM
 
@@ -57,6 +60,41 @@ class MapGuide:
         return self.params()[0].detach()
 
 
+class FrameGuide:
+    """``q(phi) = N(mean, var)``, the walls' frame of the model's heading factor (site
+    ``"frame"``). Its mean and variance are set by an estimator outside SVI (Kalman updates
+    from the scans' wall directions, :class:`~pyro_slam.slam.heading.ManhattanHeading`); nan:
+    no frame known yet (the heading evidence is then not used)."""
+
+    def __init__(self, mean: float = math.nan, var: float = math.inf):
+        self.mean, self.var = float(mean), float(var)
+
+    def __call__(self, *args, **kwargs):
+        if math.isnan(self.mean):
+            return None
+        return pyro.sample("frame", dist.Normal(torch.tensor(self.mean), math.sqrt(self.var)))
+
+    def state_dict(self) -> dict:
+        return {"mean": self.mean, "var": self.var}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.mean, self.var = float(d["mean"]), float(d["var"])
+
+
+class GlobalGuide:
+    """The guide of :meth:`~pyro_slam.model.DVBFLM.global_model`: a map guide (any guide over
+    the site ``"map"``) and, where given, a :class:`FrameGuide`. Returns ``(M, phi)``."""
+
+    def __init__(self, map_guide, frame: FrameGuide | None = None):
+        self.map, self.frame = map_guide, frame
+
+    def __call__(self, *args, **kwargs):
+        M = self.map(*args, **kwargs)
+        if isinstance(M, dict):  # an autoguide returns its sample by site
+            M = M["map"]
+        return M, None if self.frame is None else self.frame()
+
+
 def autoguide(cls, **kwargs):
     """A guide factory for :class:`~pyro_slam.slam.SLAM`'s ``guide`` argument: Pyro's autoguide
     ``cls`` (e.g. ``AutoNormal``, ``AutoLowRankMultivariateNormal``) over the model's map site
@@ -88,14 +126,34 @@ def map_marginals(guide) -> tuple[torch.Tensor, torch.Tensor]:
     )
 
 
-class BootstrapGuide:
-    """Proposal ``q(z_t | z_{t-1}) = p(z_t | z_{t-1}, u, m_{t-1})`` for :class:`SMCFilter`."""
-
-    def __init__(self, dvbflm: DVBFLM):
-        self.m = dvbflm
-
-    def init(self, state, init_pose, x=None, mask=None):
-        pyro.sample("z", dist.Normal(init_pose, self.m.init_scale).to_event(1))
-
-    def step(self, state, x, u, mask=None, sigma=None):
-        pyro.sample("z", self.m.transition_dist(state["z"], u, state["scan"], sigma))
+def map_param_leaves(guide, shape):
+    """Where a map guide keeps ``q(M)``'s marginal mean and scale in Pyro's parameter store, for
+    writing into them (scan insertion): ``(loc [w, h, D], raw_scale [w, h, D], to_raw)``, views
+    of the store's leaf tensors, with ``to_raw`` mapping a scale to its unconstrained value; None
+    where the guide keeps no such pair. The protocol, met by :class:`MapGuide` and by Pyro's
+    :class:`~pyro.infer.autoguide.AutoNormal` and
+    :class:`~pyro.infer.autoguide.AutoDiagonalNormal` over the map site alone: parameters
+    named ``{prefix}_loc``/``{prefix}_scale`` (``guide.prefix``), ``{name}.locs.map``/
+    ``{name}.scales.map`` or ``{name}.loc``/``{name}.scale`` (a flat vector of the map's
+    entries)."""
+    store = pyro.get_param_store()
+    if isinstance(guide, MapGuide):
+        names = (f"{guide.prefix}_loc", f"{guide.prefix}_scale")
+    else:
+        name = getattr(guide, "_pyro_name", None)
+        names = next(
+            (
+                (f"{name}.{a}", f"{name}.{b}")
+                for a, b in (("locs.map", "scales.map"), ("loc", "scale"))
+                if f"{name}.{a}" in store and f"{name}.{b}" in store
+            ),
+            None,
+        )
+    if names is None or any(n not in store for n in names):
+        return None
+    raw = dict(store.named_parameters())
+    loc, scale = raw[names[0]], raw[names[1]]
+    if loc.numel() != math.prod(shape) or scale.numel() != loc.numel():
+        return None
+    transform = biject_to(store._constraints[names[1]])
+    return loc.view(shape), scale.view(shape), transform.inv

@@ -3,13 +3,24 @@
     M        ~ N(0, 1)                                  map, [w, h, D_m]  (pyro.plate x 2)
     z_0      ~ N(z_init, sigma_0)                       initial pose, [3]
     m_t      = f_m(z_t, M)                              chart: bilinear attention (4 cells)
-    x_t      ~ N(mu_E(m_t, z_t), sigma_E)               emission, [N] (flattened observation)
+    x_t      ~ (1 - eps) N(mu_E(m_t, z_t), sigma_E)     emission, [N] (flattened observation),
+               + eps U(0, R)                            with the beam model's outlier component
     z_{t+1}  ~ N(mu_T(z_t, u_t, mu_E(m_t)), sigma_T)     transition, [3]
 
+and, with a heading factor (:class:`WallHeading`, not the paper's), the walls' frame and each
+scan's wall direction:
+
+    phi      ~ U(circle of circumference pi / 2)        the walls' frame (global)
+    h_t      ~ (1 - eps_h) N(wrap(phi - theta_t), s_t)  the wall direction seen in x_t (observed
+               + eps_h U(0, pi / 2)                     where the scan shows straight walls)
+
 :class:`DVBFLM` holds the networks and exposes each factor as a plain function of tensors
-(:meth:`chart`, :meth:`emission_mean`, :meth:`emission_log_prob`, :meth:`transition_dist`) so that
-the Pyro model (:meth:`DVBFLM.model`), the SMCFilter model (:class:`FilterModel`) and the fast
-differentiable particle filter (:mod:`pyro_slam.inference`) all evaluate the *same* factors.
+(:meth:`chart`, :meth:`emission_mean`, :meth:`emission_log_prob`, :meth:`transition_dist`,
+:meth:`heading_dist`) so that the Pyro model (:meth:`DVBFLM.model`), the SMCFilter model
+(:class:`FilterModel`) and the fast differentiable particle filter (:mod:`pyro_slam.inference`)
+all evaluate the *same* factors. Under a map belief ``q(M)`` instead of a map, the filter weighs
+with :meth:`DVBFLM.marginal_emission`, a stated approximation of the emission marginalised over
+``q(M)``.
 
 The sensor enters only through the :class:`~pyro_slam.model.emissions.Emission` (``mu_E`` as a
 function of chart and pose, with the observation flattened to ``[..., N]``): a
@@ -20,6 +31,7 @@ view, then row-wise MLPs). Model, guide, filter and ELBO are the same for both.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import pyro
@@ -30,7 +42,68 @@ from torch import nn
 
 from .emissions import Emission, LidarEmission
 from .networks import EmissionMLP
+from .noise import BeamMixture, CircularUniform, WrappedMixture
 from .transitions import Transition
+
+
+@dataclass
+class MapBelief:
+    """A Gaussian map belief, ``loc`` and ``scale`` ``[w, h, D]`` (e.g. a mean-field ``q(M)``)."""
+
+    loc: torch.Tensor
+    scale: torch.Tensor
+
+
+@dataclass(frozen=True)
+class WallHeading:
+    """The heading factor of a Manhattan world (not the paper's): each scan's straight walls
+    show their direction ``h_t`` in the body frame, which is the walls' frame ``phi`` minus the
+    heading, modulo ``period`` (a quarter turn), up to noise of a per-scan std (the data's,
+    :class:`HeadingEvidence`); with probability ``outlier_prob`` a direction is an outlier
+    uniform over the period (clutter taken for a wall)."""
+
+    period: float = math.pi / 2
+    outlier_prob: float = 0.0
+
+
+@dataclass
+class HeadingEvidence:
+    """The wall directions seen in the scans: ``direction [...]`` (rad in ``[0, period)``, nan
+    where a scan shows no straight wall), their std ``sigma [...]`` (or a number), and the walls'
+    frame: a value (a sample of ``phi``) or the mean ``frame`` and variance ``frame_var`` of its
+    belief (the filter then weighs with the evidence marginalised over it, exact for the
+    Gaussian component)."""
+
+    direction: torch.Tensor
+    sigma: torch.Tensor | float
+    frame: float | torch.Tensor = math.nan
+    frame_var: float = 0.0
+
+    def at(self, t) -> HeadingEvidence:
+        """The evidence of step(s) ``t`` from one that holds a sequence ``direction [T]``."""
+        sigma = self.sigma[t] if torch.is_tensor(self.sigma) and self.sigma.dim() else self.sigma
+        return HeadingEvidence(self.direction[t], sigma, self.frame, self.frame_var)
+
+    def per_particle(self) -> HeadingEvidence:
+        """The evidence with a particle dimension added to its tensors (``[..., 1]``), so that
+        it broadcasts against a particle batch ``[..., K]``."""
+
+        def unsq(v):
+            return v.unsqueeze(-1) if torch.is_tensor(v) and v.dim() else v
+
+        return HeadingEvidence(
+            unsq(self.direction), unsq(self.sigma), unsq(self.frame), unsq(self.frame_var)
+        )
+
+    def seen(self) -> torch.Tensor:
+        """``[...]`` bool: a direction is observed (and a frame known)."""
+        known = not (isinstance(self.frame, float) and math.isnan(self.frame))
+        return ~torch.isnan(self.direction) & known
+
+    def std(self) -> torch.Tensor:
+        """``[...]``: the scan's std with the frame's variance added."""
+        s = torch.as_tensor(self.sigma, dtype=self.direction.dtype)
+        return (s**2 + self.frame_var).sqrt()
 
 
 @dataclass(frozen=True)
@@ -168,6 +241,10 @@ class DVBFLM(nn.Module):
         noise: the emission noise, a callable ``noise(loc, scale)`` returning a distribution
             over each observation entry (batch shape that of ``loc``), e.g.
             ``pyro.distributions.StudentT`` partially applied; default ``Normal``.
+        outlier_prob: ``eps``, the beam model's outlier probability per entry: the emission is
+            :class:`~pyro_slam.model.noise.BeamMixture` of the noise and a uniform density over
+            ``outlier_range`` (the sensor's range).
+        heading: the heading factor (:class:`WallHeading`), or None.
 
     Every factor is a Pyro distribution (:meth:`map_prior`, :meth:`emission_dist`,
     :meth:`transition_dist`), and everything that evaluates the model -- the Pyro model, the
@@ -185,6 +262,9 @@ class DVBFLM(nn.Module):
         init_scale=(1e-3, 1e-3, 1e-3),
         prior: dist.Distribution | None = None,
         noise=None,
+        outlier_prob: float = 0.0,
+        outlier_range: float = 1.0,
+        heading: WallHeading | None = None,
     ):
         super().__init__()
         if not isinstance(emission, Emission):
@@ -202,6 +282,12 @@ class DVBFLM(nn.Module):
         )
         self.noise = dist.Normal if noise is None else noise
         self.prior = prior
+        if not 0.0 <= outlier_prob < 1.0:
+            raise ValueError(f"outlier_prob must be in [0, 1), got {outlier_prob!r}")
+        if not outlier_range > 0:
+            raise ValueError(f"outlier_range must be positive, got {outlier_range!r}")
+        self.outlier_prob, self.outlier_range = float(outlier_prob), float(outlier_range)
+        self.heading = heading
 
     # ----------------------------------------------------------------- factors as functions
     def chart(self, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -222,28 +308,52 @@ class DVBFLM(nn.Module):
         """
         return self.emission.read(self.grid, M, z)
 
-    def noise_dist(self, mean: torch.Tensor, sigma=None, validate: bool = False):
+    def noise_dist(self, mean: torch.Tensor, sigma=None, validate: bool = False, outlier_prob=None):
         """The emission noise around ``mean [..., N]``, one distribution per entry (batch
-        ``[..., N]``) with scale ``sigma`` (default ``sigma_E``; a tensor broadcasts). Argument
-        validation is off unless ``validate``: the particle filter checks its weights itself
-        and evaluates this on every particle of every step."""
+        ``[..., N]``) with scale ``sigma`` (default ``sigma_E``; a tensor broadcasts), mixed
+        with the outlier component of probability ``outlier_prob`` (default the model's; a
+        tensor broadcasts). Argument validation is off unless ``validate``: the particle filter
+        checks its weights itself and evaluates this on every particle of every step."""
         s = torch.as_tensor(self.sigma_emission if sigma is None else sigma, dtype=mean.dtype)
         with pyro.validation_enabled(validate):
             d = self.noise(mean, s)
         d._validate_args = validate  # (read again by log_prob, after the context)
+        eps = self.outlier_prob if outlier_prob is None else outlier_prob
+        if torch.is_tensor(eps) or eps > 0:
+            d = BeamMixture(d, eps, self.outlier_range, validate_args=False)
         return d
 
-    def emission_dist(self, mean: torch.Tensor, mask: torch.Tensor | None = None, sigma=None):
+    def marginal_emission(self, belief: MapBelief, z: torch.Tensor, cloud_logw=None):
+        """The emission marginalised over a Gaussian map belief ``q(M)``, a stated
+        approximation: along each reading ``q(M)`` is either known, at its mean, or unknown,
+        with the probability ``v`` in ``[0, 1]`` that the map's variance relative to the
+        prior's gives where the reading comes from
+        (:meth:`~pyro_slam.model.emissions.Emission.read_moments`); an unknown map makes the
+        reading uniform over the sensor's range, as the model's outlier component does. So
+
+            p(x_t | z_t, q) ~ (1 - v) p(x_t | z_t, E_q[M]) + v U(0, R),
+
+        the model's own emission at the map mean with the outlier probability ``1 - (1 - eps)
+        (1 - v)``. ``cloud_logw [..., K]`` (poses ``z [..., K, 3]``): ``v`` is the cloud's
+        weighted mean per entry, the same for every particle. Returns the predicted reading
+        ``mean [..., N]`` and that outlier probability ``[..., N]`` (or broadcastable)."""
+        rel = belief.scale / self.prior_std()
+        mean, v = self.emission.read_moments(self.grid, belief.loc, rel, z)
+        if cloud_logw is not None:
+            v = (cloud_logw.exp()[..., None] * v).sum(-2, keepdim=True)
+        return mean, 1 - (1 - self.outlier_prob) * (1 - v.clamp(0, 1))
+
+    def emission_dist(self, mean: torch.Tensor, mask=None, sigma=None, outlier_prob=None):
         """``p(x_t | m_t)`` as a Pyro distribution with event shape ``[N]``."""
-        d = self.noise_dist(mean, sigma, validate=dist.is_validation_enabled())
+        d = self.noise_dist(mean, sigma, dist.is_validation_enabled(), outlier_prob)
         if mask is not None:
             d = d.mask(mask)
         return d.to_event(1)
 
-    def emission_log_prob(self, x, mean, mask=None, sigma=None) -> torch.Tensor:
+    def emission_log_prob(self, x, mean, mask=None, sigma=None, outlier_prob=None):
         """``log p(x_t | m_t)`` summed over (unmasked) entries: ``[...]``; the same value as
-        ``emission_dist(mean, mask, sigma).log_prob(x)``, on the particle batch."""
-        lp = self.noise_dist(mean, sigma).log_prob(x)  # [..., N]
+        ``emission_dist(mean, mask, sigma, outlier_prob).log_prob(x)``, on the particle batch."""
+        lp = self.noise_dist(mean, sigma, outlier_prob=outlier_prob).log_prob(x)  # [..., N]
         return (lp if mask is None else lp * mask).sum(-1)
 
     def transition_dist(self, z, u, scan=None, sigma=None, validate: bool | None = None):
@@ -254,6 +364,23 @@ class DVBFLM(nn.Module):
         s = self.transition.sigma if sigma is None else sigma
         validate = dist.is_validation_enabled() if validate is None else validate
         return dist.Normal(self.transition.mean(z, u, scan), s, validate_args=validate).to_event(1)
+
+    def heading_dist(self, theta: torch.Tensor, frame, scale):
+        """``p(h_t | theta_t, phi)``: the wall direction seen at headings ``theta [...]`` (event
+        shape ``[]``) in the frame ``phi`` (a number or a tensor broadcasting with ``theta``),
+        with std ``scale`` (the scan's)."""
+        if self.heading is None:
+            raise ValueError("this model has no heading factor (heading=WallHeading(...))")
+        frame = torch.as_tensor(frame, dtype=theta.dtype)
+        h = self.heading
+        return WrappedMixture(frame - theta, scale, h.period, h.outlier_prob)
+
+    def heading_log_prob(self, theta: torch.Tensor, evidence: HeadingEvidence) -> torch.Tensor:
+        """``log p(h_t | theta_t, phi)`` at headings ``theta [...]`` for ``evidence`` that
+        broadcasts with them (:meth:`HeadingEvidence.per_particle`), marginalised over the
+        frame's belief where it holds one; zero where no direction is seen: ``[...]``."""
+        d = self.heading_dist(theta, evidence.frame, evidence.std().to(theta.dtype))
+        return torch.where(evidence.seen(), d.log_prob(evidence.direction.nan_to_num()), 0.0)
 
     def map_prior(self):
         """``p(M)`` per cell (event ``[D_m]``): the given prior, or ``N(0, 1)``."""
@@ -278,17 +405,7 @@ class DVBFLM(nn.Module):
 
     # ------------------------------------------------------------------------ Pyro model
     learn_emission = True
-
-    def map_model(self, *args, **kwargs) -> torch.Tensor:
-        """The global part of the model: registers ``mu_E`` (if learned) and samples the map.
-
-        This is the ``model`` handed to :class:`pyro.infer.SVI` with
-        :class:`~pyro_slam.inference.ParticleChunkELBO`, which adds the pose/observation part
-        by particle filtering.
-        """
-        if self.learn_emission:
-            pyro.module("emission", self.emission)
-        return self.sample_map()
+    heading_scale = 1e-3  # std of sampled wall directions (rad), where none are observed
 
     def sample_map(self) -> torch.Tensor:
         """The global map site ``"map"`` under its two plates; returns ``M [w, h, D_m]``."""
@@ -296,7 +413,24 @@ class DVBFLM(nn.Module):
         with pyro.plate("map_x", w, dim=-2), pyro.plate("map_y", h, dim=-1):
             return pyro.sample("map", self.map_prior())
 
-    def model(self, observations, controls, init_pose, mask=None):
+    def sample_frame(self):
+        """The global site ``"frame"``, the walls' frame ``phi`` (with a heading factor; None
+        otherwise): uniform on the circle of circumference ``period``."""
+        if self.heading is None:
+            return None
+        return pyro.sample("frame", CircularUniform(self.heading.period))
+
+    def global_model(self, *args, **kwargs):
+        """The global sites of the model: ``mu_E`` (if learned), the map and (with a heading
+        factor) the frame. Returns ``(M [w, h, D_m], phi or None)``. This is the ``model``
+        handed to :class:`pyro.infer.SVI` with
+        :class:`~pyro_slam.inference.ParticleChunkELBO`, which adds the local part (poses,
+        scans, wall directions) by particle filtering."""
+        if self.learn_emission:
+            pyro.module("emission", self.emission)
+        return self.sample_map(), self.sample_frame()
+
+    def model(self, observations, controls, init_pose, mask=None, headings=None):
         """The full generative model of one traversal.
 
         Args:
@@ -305,13 +439,16 @@ class DVBFLM(nn.Module):
                 primitives, broadcasts against the poses).
             init_pose: ``[3]`` start pose (the map frame is anchored at it), or ``[..., 3]``.
             mask: optional ``[T, B]`` bool, False = missing reading.
+            headings: the wall directions ``direction [T]`` and their std of a
+                :class:`HeadingEvidence` (its frame is ignored: the model samples ``phi``);
+                None: with a heading factor, the directions are sampled.
         Returns:
-            poses ``[..., T, 3]``. Sites: ``map``, ``z_t``, ``x_t`` and the predicted
-            observation ``scan_t`` (deterministic, ``mu_E``) of every step.
+            poses ``[..., T, 3]``. Sites: ``map``, (``frame``,) ``z_t``, ``x_t``, (``h_t``,)
+            and the predicted observation ``scan_t`` (deterministic, ``mu_E``) of every step.
         """
         pyro.module("dvbflm", self)
         T = controls.shape[-2] + 1
-        M = self.sample_map()
+        M, frame = self.sample_map(), self.sample_frame()
         z = pyro.sample("z_0", dist.Normal(init_pose, self.init_scale).to_event(1))
         poses = []
         scan = None
@@ -322,43 +459,60 @@ class DVBFLM(nn.Module):
             obs_t = None if observations is None else observations[t]
             mask_t = None if mask is None else mask[t]
             pyro.sample(f"x_{t}", self.emission_dist(scan, mask_t), obs=obs_t)
+            if frame is not None:
+                self._observe_heading(t, z, frame, headings)
             poses.append(z)
         return torch.stack(torch.broadcast_tensors(*poses), -2)
+
+    def _observe_heading(self, t: int, z, frame, headings: HeadingEvidence | None) -> None:
+        """The site ``h_t``: observed where step ``t``'s scan shows a wall direction."""
+        if headings is None:
+            pyro.sample(f"h_{t}", self.heading_dist(z[..., 2], frame, self.heading_scale))
+            return
+        e = headings.at(t)
+        seen = ~torch.isnan(e.direction)
+        scale = torch.as_tensor(e.sigma, dtype=z.dtype)
+        d = self.heading_dist(z[..., 2], frame, scale).mask(seen)
+        pyro.sample(f"h_{t}", d, obs=e.direction.nan_to_num())
 
 
 class FilterModel:
     """The DVBF-LM time step as a model object for :class:`pyro.infer.SMCFilter`.
 
-    The map ``M`` is fixed (e.g. the mean of a learned ``q(M)``). ``state["z"]`` holds the
-    poses, ``state["scan"]`` the predicted scan at them (the transition's input at the next
-    step) and ``state["log_lik"]`` each particle's ``log p(x_t | z_t, M)`` (for the
-    log-evidence). ``weights``: a function ``(z, x, mask) -> (log_lik [K], scan [K, N])`` that
-    weighs the particles instead of the emission at ``M`` (e.g. SLAM's weights under a map
-    belief, :meth:`~pyro_slam.inference.Weighting.log_likelihood`); it enters as a
-    ``pyro.factor``.
+    ``M`` is a map ``[w, h, D_m]`` (e.g. a sample of ``q(M)``) or a :class:`MapBelief`, under
+    which the scan is observed through :meth:`DVBFLM.marginal_emission`. ``state["z"]`` holds
+    the poses, ``state["scan"]`` the predicted scan at them (the transition's input at the next
+    step) and ``state["log_lik"]`` each particle's log-likelihood of the step's scan (for the
+    log-evidence). With the model's heading factor, a step's :class:`HeadingEvidence` is the
+    observed site ``"h"``. ``cloud_logw``: a callable giving the cloud's normalised log weights
+    ``[K]`` (:meth:`DVBFLM.marginal_emission` with one variance for the cloud).
     """
 
-    def __init__(self, dvbflm: DVBFLM, M: torch.Tensor, weights=None):
-        self.m, self.M, self.weights = dvbflm, M, weights
+    def __init__(self, dvbflm: DVBFLM, M, cloud_logw=None):
+        self.m, self.M, self.cloud_logw = dvbflm, M, cloud_logw
 
-    def _observe(self, state, z, x, mask):
-        if self.weights is not None:
-            log_lik, scan = self.weights(z, x, mask)
-            pyro.factor("x", log_lik)
+    def _observe(self, state, z, x, mask, heading):
+        m = self.m
+        eps = None
+        if isinstance(self.M, MapBelief):
+            logw = None if self.cloud_logw is None else self.cloud_logw()
+            scan, eps = m.marginal_emission(self.M, z, logw)
         else:
-            scan = self.m.emission_mean(self.M, z)
-            if x is not None:
-                d = self.m.emission_dist(scan, mask)
-                pyro.sample("x", d, obs=x)
-                log_lik = d.log_prob(x)
+            scan = m.emission_mean(self.M, z)
         if x is not None:
-            state["log_lik"] = log_lik
+            d = m.emission_dist(scan, mask, outlier_prob=eps)
+            pyro.sample("x", d, obs=x)
+            state["log_lik"] = d.log_prob(x)
+        if heading is not None and m.heading is not None:
+            frame, std = torch.as_tensor(heading.frame, dtype=z.dtype), heading.std()
+            d = m.heading_dist(z[..., 2], frame, std).mask(heading.seen())
+            pyro.sample("h", d, obs=heading.direction.nan_to_num().expand(z.shape[:-1]))
         state["z"], state["scan"] = z, scan
 
-    def init(self, state, init_pose, x=None, mask=None):
+    def init(self, state, init_pose, x=None, mask=None, heading=None):
         z = pyro.sample("z", dist.Normal(init_pose, self.m.init_scale).to_event(1))
-        self._observe(state, z, x, mask)
+        self._observe(state, z, x, mask, heading)
 
-    def step(self, state, x, u, mask=None, sigma=None):
-        z = pyro.sample("z", self.m.transition_dist(state["z"], u, state["scan"], sigma))
-        self._observe(state, z, x, mask)
+    def step(self, state, x, u, mask=None, heading=None):
+        z = pyro.sample("z", self.m.transition_dist(state["z"], u, state["scan"]))
+        self._observe(state, z, x, mask, heading)

@@ -83,8 +83,9 @@ def make_emission(traversal: Traversal, config: SLAMConfig) -> Emission | Emissi
     angles = traversal.beam_angles[:cols]
     if kind == "ray_camera":
         return RayImageEmission(angles, rows, reach)
-    return ImageEmission(IMAGE_BINS, rows, cols, hidden=IMAGE_HIDDEN, layers=LAYERS,
-                         column_angles=angles)  # fmt: skip
+    return ImageEmission(
+        IMAGE_BINS, rows, cols, hidden=IMAGE_HIDDEN, layers=LAYERS, column_angles=angles
+    )
 
 
 def _extent(traversal: Traversal, config: SLAMConfig):
@@ -123,9 +124,10 @@ def check_size(traversal: Traversal, config: SLAMConfig) -> None:
     per_point = traversal.num_beams * (RAY_SAMPLES if e.kind in ("raycast", "ray_camera") else 1)
     per_point *= 4 * 8  # float32 points, stops, weights and their gradients
     t = config.training
-    for name, n in (("filter.particles", config.filter.particles),
-                    ("training.particles x chunks x chunk_length",
-                     t.particles * t.chunks * t.chunk_length)):  # fmt: skip
+    for name, n in (
+        ("filter.particles", config.filter.particles),
+        ("training.particles x chunks x chunk_length", t.particles * t.chunks * t.chunk_length),
+    ):
         if n * per_point > MAX_BYTES:
             raise ConfigError(
                 f"{name} {n} would need {_gib(n * per_point)} for its particles' predicted "
@@ -164,9 +166,23 @@ def build_model(
     if not bool((scale == 1).all()):
         transition = copy.deepcopy(transition)
         transition.sigma.mul_(scale)
-    model = DVBFLM(grid, emission, transition, traversal.beam_angles, e.sigma, prior=prior,
-                   noise=noise)  # fmt: skip
+    model = DVBFLM(
+        grid,
+        emission,
+        transition,
+        traversal.beam_angles,
+        e.sigma,
+        prior=prior,
+        noise=noise,
+        outlier_prob=e.outlier_prob,
+        outlier_range=_reading_range(emission),
+    )
     return model, MapGuide(grid.shape, init_scale=model.prior_std())
+
+
+def _reading_range(emission) -> float:
+    """The interval a reading lies in (the sensor's range): the outlier component's width."""
+    return float(getattr(emission, "reading_range", None) or getattr(emission, "scale", 1.0))
 
 
 def traversal_tensors(tr: Traversal):

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, fields
 
 EMISSIONS = ("mlp", "raycast", "image_mlp", "ray_camera")
 TRANSITIONS = ("kinematic", "learned")
-WEIGHTINGS = ("marginal", "shared", "tempered")
+PROPOSALS = ("transition",)
 ESTIMATES = ("forward", "cache")
 
 
@@ -35,6 +35,11 @@ def _positive(name: str, value, integer: bool = False, optional: bool = False) -
     )
     if not ok_type or not math.isfinite(value) or value <= 0:
         raise ConfigError(f"{name} must be {kind}, got {value!r}")
+
+
+def _probability(name: str, p) -> None:
+    if not (isinstance(p, (int, float)) and not isinstance(p, bool) and 0 <= p < 1):
+        raise ConfigError(f"{name} must be in [0, 1), got {p!r}")
 
 
 def _choice(name: str, value, choices) -> None:
@@ -75,16 +80,19 @@ class EmissionConfig:
     """The emission ``p(x_t | m_t)`` and the map grid it reads.
 
     ``kind``: ``"mlp"`` (the paper's LiDAR chart + ``mu_E`` MLP), ``"raycast"`` (LiDAR ranges
-    volume-rendered through an occupancy map, with per-beam trust in the weights), ``"image_mlp"``
-    (the paper's visual row MLPs) or ``"ray_camera"`` (a pinhole camera through an occupancy and
-    albedo map). ``resolution``: grid spacing (world units); ``margin``: the grid's margin around
-    the walls; ``sigma``: the model's ``sigma_E``; ``insert``: scan insertion (``"raycast"``).
+    volume-rendered through an occupancy map, each beam's uncertainty read where it stops),
+    ``"image_mlp"`` (the paper's visual row MLPs) or ``"ray_camera"`` (a pinhole camera through
+    an occupancy and albedo map). ``resolution``: grid spacing (world units); ``margin``: the
+    grid's margin around the walls; ``sigma``: the model's ``sigma_E``; ``outlier_prob``: the
+    model's beam-mixture outlier probability (uniform over the sensor's range); ``insert``:
+    scan insertion (``"raycast"``).
     """
 
     kind: str = "mlp"
     resolution: float = 1 / 31
     margin: float = 0.05
     sigma: float = 0.1
+    outlier_prob: float = 0.0
     insert: ScanInsertionConfig | None = None
 
     def __post_init__(self):
@@ -93,6 +101,7 @@ class EmissionConfig:
         if not (isinstance(self.margin, (int, float)) and 0 <= self.margin < math.inf):
             raise ConfigError(f"emission.margin must be a number >= 0, got {self.margin!r}")
         _positive("emission.sigma", self.sigma)
+        _probability("emission.outlier_prob", self.outlier_prob)
         if self.insert is not None and self.kind != "raycast":
             raise ConfigError(
                 "emission.insert writes LiDAR hits into an occupancy map: it needs "
@@ -109,74 +118,55 @@ class EmissionConfig:
 class TransitionConfig:
     """The transition ``p(z_{t+1} | z_t, u_t)``: ``kind`` ``"kinematic"`` (the control model's
     kinematics with std ``sigma``) or ``"learned"`` (the shipped ``mu_T`` network and its own
-    ``sigma_T``). SLAM filters with ``sigma_T`` times ``scale``; with ``scale_trusted``, the
-    online filter moves from ``scale`` (where the cloud does not trust the map) to
-    ``scale_trusted`` (where it does)."""
+    ``sigma_T``). The model's ``sigma_T`` is that std times ``scale``."""
 
     kind: str = "kinematic"
     sigma: tuple[float, float, float] = (5e-4, 5e-4, 8e-3)
     scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    scale_trusted: tuple[float, float, float] | None = None
 
     def __post_init__(self):
         _choice("transition.kind", self.kind, TRANSITIONS)
         _triple("transition.sigma", self.sigma)
         _triple("transition.scale", self.scale)
-        _triple("transition.scale_trusted", self.scale_trusted, optional=True)
-        for f in ("sigma", "scale", "scale_trusted"):  # JSON gives lists: keep tuples
-            v = getattr(self, f)
-            if v is not None:
-                object.__setattr__(self, f, tuple(float(x) for x in v))
+        for f in ("sigma", "scale"):  # JSON gives lists: keep tuples
+            object.__setattr__(self, f, tuple(float(x) for x in getattr(self, f)))
 
 
 @dataclass(frozen=True)
 class FilterConfig:
-    """The SLAM particle filter: ``particles`` per step, the weights' ``weighting``
-    (:class:`~pyro_slam.inference.Weighting`), their emission std ``sigma`` (None: the model's
-    ``sigma_E``; the paper filters with a sharper one) and per-beam ``outlier_prob``."""
+    """The SLAM particle filter: ``particles`` per step and the pose ``proposal``
+    (:mod:`pyro_slam.inference.proposals`; with the heading factor, the transition is
+    conditioned on it). The weights are the model's likelihood, under the map belief its
+    stated marginalisation (:meth:`~pyro_slam.model.DVBFLM.marginal_emission`); ``shared``:
+    one variance per reading for the whole cloud."""
 
     particles: int = 128
-    weighting: str = "marginal"
-    sigma: float | None = 0.05
-    outlier_prob: float = 0.0
+    proposal: str = "transition"
+    shared: bool = False
 
     def __post_init__(self):
         _positive("filter.particles", self.particles, integer=True)
-        _choice("filter.weighting", self.weighting, WEIGHTINGS)
-        _positive("filter.sigma", self.sigma, optional=True)
-        p = self.outlier_prob
-        if not (isinstance(p, (int, float)) and not isinstance(p, bool) and 0 <= p < 1):
-            raise ConfigError(f"filter.outlier_prob must be in [0, 1), got {p!r}")
-
-
-OBJECTIVES = ("elbo", "filter-sigma")
+        _choice("filter.proposal", self.proposal, PROPOSALS)
+        if not isinstance(self.shared, bool):
+            raise ConfigError(f"filter.shared must be true or false, got {self.shared!r}")
 
 
 @dataclass(frozen=True)
 class TrainingConfig:
-    """SVI on the particle-chunk ELBO (paper eq. 3): ``chunks`` chunks of ``chunk_length``
-    steps with ``particles`` particles each per SVI step, map learning rate ``lr`` (Adam); the
-    online sweep takes one SVI step every ``every`` steps.
-
-    ``objective``: ``"elbo"``, the model's own ELBO (the chunk filter weighs with the model's
-    emission, ``sigma_E`` and its noise); or ``"filter-sigma"``, the ELBO of the model with
-    ``sigma_E`` replaced by the filter's sharper std (``filter.sigma``; the paper filters with a
-    sharper std, Appendix B-I). For Gaussian noise that is a tempered likelihood: per entry
-    ``log N(x; mu, s_f) = (s_E / s_f)^2 [log N(x; mu, s_E) + log(s_E sqrt(2 pi))] -
-    log(s_f sqrt(2 pi))``."""
+    """SVI on the particle-chunk ELBO of the model (paper eq. 3): ``chunks`` chunks of
+    ``chunk_length`` steps with ``particles`` particles each per SVI step, map learning rate
+    ``lr`` (Adam); the online sweep takes one SVI step every ``every`` steps."""
 
     particles: int = 16
     chunk_length: int = 4
     chunks: int = 4
     lr: float = 0.02
     every: int = 1
-    objective: str = "elbo"
 
     def __post_init__(self):
         for name in ("particles", "chunk_length", "chunks", "every"):
             _positive(f"training.{name}", getattr(self, name), integer=True)
         _positive("training.lr", self.lr)
-        _choice("training.objective", self.objective, OBJECTIVES)
 
 
 @dataclass(frozen=True)

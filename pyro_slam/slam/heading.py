@@ -1,4 +1,6 @@
-"""The Manhattan-world heading observation (not the paper's model).
+"""The data side of the Manhattan-world heading factor (not the paper's model,
+:class:`~pyro_slam.model.WallHeading`): the wall directions the scans show, their noise, and the
+estimate of the walls' frame that sets its guide (:class:`~pyro_slam.model.FrameGuide`).
 
 Where the walls run along two perpendicular axes, each scan's straight walls give the heading up
 to a quarter turn: the walls' frame ``phi`` minus the scan's wall direction (from LiDAR ranges,
@@ -6,16 +8,17 @@ to a quarter turn: the walls' frame ``phi`` minus the scan's wall direction (fro
 :func:`~pyro_slam.geometry.image_wall_direction`). Nothing about the world is assumed beyond
 that:
 
-* **the frame** ``phi`` is estimated from the data: from the first scans with a straight wall,
-  each paired with the heading that odometry integrates from the known start, weighted by how
-  little odometry has drifted by then; and refined online with the filter's posterior headings,
-  its uncertainty widening the observation's std;
+* **the frame** ``phi`` is a global latent of the model; its guide ``q(phi)`` is estimated
+  from the data: from the first scans with a straight wall, each paired with the heading that
+  odometry integrates from the known start, weighted by how little odometry has drifted by
+  then; and refined online with the filter's posterior headings (the filter weighs with the
+  evidence marginalised over ``q(phi)``, so its uncertainty widens the observation's std);
 * **the tolerance** within which wall segments agree, and the observation's std, fit the
   sensor's noise, estimated from the scans themselves (:func:`~pyro_slam.geometry.range_noise`):
   a segment of length ``L`` has a direction error of about ``sqrt(2) sigma_r / L``;
 * the observation applies only where a scan **supports** it (a straight wall of at least three
   hits, and at least ``support`` agreeing segments), with an exact proposal
-  (:func:`~pyro_slam.inference.proposals.heading_conditioned`);
+  (:class:`~pyro_slam.inference.HeadingProposal`);
 * with a noise-free sensor a straight run of hits gives its wall's direction exactly and the
   observation is Gaussian; where the scans show range noise a segment may be a false wall
   (clutter, people, glass), and the observation is a mixture with an outlier component (the
@@ -31,8 +34,8 @@ import torch
 
 from ..data import Traversal
 from ..geometry import image_background, image_wall_direction, range_noise, wall_direction
-from ..inference import HeadingObservation
 from ..metrics import odometry_poses
+from ..model import FrameGuide, HeadingEvidence, WallHeading
 from .config import HeadingConfig
 
 QUARTER = math.pi / 2
@@ -45,7 +48,8 @@ def _wrap_quarter(a: torch.Tensor) -> torch.Tensor:
 
 
 class ManhattanHeading:
-    """Per-step heading observations of a prepared traversal (``obs [T, N]``, ``mask``).
+    """The wall directions of a prepared traversal's scans (``obs [T, N]``, ``mask``) and the
+    guide of the walls' frame (``self.frame``, a :class:`~pyro_slam.model.FrameGuide`).
 
     Args:
         config: the :class:`~pyro_slam.slam.config.HeadingConfig` (``sigma``: the std floor;
@@ -56,8 +60,16 @@ class ManhattanHeading:
             filter's); a noise-free sensor's observation is Gaussian.
     """
 
-    def __init__(self, traversal: Traversal, obs, mask, config: HeadingConfig, image: bool,
-                 drift: float, outlier_prob: float = 0.0):  # fmt: skip
+    def __init__(
+        self,
+        traversal: Traversal,
+        obs,
+        mask,
+        config: HeadingConfig,
+        image: bool,
+        drift: float,
+        outlier_prob: float = 0.0,
+    ):
         angles = torch.as_tensor(traversal.beam_angles, dtype=obs.dtype)
         self.noise, self.outlier_prob = 0.0, 0.0
         if image:  # the walls' edges in each frame
@@ -71,14 +83,15 @@ class ManhattanHeading:
             wall = self._lidar(traversal, obs, mask, angles, config)
             direction, support = wall.direction, wall.support
             # the sensor's noise through the agreeing segments' lengths, or their own scatter
-            std = torch.maximum(math.sqrt(2) * self.noise / wall.length2.clamp_min(1e-30).sqrt(),
-                                wall.scatter)  # fmt: skip
+            std = torch.maximum(
+                math.sqrt(2) * self.noise / wall.length2.clamp_min(1e-30).sqrt(), wall.scatter
+            )
         if not image and self.noise > NOISY * float(obs[mask].median()):  # false walls possible
             self.outlier_prob = float(outlier_prob)
         self.direction = direction  # [T] in [0, pi / 2)
         self.ok = support >= config.support  # [T]
         self.sigma = std.clamp_min(config.sigma)  # [T] the observation's std
-        self.frame, self.frame_var = self._initial_frame(traversal, drift)  # its mean, variance
+        self.frame = FrameGuide(*self._initial_frame(traversal, drift))
 
     def _lidar(self, traversal, obs, mask, angles, config: HeadingConfig):
         """Wall directions of the scans, with the agreement tolerance fitted to the noise."""
@@ -113,30 +126,31 @@ class ManhattanHeading:
         var += t * drift**2  # the drift at step 0 is zero: the level there is the frame
         return float(torch.remainder(torch.tensor(mean), QUARTER)), var
 
-    def observation(self, t=None) -> HeadingObservation:
-        """Step ``t``'s observation (all steps, ``value [T]``, with ``t=None``); its value is nan
-        where the scan has no straight wall or no frame is known yet. Its std adds the frame's
-        own uncertainty to the scan's, so an uncertain frame pins the heading less."""
-        value = torch.remainder(self.frame - self.direction, QUARTER)
-        value = torch.where(self.ok, value, torch.full_like(value, math.nan))
-        sigma = (self.sigma**2 + self.frame_var).sqrt()  # [T]
-        out = HeadingObservation(value, sigma, QUARTER, self.outlier_prob)
-        return out if t is None else out.at(t)
+    def factor(self) -> WallHeading:
+        """The model's heading factor for these scans (outliers only where they show noise)."""
+        return WallHeading(QUARTER, self.outlier_prob)
+
+    def evidence(self) -> HeadingEvidence:
+        """The wall directions ``direction [T]`` (nan where a scan supports none), their std
+        ``[T]`` and the frame guide's mean and variance."""
+        d = torch.where(self.ok, self.direction, torch.full_like(self.direction, math.nan))
+        return HeadingEvidence(d, self.sigma, self.frame.mean, self.frame.var)
 
     def refine(self, t: int, heading: float, heading_std: float) -> None:
-        """Refine the frame with step ``t``'s posterior heading (mean and std): ``heading +
+        """Refine ``q(phi)`` with step ``t``'s posterior heading (mean and std): ``heading +
         direction`` (modulo a quarter turn) observes the frame with variance ``sigma_t^2 +
         heading_std^2``; one scalar Kalman update of the frame's mean and variance."""
-        if not bool(self.ok[t]) or math.isnan(self.frame):
+        f = self.frame
+        if not bool(self.ok[t]) or math.isnan(f.mean):
             return
         v = float(self.sigma[t]) ** 2 + heading_std**2
-        r = float(_wrap_quarter(torch.tensor(heading + float(self.direction[t]) - self.frame)))
-        gain = self.frame_var / (self.frame_var + v)
-        self.frame = float(torch.remainder(torch.tensor(self.frame + gain * r), QUARTER))
-        self.frame_var *= 1 - gain
+        r = float(_wrap_quarter(torch.tensor(heading + float(self.direction[t]) - f.mean)))
+        gain = f.var / (f.var + v)
+        f.mean = float(torch.remainder(torch.tensor(f.mean + gain * r), QUARTER))
+        f.var *= 1 - gain
 
     def state_dict(self) -> dict:
-        return {"frame": self.frame, "frame_var": self.frame_var}
+        return self.frame.state_dict()
 
     def load_state_dict(self, d: dict) -> None:
-        self.frame, self.frame_var = float(d["frame"]), float(d["frame_var"])
+        self.frame.load_state_dict(d)

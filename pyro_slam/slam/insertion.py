@@ -11,23 +11,24 @@ from __future__ import annotations
 
 import math
 
-import pyro
 import torch
 
 from .config import ScanInsertionConfig
 
 
 class ScanInserter:
-    """Writes scans into a :class:`~pyro_slam.model.MapGuide`'s mean and scale.
+    """Writes scans into a map guide's mean and scale.
 
     Args:
         config: the :class:`~pyro_slam.slam.config.ScanInsertionConfig`.
         model: the :class:`~pyro_slam.model.DVBFLM` (its grid and ray-cast emission).
-        guide: the :class:`~pyro_slam.model.MapGuide` whose parameters are written.
+        leaves: where the guide keeps ``q(M)``'s mean and scale,
+            :func:`~pyro_slam.model.guide.map_param_leaves`.
     """
 
-    def __init__(self, config: ScanInsertionConfig, model, guide):
-        self.cfg, self.model, self.guide = config, model, guide
+    def __init__(self, config: ScanInsertionConfig, model, leaves):
+        self.cfg, self.model = config, model
+        self.loc, self.raw_scale, self.to_raw = leaves
         w, h, _ = model.grid.shape
         self.inserted = torch.zeros((w, h), dtype=torch.bool)  # [w, h] hit by a scan
 
@@ -54,12 +55,10 @@ class ScanInserter:
         i, j = self.hit_cells(x, valid, z)
         new = ~self.inserted[i, j]  # [P]
         i, j = i[new], j[new]
-        loc, _ = self.guide.params()
         with torch.no_grad():
-            loc[i, j, 0] = self.cfg.occupancy
-            # the store keeps the scale unconstrained (its log)
-            raw = dict(pyro.get_param_store().named_parameters())[f"{self.guide.prefix}_scale"]
-            raw[i, j, 0] = math.log(self.cfg.scale)
+            self.loc[i, j, 0] = self.cfg.occupancy
+            # the store keeps the scale unconstrained
+            self.raw_scale[i, j, 0] = self.to_raw(self.raw_scale.new_tensor(self.cfg.scale))
         self.inserted[i, j] = True
 
     def state_dict(self) -> dict:

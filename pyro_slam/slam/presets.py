@@ -29,7 +29,6 @@ import numpy as np
 from ..data import Traversal
 from .config import (
     EmissionConfig,
-    FilterConfig,
     HeadingConfig,
     OfflineConfig,
     ScanInsertionConfig,
@@ -99,38 +98,25 @@ def adapt_real_log(
     )
 
 
-# the shipped learned transition, filtered with its sigma_T scaled: a stiff heading keeps the
-# map's frontier from tilting it, more position noise lets revisits pull the position back; where
-# the map is established the heading gets its calibrated noise back
-SHIPPED_TRANSITION = TransitionConfig(
-    "learned", scale=(3.0, 3.0, 0.2), scale_trusted=(3.0, 3.0, 1.0)
-)
-
-# the map is learned with the ELBO of a model whose emission std is the filter's sharper 0.05
-# (0.1, the model's own, measured worse on the LiDAR benchmark)
-SHARPENED = TrainingConfig(objective="filter-sigma")
+# the shipped learned transition, its sigma_T scaled (position x 3)
+SHIPPED_TRANSITION = TransitionConfig("learned", scale=(3.0, 3.0, 1.0))
 PAPER = SLAMConfig(
-    emission=EmissionConfig("mlp"),
+    emission=EmissionConfig("mlp", sigma=0.05),
     transition=SHIPPED_TRANSITION,
-    filter=FilterConfig(weighting="shared"),
-    training=SHARPENED,
     offline=OfflineConfig(estimate="cache"),
 )
-# one SVI step every 4 time steps: the same held-out accuracy as every step (paired final
-# error +0.000 +- 0.006 on the tuning mazes) at about half the time
+# one SVI step every 4 time steps
 RAYCAST = replace(
     PAPER,
-    emission=EmissionConfig("raycast", resolution=1 / 63, insert=ScanInsertionConfig()),
-    filter=FilterConfig(weighting="shared", outlier_prob=0.1),
-    training=replace(SHARPENED, every=4),
+    emission=EmissionConfig(
+        "raycast", resolution=1 / 63, sigma=0.05, outlier_prob=0.1, insert=ScanInsertionConfig()
+    ),
+    training=TrainingConfig(every=4),
 )
-# SVI at every time step: with 1 % range noise on a rotated maze, every 4th step ended at
-# 0.031 +- 0.016 against 0.021 +- 0.012 (12 held-out runs, paired -0.011 +- 0.007)
-MANHATTAN = replace(RAYCAST, heading=HeadingConfig(sigma=1e-3), training=SHARPENED)
+MANHATTAN = replace(RAYCAST, heading=HeadingConfig(sigma=1e-3), training=TrainingConfig())
 VISUAL = SLAMConfig(
     emission=EmissionConfig("image_mlp", resolution=1 / 24, margin=0.0),
     transition=TransitionConfig("kinematic", scale=(0.6, 0.6, 0.15)),
-    filter=FilterConfig(sigma=0.1),
     training=TrainingConfig(particles=8, chunks=16, lr=0.05),
     offline=OfflineConfig(rounds=2, svi_steps=400),
 )
@@ -139,16 +125,18 @@ VISUAL_RAYCAST = replace(
 )
 VISUAL_MANHATTAN = replace(VISUAL_RAYCAST, heading=HeadingConfig(sigma=1e-3))
 # real logs (metres): the ray-cast emission on a 0.1 m grid with scan insertion (hits farther
-# apart than 0.5 m are separate walls), tempered beam-mixture weights at 0.3 m (real scans
-# disagree with any map by more than the model's 0.1 m) and the heading observation in the
-# walls' frame estimated from the log, which switches itself off where the walls do not support
-# it (on Intel it cut the aligned trajectory error from 4.8 m to 1.5 m)
+# apart than 0.5 m are separate walls), the beam mixture, and the heading factor in the walls'
+# frame estimated from the log, which switches itself off where the walls do not support it
 REAL = SLAMConfig(
     emission=EmissionConfig(
-        "raycast", resolution=0.1, margin=0.0, sigma=0.1, insert=ScanInsertionConfig(gap=0.5)
+        "raycast",
+        resolution=0.1,
+        margin=0.0,
+        sigma=0.1,
+        outlier_prob=0.1,
+        insert=ScanInsertionConfig(gap=0.5),
     ),
-    filter=FilterConfig(weighting="tempered", sigma=0.3, outlier_prob=0.1),
-    training=TrainingConfig(chunks=8, objective="filter-sigma", every=4),
+    training=TrainingConfig(chunks=8, every=4),
     heading=HeadingConfig(),
 )
 

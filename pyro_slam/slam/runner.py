@@ -18,8 +18,10 @@ continues with the same random stream.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,28 +36,33 @@ from tqdm.auto import tqdm
 from .. import pretrained
 from ..data import Traversal
 from ..inference import (
+    PROPOSALS,
     ChunkBatch,
-    MapBelief,
+    HeadingProposal,
     ParticleCache,
     ParticleChunkELBO,
     ParticleFilter,
     Particles,
     PyroSMCFilter,
-    Weighting,
 )
-from ..model import Emission, EmissionMLP, MapGuide, Transition, map_marginals
+from ..model import (
+    Emission,
+    EmissionMLP,
+    GlobalGuide,
+    MapBelief,
+    Transition,
+    map_marginals,
+)
+from ..model.guide import map_param_leaves
 from ..runtime import torch_threads
 from . import checkpoint, presets
 from .build import build_model, check_size, prepare_traversal, traversal_tensors
-from .config import ConfigError, SLAMConfig
+from .config import SLAMConfig
 from .heading import ManhattanHeading
 from .insertion import ScanInserter
 
 CACHE_PARTICLES = 50  # N, cached particles per step (paper III-D2)
 LR_EMISSION = 1e-3  # Adam's learning rate of an emission learned from scratch
-# the online filter's transition noise follows the cloud's trust in the map in these phases
-# (the online sweep, also the one offline SLAM starts from)
-TRUSTED_PHASES = ("online", "online-init")
 
 
 @dataclass
@@ -94,14 +101,18 @@ class SLAM:
         prior, noise: the map prior and the emission noise of the model
             (:class:`~pyro_slam.model.DVBFLM`): they reach the filter's weights and trust, the
             training objective and everything else that reads the model.
-        smc: filter with Pyro's :class:`pyro.infer.SMCFilter` on the same model
-            (:class:`~pyro_slam.inference.PyroSMCFilter`; slower; per-particle weights only)
-            instead of our batched filter; training keeps ours.
+        smc: filter with Pyro's :class:`pyro.infer.SMCFilter` on the same model and proposal
+            (:class:`~pyro_slam.inference.PyroSMCFilter`; slower) instead of our batched filter;
+            training keeps ours.
         threads: torch intra-op threads while running (default: torch's current count, at most
             one per idle core, :func:`pyro_slam.runtime.idle_cores`, so that a loaded machine is
             not oversubscribed).
         checkpoint: path of the checkpoint written every ``checkpoint_every`` steps.
         seed: seeds Pyro and the run's own ``torch.Generator``.
+
+    Each run keeps its parameters in its own scope of Pyro's parameter store
+    (:meth:`pyro.params.param_store.ParamStoreDict.scope`): two runs in one process never share
+    or clear each other's parameters, nor the caller's.
 
     Example::
 
@@ -142,81 +153,108 @@ class SLAM:
             emission = pretrained.emission_for(self.tr, self.cfg.emission.kind)
         if learn_emission is None:
             learn_emission = emission is None and self.cfg.emission.kind != "raycast"
-        pyro.clear_param_store()
-        pyro.set_rng_seed(seed)  # (after loading: building a network draws its initial weights)
-        self.gen = torch.Generator().manual_seed(seed)
-        self.model, self.guide = build_model(self.tr, self.cfg, transition, emission, prior, noise)
-        self.model.learn_emission = bool(learn_emission)
-        if guide is not None:
-            self.guide = guide(self.model)
-        self.pf = self._filter(self.cfg.filter.sigma, self.cfg.filter.outlier_prob)
-        if smc:
-            if self.cfg.heading is not None:
-                raise ConfigError("Pyro's SMCFilter drop-in does not take the heading observation")
-            self.pf = PyroSMCFilter(self.model, self.pf.weighting)
-        self.cache = ParticleCache(self.T, CACHE_PARTICLES)
-        self.heading = None  # ManhattanHeading: the heading observation and its frame
-        if self.cfg.heading is not None:
-            image = self.cfg.emission.observation == "image"
-            drift = float(self.model.transition.sigma[2] / self.cfg.transition.scale[2])
-            self.heading = ManhattanHeading(self.tr, self.obs, self.mask, self.cfg.heading, image,
-                                            drift, self.cfg.filter.outlier_prob)  # fmt: skip
-        self.inserter = None
-        if self.cfg.emission.insert is not None:
-            if not isinstance(self.guide, MapGuide):
-                raise ConfigError(
-                    "emission.insert writes scans into a MapGuide's mean and scale; with another "
-                    'guide switch it off (--config \'{"emission": {"insert": null}}\')'
-                )
-            self.inserter = ScanInserter(self.cfg.emission.insert, self.model, self.guide)
-        self.elbo = self._elbo()
-        lr = self.cfg.training.lr
-        self.optim = Adam(
-            lambda name, _p: {"lr": LR_EMISSION if name.startswith("emission") else lr}
-        )
-        self.svi = SVI(self.model.map_model, self.guide, self.optim, loss=self.elbo)
-        self._create_guide_params()
+        self._params = {"params": {}, "constraints": {}}  # this run's parameter store
+        self._scope_depth = 0
+        with self.scope():
+            self._build(transition, emission, bool(learn_emission), guide, prior, noise, smc)
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
         self.particles: Particles | None = None
         self.state: SLAMState | None = None
 
+    @contextlib.contextmanager
+    def scope(self):
+        """Run the enclosed code with this run's parameters in Pyro's parameter store (the
+        caller's are restored afterwards)."""
+        if self._scope_depth:
+            yield
+            return
+        self._scope_depth += 1
+        try:
+            with pyro.get_param_store().scope(self._params):
+                yield
+        finally:
+            self._scope_depth -= 1
+
+    def _build(self, transition, emission, learn_emission, guide, prior, noise, smc) -> None:
+        """The model, its guides, the filter, the ELBO and SVI (inside this run's scope)."""
+        pyro.set_rng_seed(self.seed)  # (after loading: building a network draws its weights)
+        self.gen = torch.Generator().manual_seed(self.seed)
+        self.model, self.map_guide = build_model(
+            self.tr, self.cfg, transition, emission, prior, noise
+        )
+        self.model.learn_emission = learn_emission
+        if guide is not None:
+            self.map_guide = guide(self.model)
+        self.heading = None  # ManhattanHeading: the wall directions and the frame's guide
+        if self.cfg.heading is not None:
+            image = self.cfg.emission.observation == "image"
+            drift = float(self.model.transition.sigma[2])
+            self.heading = ManhattanHeading(
+                self.tr,
+                self.obs,
+                self.mask,
+                self.cfg.heading,
+                image,
+                drift,
+                self.cfg.emission.outlier_prob,
+            )
+            self.model.heading = self.heading.factor()
+        self.guide = GlobalGuide(
+            self.map_guide, None if self.heading is None else self.heading.frame
+        )
+        self.proposal = HeadingProposal() if self.heading else PROPOSALS[self.cfg.filter.proposal]()
+        self.pf = ParticleFilter(self.model, self.proposal, self.gen, shared=self.cfg.filter.shared)
+        if smc:
+            self.pf = PyroSMCFilter(self.model, self.proposal, shared=self.cfg.filter.shared)
+        self.cache = ParticleCache(self.T, CACHE_PARTICLES)
+        self.elbo = ParticleChunkELBO(
+            ParticleFilter(self.model, self.proposal, self.gen),
+            self.cache,
+            self.obs,
+            self.ctl,
+            self.mask,
+            num_particles=self.cfg.training.particles,
+            headings=None if self.heading is None else self.heading.evidence(),
+        )
+        lr = self.cfg.training.lr
+        self.optim = Adam(
+            lambda name, _p: {"lr": LR_EMISSION if name.startswith("emission") else lr}
+        )
+        self.svi = SVI(self.model.global_model, self.guide, self.optim, loss=self.elbo)
+        self._create_guide_params()
+        self.inserter = None
+        if self.cfg.emission.insert is not None:
+            self.inserter = self._inserter()
+
+    def _inserter(self) -> ScanInserter | None:
+        """Scan insertion into the map guide's parameters, where the guide keeps a marginal
+        mean and scale (:func:`~pyro_slam.model.guide.map_param_leaves`); otherwise insertion is
+        switched off with a warning."""
+        leaves = map_param_leaves(self.map_guide, self.model.grid.shape)
+        if leaves is None:
+            warnings.warn(
+                f"scan insertion is off: the map guide {type(self.map_guide).__name__} keeps no "
+                "marginal mean and scale to write scans into (map_param_leaves)",
+                stacklevel=3,
+            )
+            return None
+        return ScanInserter(self.cfg.emission.insert, self.model, leaves)
+
     def _create_guide_params(self) -> None:
-        """Create the guide's parameters now (checkpoints need them): a :class:`MapGuide`
-        through ``params()``; another guide by one draw (outside any inference)."""
-        if hasattr(self.guide, "params"):
-            self.guide.params()
+        """Create the map guide's parameters now (checkpoints need them): a
+        :class:`~pyro_slam.model.MapGuide` through ``params()``; another guide by one draw
+        (outside any inference)."""
+        if hasattr(self.map_guide, "params"):
+            self.map_guide.params()
             return
         with torch.no_grad(), poutine.block():
-            self.guide()
-
-    def _filter(self, sigma, outlier_prob) -> ParticleFilter:
-        """A particle filter of the configured weighting with this emission std and outlier
-        probability (the ray-cast LiDAR emission trusts the map per beam)."""
-        w = Weighting(
-            self.cfg.filter.weighting,
-            sigma,
-            outlier_prob,
-            outlier_range=_largest_reading(self.tr),
-            per_beam=self.cfg.emission.kind == "raycast",
-        )
-        return ParticleFilter(self.model, w, generator=self.gen)
-
-    def _elbo(self) -> ParticleChunkELBO:
-        """The particle-chunk ELBO of ``training.objective``: its chunk filter weighs with the
-        model's emission (``"elbo"``) or with the filter's std (``"filter-sigma"``), never with
-        the filter's outlier mixture."""
-        tc = self.cfg.training
-        sigma = self.cfg.filter.sigma if tc.objective == "filter-sigma" else None
-        return ParticleChunkELBO(
-            self._filter(sigma, 0.0), self.cache, self.obs, self.ctl, self.mask,
-            num_particles=tc.particles,
-            headings=None if self.heading is None else self.heading.observation(),
-        )  # fmt: skip
+            self.map_guide()
 
     # --------------------------------------------------------------------------- helpers
     def map_belief(self) -> MapBelief:
         """The map belief the filter weighs with: mean and scale of ``q(M)`` (detached)."""
-        loc, scale = map_marginals(self.guide)
+        with self.scope():
+            loc, scale = map_marginals(self.map_guide)
         return MapBelief(loc.detach(), scale.detach())
 
     def _svi_step(self, lo: int, hi: int, newest: int | None) -> float:
@@ -243,47 +281,22 @@ class SLAM:
             z0 = self.init_pose + self.model.init_scale * torch.randn(
                 self.cfg.filter.particles, 3, generator=self.gen, dtype=self.obs.dtype
             )
-            self.particles, _ = self.pf.init(z0, M, x, m, step=0)
+            self.particles, _ = self.pf.init(z0, M, x, m, step=0, heading=self._heading(0))
         else:
             self.particles, _ = self.pf.step(
-                self.particles, M, x, self.ctl[t - 1], m, step=t,
-                sigma=self._transition_sigma(M), heading=self._heading(t),
-            )  # fmt: skip
+                self.particles, M, x, self.ctl[t - 1], m, step=t, heading=self._heading(t)
+            )
         self.cache.store(torch.tensor([t]), self.particles.batched(), self.gen)
 
     def _heading(self, t: int):
-        """Step ``t``'s heading observation (None: off, or no straight wall)."""
-        if self.heading is None:
-            return None
-        obs = self.heading.observation(t)
-        return None if torch.isnan(obs.value) else obs
+        """Step ``t``'s heading evidence under the frame's guide (None: no heading factor)."""
+        return None if self.heading is None else self.heading.evidence().at(t)
 
     def _refine_frame(self, t: int) -> None:
-        """Refine the heading observation's frame with step ``t``'s posterior heading; the
-        ELBO's chunk filter then reads the refined observations."""
-        if self.heading is None:
-            return
-        self.heading.refine(t, float(self.particles.mean()[2]), float(self.particles.std()[2]))
-        self.elbo.headings = self.heading.observation()
-
-    def _transition_sigma(self, M: MapBelief):
-        """The filter's ``sigma_T`` for the next step (``None``: the model's). With
-        ``transition.scale_trusted``, in the online sweep, it moves linearly from the model's
-        (scaled by ``transition.scale``) to the one scaled by ``scale_trusted`` as the cloud's
-        trust in the map goes from 0 to 1: firm odometry at the frontier of the map, where a
-        young chart copies the last scans and misleads the filter, and loose odometry where the
-        map is established. The trust is the one the last step's weights computed (no second
-        march along the beams)."""
-        tc = self.cfg.transition
-        active = self.state is None or self.state.phase in TRUSTED_PHASES
-        if tc.scale_trusted is None or not active:
-            return None
-        lo = self.model.transition.sigma  # [3], already scaled by transition.scale
-        hi = lo * (torch.tensor(tc.scale_trusted, dtype=lo.dtype) / torch.tensor(tc.scale))
-        trust = self.pf.last_cloud_trust  # [] the cloud's, as the last step weighed it
-        if trust is None:
-            trust = self.pf.cloud_trust(self.particles, M)
-        return lo + trust * (hi - lo)
+        """Refine the frame's guide with step ``t``'s posterior heading."""
+        if self.heading is not None:
+            mean, std = self.particles.mean()[2], self.particles.std()[2]
+            self.heading.refine(t, float(mean), float(std))
 
     # --------------------------------------------------------------------------- phases
     def _online(self, progress: bool):
@@ -335,16 +348,27 @@ class SLAM:
                 for t in range(s, min(s + L, self.T)):
                     m = None if self.mask is None else self.mask[t]
                     if t == s:  # [K, 3] from the cache
-                        z0 = self.cache.propose(torch.tensor([s]), K, "categorical",
-                                                generator=self.gen)[0]  # fmt: skip
+                        z0 = self.cache.propose(
+                            torch.tensor([s]), K, "categorical", generator=self.gen
+                        )[0]
                         self.particles, _ = self.pf.init(
-                            z0.to(self.obs.dtype), M, self.obs[t], m, step=t
+                            z0.to(self.obs.dtype),
+                            M,
+                            self.obs[t],
+                            m,
+                            step=t,
+                            heading=self._heading(t),
                         )
                     else:
                         self.particles, _ = self.pf.step(
-                            self.particles, M, self.obs[t], self.ctl[t - 1], m, step=t,
-                            sigma=self._transition_sigma(M), heading=self._heading(t),
-                        )  # fmt: skip
+                            self.particles,
+                            M,
+                            self.obs[t],
+                            self.ctl[t - 1],
+                            m,
+                            step=t,
+                            heading=self._heading(t),
+                        )
                     means.append(self.particles.mean().tolist())
                     stds.append(self.particles.std().tolist())
         return means, stds
@@ -385,7 +409,7 @@ class SLAM:
 
     def run(self, mode: str = "online", progress: bool = True) -> dict:
         """Run (or, after :meth:`resume`, continue) SLAM. Returns :meth:`result`."""
-        with torch_threads(self.threads):
+        with torch_threads(self.threads), self.scope():
             return self._run(mode, progress)
 
     def _run(self, mode: str, progress: bool) -> dict:
@@ -413,7 +437,8 @@ class SLAM:
         """``mean``, ``std`` ``[T, 3]`` (pose posterior), ``losses``, ``map_loc``, ``map_scale``
         ``[w, h, D_m]`` (``q(M)``) and, offline, the initial sweep's ``sweep_mean [T, 3]``."""
         st = self.state
-        loc, scale = map_marginals(self.guide)
+        belief = self.map_belief()
+        loc, scale = belief.loc, belief.scale
         return {
             "mean": np.asarray(st.estimates, dtype=np.float64).reshape(-1, 3),
             "std": np.asarray(st.stds, dtype=np.float64).reshape(-1, 3),
@@ -426,8 +451,9 @@ class SLAM:
     # --------------------------------------------------------------------------- checkpoints
     def fingerprint(self) -> dict:
         """What a checkpoint of this run belongs to: the data, the configuration, the seed."""
-        data = checkpoint.data_fingerprint(self.obs, self.ctl, self.mask, self.init_pose,
-                                           torch.as_tensor(self.tr.beam_angles))  # fmt: skip
+        data = checkpoint.data_fingerprint(
+            self.obs, self.ctl, self.mask, self.init_pose, torch.as_tensor(self.tr.beam_angles)
+        )
         return {"data": data, "config": self.cfg.to_dict(), "seed": self.seed}
 
     def state_dict(self) -> dict:
@@ -437,7 +463,7 @@ class SLAM:
             "format": checkpoint.FORMAT,
             "fingerprint": {**self.fingerprint(), "mode": self.state.mode},
             "state": copy.deepcopy(self.state.__dict__),
-            "params": checkpoint.param_store_state(),
+            "params": self._param_state(),
             "optim": self.optim.get_state(),
             "model": self.model.state_dict(),
             "cache": self.cache.state_dict(),
@@ -448,6 +474,10 @@ class SLAM:
             "inserter": None if self.inserter is None else self.inserter.state_dict(),
             "heading": None if self.heading is None else self.heading.state_dict(),
         }
+
+    def _param_state(self) -> dict:
+        with self.scope():
+            return checkpoint.param_store_state()
 
     def save(self, path) -> None:
         """Atomic checkpoint (temp file + rename)."""
@@ -460,7 +490,8 @@ class SLAM:
         d = checkpoint.read(path)
         checkpoint.check(path, d["fingerprint"], self.fingerprint())
         try:
-            self._load(d)
+            with self.scope():
+                self._load(d)
         except (KeyError, TypeError, ValueError, RuntimeError) as e:
             raise checkpoint.CheckpointError(f"{path}: damaged checkpoint ({e})") from None
         return self
@@ -478,17 +509,9 @@ class SLAM:
         self.gen.set_state(d["gen"])
         torch.set_rng_state(d["torch_rng"])
         self.elbo.num_steps_seen = int(d["elbo_seen"])
-        if self.inserter is not None:
+        if self.inserter is not None:  # (the loaded parameters are new tensors)
+            self.inserter = self._inserter()
             self.inserter.load_state_dict(d["inserter"])
         if self.heading is not None:
             self.heading.load_state_dict(d["heading"])
-            self.elbo.headings = self.heading.observation()
         self.state = SLAMState(**d["state"])
-
-
-def _largest_reading(tr: Traversal) -> float:
-    """Largest valid observed reading: the width of the filter's uniform outlier density."""
-    obs = np.asarray(tr.observations, dtype=np.float64)
-    valid = obs if tr.obs_mask is None else obs[np.asarray(tr.obs_mask, dtype=bool)]
-    valid = valid[np.isfinite(valid)]
-    return float(valid.max()) if valid.size and valid.max() > 0 else 1.0
