@@ -8,7 +8,13 @@ from .cache import ParticleCache
 from .elbo import ChunkBatch, ParticleChunkELBO
 from .filter import ParticleFilter
 from .particles import Particles, pose_moments, weighted_pose_mean
-from .proposals import PROPOSALS, HeadingProposal, Proposal, TransitionProposal
+from .proposals import (
+    PROPOSALS,
+    HeadingProposal,
+    Proposal,
+    TransitionProposal,
+    sequence_guide,
+)
 from .resampling import ParticleFilterFailed
 from .smc import ProposalGuide, PyroSMCFilter
 
@@ -27,5 +33,6 @@ __all__ = [
     "TransitionProposal",
     "pose_moments",
     "resampling",
+    "sequence_guide",
     "weighted_pose_mean",
 ]

@@ -16,7 +16,10 @@ generator (:meth:`Proposal.propose`) and adds the importance correction ``log p(
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
+import pyro
+import pyro.distributions as dist
 import torch
 from pyro.distributions import TorchDistribution, constraints
 
@@ -156,3 +159,30 @@ class HeadingProposal(Proposal):
 
 
 PROPOSALS = {"transition": TransitionProposal, "heading": HeadingProposal}
+
+
+def sequence_guide(model, proposal: Proposal, global_guide):
+    """The SLAM guide of a whole traversal as a Pyro guide of :meth:`DVBFLM.model
+    <pyro_slam.model.DVBFLM.model>` (same arguments): the global sites from ``global_guide``
+    (a :class:`~pyro_slam.model.GlobalGuide`, returning ``(M, phi)``), the start pose from the
+    model's prior, then each pose ``z_t`` from ``proposal`` at the previous one (a single
+    particle), reading the step's scan, the sampled map and the heading evidence in the
+    sampled frame. With it, Pyro's :class:`~pyro.infer.Trace_ELBO` estimates the bound that
+    :class:`~.elbo.ParticleChunkELBO` estimates with one particle."""
+
+    def guide(observations, controls, init_pose, mask=None, headings=None):
+        M, frame = global_guide()
+        z = pyro.sample("z_0", dist.Normal(init_pose, model.init_scale).to_event(1))
+        scan = model.emission_mean(M, z)
+        if headings is not None and frame is not None:
+            headings = replace(headings, frame=frame, frame_var=0.0)
+        for t in range(1, controls.shape[-2] + 1):
+            step = {"x": observations[t], "mask": None if mask is None else mask[t], "M": M}
+            if headings is not None and frame is not None:
+                step["heading"] = headings.at(t)
+            z = pyro.sample(
+                f"z_{t}", proposal.dist(model, z, scan, controls[..., t - 1, :], **step)
+            )
+            scan = model.emission_mean(M, z)
+
+    return guide

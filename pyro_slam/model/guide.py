@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import pyro
@@ -20,7 +21,7 @@ import pyro.distributions as dist
 import torch
 from pyro import poutine
 from pyro.distributions import constraints
-from torch.distributions import biject_to
+from torch.distributions import biject_to, kl_divergence
 
 from .model import DVBFLM
 
@@ -157,3 +158,45 @@ def map_param_leaves(guide, shape):
         return None
     transform = biject_to(store._constraints[names[1]])
     return loc.view(shape), scale.view(shape), transform.inv
+
+
+class ParamScope:
+    """A parameter store of one's own (:meth:`pyro.params.param_store.ParamStoreDict.scope`):
+    ``with scope():`` runs the enclosed code with these parameters in Pyro's store and restores
+    the caller's afterwards; re-entrant. Objects that train (a SLAM run, exploration's mapper)
+    keep one each, so two of them never share or clear each other's parameters."""
+
+    def __init__(self):
+        self.state = {"params": {}, "constraints": {}}
+        self._depth = 0
+
+    @contextlib.contextmanager
+    def __call__(self):
+        if self._depth:
+            yield
+            return
+        self._depth += 1
+        try:
+            with pyro.get_param_store().scope(self.state):
+                yield
+        finally:
+            self._depth -= 1
+
+
+def sample_maps(guide, n: int) -> torch.Tensor:
+    """``n`` draws of the site ``"map"`` from a map guide: ``[n, w, h, D_m]``."""
+    with torch.no_grad():
+        draws = [poutine.trace(guide).get_trace().nodes["map"]["value"] for _ in range(n)]
+    return torch.stack(draws)
+
+
+def map_kl(loc: torch.Tensor, scale: torch.Tensor, prior, samples: int = 64) -> torch.Tensor:
+    """``KL(q(M) || p(M))`` (nats, summed over cells and features) of a mean-field Gaussian
+    belief ``N(loc, scale^2)`` ``[w, h, D]`` against the map prior (event ``[D]``): analytic
+    where torch has it, else a Monte Carlo estimate from ``samples`` draws."""
+    q = dist.Normal(loc, scale).to_event(1)
+    try:
+        return kl_divergence(q, prior).sum()
+    except NotImplementedError:
+        m = q.sample((samples,))
+        return (q.log_prob(m) - prior.log_prob(m)).sum(-1).sum(-1).mean()

@@ -430,6 +430,18 @@ class DVBFLM(nn.Module):
             pyro.module("emission", self.emission)
         return self.sample_map(), self.sample_frame()
 
+    def mapping_model(self, poses, observations, mask=None, batch_size=None):
+        """The model of scans taken at known poses (mapping): the global sites, then each
+        scan ``observations [T, N]`` at ``poses [T, 3]`` (``mask [T, N]``) under the emission,
+        in a plate ``"data"`` that subsamples ``batch_size`` of them per call. The ``model`` of
+        :func:`~pyro_slam.slam.fit_map` and of exploration's mapper."""
+        M, _ = self.global_model()
+        T = poses.shape[0]
+        with pyro.plate("data", T, subsample_size=min(batch_size or T, T)) as i:
+            mean = self.emission_mean(M, poses[i])
+            mask_i = None if mask is None else mask[i]
+            pyro.sample("x", self.emission_dist(mean, mask_i), obs=observations[i])
+
     def model(self, observations, controls, init_pose, mask=None, headings=None):
         """The full generative model of one traversal.
 

@@ -19,7 +19,7 @@ from simulators.world import point_segment_distance
 
 from ..model import DVBFLM, EmissionMLP, KinematicTransition
 from ..pretrained import EMISSION_FILE, PRETRAINED, load_emission
-from ..slam import SLAMConfig, build_model, fit_map, pretrain_emission
+from ..slam import EmissionConfig, SLAMConfig, build_model, fit_map, pretrain_emission
 from ..slam.build import LAYERS, LIDAR_HIDDEN, MAP_DIM
 from .planner import SAFETY_DELTA, inside_scan
 
@@ -88,9 +88,16 @@ class LearnedEnv(_Rollouts):
         # the planner's copy of the model: its emission, map prior and noise, with kinematics
         # that stop short of predicted walls and no transition noise
         self.transition = KinematicTransition(0.0, "rotate_forward", clip_margin=clip_margin)
-        self.planner_model = DVBFLM(model.grid, model.emission, self.transition,
-                                    sigma_emission=model.sigma_emission, prior=model.prior,
-                                    noise=model.noise)  # fmt: skip
+        self.planner_model = DVBFLM(
+            model.grid,
+            model.emission,
+            self.transition,
+            sigma_emission=model.sigma_emission,
+            prior=model.prior,
+            noise=model.noise,
+            outlier_prob=model.outlier_prob,
+            outlier_range=model.outlier_range,
+        )
         self.bounds = bounds if bounds is not None else model.grid.extent()
         self.seen: list[tuple] = []  # (pose [3], real scan [B], margin, radius)
         self._memos: dict = {}  # rollouts per controls and start pose (see _Rollouts)
@@ -344,6 +351,10 @@ def lookalikes(poses, diffs, target, tol: float = 1e-6, radius: float = 0.05) ->
 
 
 # --------------------------------------------------------------------------- learned map
+# the model the planner maps with: the paper's LiDAR emission MLP on its grid
+MAPPING = SLAMConfig(emission=EmissionConfig("mlp"))
+
+
 def learned_env(
     maze,
     traversal=None,
@@ -357,17 +368,27 @@ def learned_env(
     n_world: int = 20,
     tour=None,
     hit_margin: float = 0.02,
+    *,
+    prior=None,
+    noise=None,
+    guide=None,
+    slam=None,
 ):
-    """A :class:`LearnedEnv` for ``maze``: simulate a traversal (unless given; ``steps``
-    exploring steps, then a tour through the positions ``tour`` ``[P, 2]`` it missed, see
-    :func:`simulators.simulate_traversal`), fit ``q(M)``
-    with :func:`~pyro_slam.slam.fit_map` at ``poses`` (default: the true poses, i.e. mapping
-    with known poses) under a frozen emission.
+    """A :class:`LearnedEnv` for ``maze``.
 
-    The emission is the shipped pretrained one (``emission_steps = 0``; 20 world directions)
-    or, with ``emission_steps > 0``, one fitted to this traversal together with a map by
-    :func:`~pyro_slam.slam.pretrain_emission` (``n_world`` world directions, from scratch, at
-    the same ``poses``), after which ``q(M)`` is refitted under it.
+    From a fitted :class:`~pyro_slam.slam.SLAM` (``slam``): its model (emission, map prior,
+    noise) and its map belief ``q(M)``, as SLAM left them, at its poses.
+
+    Otherwise: simulate a traversal (unless given; ``steps`` exploring steps, then a tour
+    through the positions ``tour`` ``[P, 2]`` it missed, see
+    :func:`simulators.simulate_traversal`), and fit ``q(M)`` with
+    :func:`~pyro_slam.slam.fit_map` at ``poses`` (default: the true poses, i.e. mapping with
+    known poses) under a frozen emission, in the model with the map ``prior`` and emission
+    ``noise`` given (:class:`~pyro_slam.model.DVBFLM`), with the map ``guide`` factory given
+    (default: mean-field). The emission is the shipped pretrained one (``emission_steps = 0``;
+    20 world directions) or, with ``emission_steps > 0``, one fitted to this traversal together
+    with a map by :func:`~pyro_slam.slam.pretrain_emission` (``n_world`` world directions, from
+    scratch, at the same ``poses``), after which ``q(M)`` is refitted under it.
 
     The planner also keeps ``hit_margin`` (0: off) from the traversal's returns placed from
     ``poses`` (:class:`ScanHits`), so a wall the map belief lost near its end is still
@@ -378,22 +399,35 @@ def learned_env(
 
     Returns ``(env, (q_loc, q_scale), traversal)``."""
     torch.manual_seed(seed)  # the new emission's initial weights
-    if traversal is None:
-        traversal = simulate_traversal(maze, steps=steps, seed=seed, tour=tour)
-    cfg = SLAMConfig()  # the paper's LiDAR emission MLP
-    if emission_steps > 0:
-        fit_on = traversal if poses is None else replace(traversal, poses=np.asarray(poses))
-        em = EmissionMLP(MAP_DIM, n_world, LIDAR_HIDDEN, LAYERS, scale=traversal.max_range)
-        em, _ = pretrain_emission([fit_on], cfg, emission=em, steps=emission_steps, seed=seed,
-                                  progress=progress)  # fmt: skip
+    if slam is not None:
+        model, traversal = slam.model, slam.tr
+        belief = slam.map_belief()
+        loc, scale = belief.loc, belief.scale
+        poses = slam.result()["mean"] if poses is None else poses
     else:
-        em = load_emission(PRETRAINED / EMISSION_FILE, traversal)
-    model, _ = build_model(traversal, cfg, emission=em)
-    loc, scale = fit_map(traversal, model, poses, fit_steps, seed=seed, progress=progress)
+        if traversal is None:
+            traversal = simulate_traversal(maze, steps=steps, seed=seed, tour=tour)
+        model = _mapping_model(traversal, poses, emission_steps, n_world, seed, progress,
+                               prior, noise)  # fmt: skip
+        loc, scale = fit_map(traversal, model, poses, fit_steps, guide=guide, seed=seed,
+                             progress=progress)  # fmt: skip
     hits = ScanHits(traversal, poses) if hit_margin > 0 else None
     env = LearnedEnv(model, loc, bounds=maze_bounds(maze), scale=scale, max_std=max_std,
                      hits=hits, hit_margin=hit_margin)  # fmt: skip
     return env, (loc, scale), traversal
+
+
+def _mapping_model(traversal, poses, emission_steps, n_world, seed, progress, prior, noise):
+    """The model :func:`learned_env` maps with: :data:`MAPPING`'s, with the shipped emission or
+    one pretrained on ``traversal`` (see there), the map ``prior`` and the emission ``noise``."""
+    if emission_steps > 0:
+        fit_on = traversal if poses is None else replace(traversal, poses=np.asarray(poses))
+        em = EmissionMLP(MAP_DIM, n_world, LIDAR_HIDDEN, LAYERS, scale=traversal.max_range)
+        em, _ = pretrain_emission([fit_on], MAPPING, emission=em, steps=emission_steps,
+                                  seed=seed, progress=progress)  # fmt: skip
+    else:
+        em = load_emission(PRETRAINED / EMISSION_FILE, traversal)
+    return build_model(traversal, MAPPING, emission=em, prior=prior, noise=noise)[0]
 
 
 def maze_bounds(maze, margin: float = SAFETY_DELTA):

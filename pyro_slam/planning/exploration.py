@@ -3,8 +3,9 @@
 * :func:`knn_entropy` -- Kozachenko--Leonenko k-NN differential entropy estimator (scipy
   ``cKDTree`` neighbour search).
 * :class:`Mapper` -- DVBF-LM map learning from collected data: SVI on ``q(M)`` (and optionally
-  the emission network) with :class:`~pyro.infer.TraceMeanField_ELBO`; infogain
-  ``KL(q(M) || p(M))``.
+  the emission network) with :class:`~pyro.infer.TraceMeanField_ELBO` on the model's
+  :meth:`~pyro_slam.model.DVBFLM.mapping_model`; infogain ``KL(q(M) || p(M))`` against the
+  model's prior.
 * :func:`mutual_information` -- ``I(x_{1:T}; M | u) ~= H(X) - 1/M sum_m H(X^(m))`` with samples
   from ancestral sampling of a Pyro rollout model (maps drawn from ``q(M)`` and substituted with
   ``poutine.condition``, poses from the known transition, scans from the emission).
@@ -40,7 +41,8 @@ from scipy.special import digamma, gammaln
 
 from simulators import SCALES, World, make_maze
 
-from ..model import DVBFLM, EmissionMLP, KinematicTransition, MapGrid, MapGuide
+from ..model import DVBFLM, EmissionMLP, KinematicTransition, MapGrid, MapGuide, map_marginals
+from ..model.guide import ParamScope, map_kl, sample_maps
 from ..pretrained import EMISSION_FILE, PRETRAINED
 
 # ----------------------------------------------------------------------------- entropy
@@ -154,27 +156,44 @@ class Mapper:
         beam_angles: ``[B]`` beam directions (body frame).
         max_range: sensor range (emission output scale).
         cfg: :class:`ExploreConfig`.
+        prior, noise: the model's map prior and emission noise
+            (:class:`~pyro_slam.model.DVBFLM`): they reach the map fit, the infogain and the MI
+            samples.
+        guide: a factory ``model -> map guide`` (default: the mean-field
+            :class:`~pyro_slam.model.MapGuide`; e.g. :func:`~pyro_slam.model.autoguide`).
+
+    The mapper keeps its parameters in a store of its own
+    (:class:`~pyro_slam.model.guide.ParamScope`).
     """
 
-    def __init__(self, grid: MapGrid, beam_angles, max_range: float, cfg: ExploreConfig):
+    def __init__(self, grid: MapGrid, beam_angles, max_range: float, cfg: ExploreConfig, *,
+                 prior=None, noise=None, guide=None):  # fmt: skip
         self.cfg = cfg
-        pyro.clear_param_store()
+        self.scope = ParamScope()
         pyro.set_rng_seed(cfg.seed)  # SVI and rollout sampling use the global RNGs
         self.gen = torch.Generator().manual_seed(cfg.seed)
         em = _emission(cfg, max(len(beam_angles), 20), max_range)
         trans = KinematicTransition(cfg.sigma_T)
-        self.model = DVBFLM(grid, em, trans, beam_angles, cfg.sigma_E)
+        self.model = DVBFLM(grid, em, trans, beam_angles, cfg.sigma_E, prior=prior, noise=noise)
         self.model.learn_emission = cfg.learn_emission
-        self.guide = MapGuide(grid.shape)
-        self.guide.params()
         self.max_range = float(max_range)
         self.beam_angles = np.asarray(beam_angles, dtype=np.float64)
         lr = cfg
 
         def per_param(name, _p):
-            return {"lr": lr.lr_map if name.startswith("map") else lr.lr_emission}
+            return {"lr": lr.lr_map if not name.startswith("emission") else lr.lr_emission}
 
-        self.svi = SVI(self.map_model, self.guide, Adam(per_param), TraceMeanField_ELBO())
+        with self.scope():
+            if guide is None:
+                self.guide = MapGuide(grid.shape, init_scale=self.model.prior_std())
+            else:
+                self.guide = guide(self.model)
+            if hasattr(self.guide, "params"):  # create its parameters
+                self.guide.params()
+            else:
+                sample_maps(self.guide, 1)
+            self.svi = SVI(self.model.mapping_model, self.guide, Adam(per_param),
+                           TraceMeanField_ELBO())  # fmt: skip
         self.poses: list[np.ndarray] = []
         self.obs: list[np.ndarray] = []
 
@@ -191,25 +210,24 @@ class Mapper:
         x = torch.as_tensor(np.concatenate(self.obs), dtype=torch.get_default_dtype())
         return z, x
 
-    # -- Pyro model of the collected data (poses given)
-    def map_model(self, poses, obs, batch):
-        if self.model.learn_emission:
-            pyro.module("emission", self.model.emission)
-        M = self.model.sample_map()
-        with pyro.plate("data", poses.shape[0], subsample_size=min(batch, poses.shape[0])) as i:
-            mean = self.model.emission_mean(M, poses[i])
-            pyro.sample("x", self.model.emission_dist(mean), obs=obs[i])
-
     def train(self, steps: int) -> list[float]:
+        """``steps`` SVI steps on :meth:`~pyro_slam.model.DVBFLM.mapping_model` of the data."""
         if not self.poses:
             return []
         z, x = self.tensors()
-        return [self.svi.step(z, x, self.cfg.batch) / len(z) for _ in range(steps)]
+        with self.scope():
+            return [self.svi.step(z, x, None, self.cfg.batch) / len(z) for _ in range(steps)]
+
+    def marginals(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The marginal mean and std of ``q(M)``, ``[w, h, D_m]`` (detached)."""
+        with self.scope():
+            loc, scale = map_marginals(self.guide)
+        return loc.detach(), scale.detach()
 
     def infogain(self) -> float:
-        """``KL(q(M) || p(M))`` (nats, summed over cells and features)."""
-        loc, scale = (p.detach() for p in self.guide.params())
-        return float((0.5 * (scale**2 + loc**2 - 1) - torch.log(scale)).sum())
+        """``KL(q(M) || p(M))`` (nats, summed over cells and features) against the model's map
+        prior (:func:`~pyro_slam.model.guide.map_kl`)."""
+        return float(map_kl(*self.marginals(), self.model.map_prior()))
 
     # -- the model's predictive for MI
     def sample_observations(self, controls, init_pose, n_maps, n_paths, stride=1):
@@ -220,7 +238,8 @@ class Mapper:
         T = controls.shape[0] + 1
         kept = [t for t in range(T) if (T - 1 - t) % stride == 0]
         with torch.no_grad():
-            maps = self.guide.distribution().sample((n_maps,))  # [n_maps, w, h, D]
+            with self.scope():
+                maps = sample_maps(self.guide, n_maps)  # [n_maps, w, h, D]
             pred = Predictive(
                 self.model.model,
                 posterior_samples={"map": maps.repeat_interleave(n_paths, 0)},
@@ -265,7 +284,7 @@ def obstacle_log_density(mapper: Mapper):
         scan = x
     else:
         with torch.no_grad():
-            scan = mapper.model.emission_mean(mapper.guide.mean(), z)  # [N, B]
+            scan = mapper.model.emission_mean(mapper.marginals()[0], z)  # [N, B]
     ang = z[:, 2:3] + mapper.model.beam_angles
     hit = scan < 0.95 * mapper.max_range  # beams that see something
     ex = (z[:, 0:1] + scan * torch.cos(ang))[hit].numpy()

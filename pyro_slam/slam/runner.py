@@ -18,7 +18,6 @@ continues with the same random stream.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import math
 import warnings
@@ -44,6 +43,7 @@ from ..inference import (
     ParticleFilter,
     Particles,
     PyroSMCFilter,
+    sequence_guide,
 )
 from ..model import (
     Emission,
@@ -53,7 +53,7 @@ from ..model import (
     Transition,
     map_marginals,
 )
-from ..model.guide import map_param_leaves
+from ..model.guide import ParamScope, map_param_leaves
 from ..runtime import torch_threads
 from . import checkpoint, presets
 from .build import build_model, check_size, prepare_traversal, traversal_tensors
@@ -153,27 +153,12 @@ class SLAM:
             emission = pretrained.emission_for(self.tr, self.cfg.emission.kind)
         if learn_emission is None:
             learn_emission = emission is None and self.cfg.emission.kind != "raycast"
-        self._params = {"params": {}, "constraints": {}}  # this run's parameter store
-        self._scope_depth = 0
+        self.scope = ParamScope()  # this run's parameters (``with slam.scope():``)
         with self.scope():
             self._build(transition, emission, bool(learn_emission), guide, prior, noise, smc)
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
         self.particles: Particles | None = None
         self.state: SLAMState | None = None
-
-    @contextlib.contextmanager
-    def scope(self):
-        """Run the enclosed code with this run's parameters in Pyro's parameter store (the
-        caller's are restored afterwards)."""
-        if self._scope_depth:
-            yield
-            return
-        self._scope_depth += 1
-        try:
-            with pyro.get_param_store().scope(self._params):
-                yield
-        finally:
-            self._scope_depth -= 1
 
     def _build(self, transition, emission, learn_emission, guide, prior, noise, smc) -> None:
         """The model, its guides, the filter, the ELBO and SVI (inside this run's scope)."""
@@ -251,6 +236,22 @@ class SLAM:
             self.map_guide()
 
     # --------------------------------------------------------------------------- helpers
+    def model_inputs(self) -> tuple:
+        """The arguments of :meth:`DVBFLM.model <pyro_slam.model.DVBFLM.model>` for this run's
+        data: ``(observations [T, N], controls [T-1, D_u], init_pose [3], mask [T, N] or None,
+        headings)``, the wall directions as a :class:`~pyro_slam.model.HeadingEvidence` (None
+        without a heading factor)."""
+        headings = None if self.heading is None else self.heading.evidence()
+        return self.obs, self.ctl, self.init_pose, self.mask, headings
+
+    def sequence_guide(self):
+        """This run's guide of the whole traversal as a Pyro guide of ``DVBFLM.model``: the map
+        (and frame) guide, then each pose from the filter's proposal
+        (:func:`~pyro_slam.inference.sequence_guide`). Pyro's ``Trace_ELBO`` on
+        ``(self.model.model, self.sequence_guide(), *self.model_inputs())`` estimates the bound
+        that SLAM's own objective (``self.elbo``) estimates with one particle."""
+        return sequence_guide(self.model, self.proposal, self.guide)
+
     def map_belief(self) -> MapBelief:
         """The map belief the filter weighs with: mean and scale of ``q(M)`` (detached)."""
         with self.scope():

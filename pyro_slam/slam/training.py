@@ -5,12 +5,15 @@ minibatches of time steps, with the poses ``z_t`` given."""
 from __future__ import annotations
 
 import numpy as np
+import pyro
 import pyro.distributions as dist
 import torch
+from pyro.infer import SVI, TraceMeanField_ELBO
+from pyro.optim import Adam
 from torch.distributions import kl_divergence
 from tqdm.auto import tqdm
 
-from ..model import DVBFLM, Emission, EmissionMLP, LidarEmission
+from ..model import DVBFLM, Emission, EmissionMLP, LidarEmission, MapGuide, map_marginals
 from .build import build_model, traversal_tensors
 from .config import SLAMConfig
 
@@ -92,35 +95,47 @@ def fit_map(
     poses=None,
     steps: int = 1000,
     *,
+    guide=None,
     batch_size: int = 256,
     lr: float = 0.05,
     seed: int = 0,
     progress: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mapping with known poses: fit the mean-field ``q(M)`` with the emission frozen, by Adam
-    on minibatches of time steps, with the poses ``z_t`` given (default: the traversal's
-    ground truth; pass e.g. a SLAM posterior mean instead). Returns ``(loc, scale)`` of
+    """Mapping with known poses: SVI on :meth:`DVBFLM.mapping_model` (the model's map prior
+    and emission, the emission frozen) with ``TraceMeanField_ELBO`` (analytic KL where both
+    sides have one), by Adam on minibatches of time steps, with the poses ``z_t`` given
+    (default: the traversal's ground truth; pass e.g. a SLAM posterior mean instead).
+    ``guide``: a factory ``model -> map guide`` (default: the mean-field
+    :class:`~pyro_slam.model.MapGuide`; e.g. :func:`~pyro_slam.model.autoguide`). The fit runs
+    in a parameter store of its own. Returns ``(loc, scale)``, the marginal mean and std of
     ``q(M)``, each ``[w, h, D_m]`` (detached)."""
     if poses is None:
         if traversal.poses is None:
             raise ValueError("fit_map needs poses (the traversal has no ground truth)")
         poses = traversal.poses
-    gen = torch.Generator().manual_seed(seed)
     obs, _, mask, _ = traversal_tensors(traversal)
     z = torch.as_tensor(np.asarray(poses), dtype=obs.dtype)
-    loc, log_scale = _map_params(model)
-    opt = torch.optim.Adam([loc, log_scale], lr=lr)
-    for p in model.emission.parameters():
+    learn, frozen = (
+        model.learn_emission,
+        [p for p in model.emission.parameters() if p.requires_grad],
+    )
+    model.learn_emission = False
+    for p in frozen:
         p.requires_grad_(False)
-    T = obs.shape[0]
-    try:
-        for _ in tqdm(range(steps), desc="fit map", disable=not progress):
-            idx = torch.randint(T, (min(batch_size, T),), generator=gen)
-            loss = _negative_elbo(model, loc, log_scale, obs, mask, z, idx, T)
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-    finally:
-        for p in model.emission.parameters():
-            p.requires_grad_(True)
-    return loc.detach(), log_scale.detach().exp()
+    with pyro.get_param_store().scope(), torch.random.fork_rng():
+        torch.manual_seed(seed)
+        q = (
+            MapGuide(model.grid.shape, init_scale=model.prior_std())
+            if guide is None
+            else guide(model)
+        )
+        svi = SVI(model.mapping_model, q, Adam({"lr": lr}), TraceMeanField_ELBO())
+        try:
+            for _ in tqdm(range(steps), desc="fit map", disable=not progress):
+                svi.step(z, obs, mask, batch_size)
+        finally:
+            model.learn_emission = learn
+            for p in frozen:
+                p.requires_grad_(True)
+        loc, scale = map_marginals(q)
+    return loc.detach(), scale.detach()

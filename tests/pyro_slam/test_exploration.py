@@ -11,6 +11,7 @@ import torch
 from scipy.stats import ortho_group
 
 from pyro_slam.model import MapGrid
+from pyro_slam.model.guide import map_param_leaves
 from pyro_slam.planning.exploration import (
     ExploreConfig,
     KnownObstacles,
@@ -45,11 +46,13 @@ def _half_explored_mapper(cfg):
     grid = MapGrid((8, 8), cfg.map_dim, (0.0, 0.0), (1.0, 1.0))
     beams = 2 * np.pi * np.arange(20) / 20
     mapper = Mapper(grid, beams, 0.53, cfg)
-    loc, scale = mapper.guide.params()
+    with mapper.scope():  # q(M)'s leaves in the mapper's parameter store
+        loc, raw_scale, to_raw = map_param_leaves(mapper.guide, grid.shape)
     gen = torch.Generator().manual_seed(0)
     with torch.no_grad():
         loc.copy_(torch.randn(loc.shape, generator=gen))
-        scale[:4] = 0.02
+        raw_scale[:4] = to_raw(torch.tensor(0.02))
+    assert torch.allclose(mapper.marginals()[1][:4], torch.tensor(0.02))
     return mapper
 
 

@@ -17,14 +17,14 @@ import pytest
 import torch
 
 from pyro_slam.inference import (
-    HeadingObservation,
+    HeadingProposal,
     ParticleCache,
     ParticleFilter,
     ParticleFilterFailed,
     Particles,
     resampling,
 )
-from pyro_slam.model import DVBFLM, Transition
+from pyro_slam.model import DVBFLM, HeadingEvidence, Transition, WallHeading
 
 Q = (0.2, 0.15, 0.1)  # transition std per pose dimension
 R = 0.5  # observation std
@@ -43,16 +43,21 @@ class RandomWalk(Transition):
 class LinearGaussian:
     """Duck-typed stand-in for :class:`DVBFLM`: linear-Gaussian emission ``x ~ N(M z, R^2)``."""
 
-    # DVBF-LM's own factors: emission noise and log-density, transition distribution
+    # DVBF-LM's own factors: emission noise and log-density, transition distribution, the
+    # heading factor
     noise_dist = DVBFLM.noise_dist
     emission_log_prob = DVBFLM.emission_log_prob
     transition_dist = DVBFLM.transition_dist
+    heading_dist = DVBFLM.heading_dist
+    heading_log_prob = DVBFLM.heading_log_prob
+    outlier_prob, outlier_range = 0.0, 1.0
 
-    def __init__(self, dtype):
+    def __init__(self, dtype, heading=None):
         self.noise = pyro.distributions.Normal
         self.sigma_emission = R
         self.transition = RandomWalk(torch.tensor(Q, dtype=dtype))
         self.init_scale = torch.tensor(S0, dtype=dtype)
+        self.heading = heading
 
     def emission_mean(self, M, z):
         return z @ M.T
@@ -134,11 +139,12 @@ def test_log_evidence_and_means_match_kalman(dtype):
     assert (spread < 0.25 * kf_std).all()  # MC error << posterior spread
 
 
-def test_heading_observation_matches_kalman_with_an_extra_heading_row():
-    """A :class:`HeadingObservation` ``y_t`` (std ``sigma_o``, far from the wrap) is a linear
-    observation of the heading, so the filter that samples it by the exact heading proposal
-    must match the Kalman filter with the extra row ``[0, 0, 1]``: log-evidence and means within
-    Monte-Carlo error, though ``sigma_o`` is 10x below the transition's heading noise."""
+def test_heading_factor_matches_kalman_with_an_extra_heading_row():
+    """The model's heading factor (:class:`WallHeading` of period 2 pi, frame 0) observes the
+    wall direction ``-y_t`` (std ``sigma_o``, far from the wrap), a linear observation of the
+    heading ``y_t``, so the filter that samples it by the exact heading proposal must match the
+    Kalman filter with the extra row ``[0, 0, 1]``: log-evidence and means within Monte-Carlo
+    error, though ``sigma_o`` is 10x below the transition's heading noise."""
     h, x, u, z0 = simulate(torch.float64)
     so = 0.01
     gy = torch.Generator().manual_seed(7)
@@ -159,13 +165,13 @@ def test_heading_observation_matches_kalman_with_an_extra_heading_row():
         m, P = m + Kg @ (xx - hh @ m), (torch.eye(3, dtype=torch.float64) - Kg @ hh) @ P
         means.append(m)
     reps, K = 64, 200
-    model = LinearGaussian(torch.float64)
+    model = LinearGaussian(torch.float64, WallHeading(period=2 * math.pi))
     g = torch.Generator().manual_seed(0)
-    pf = ParticleFilter(model, generator=g)
+    pf = ParticleFilter(model, HeadingProposal(), generator=g)
     z = z0 + model.init_scale * torch.randn(reps, K, 3, generator=g, dtype=torch.float64)
     p, ev = pf.init(z, h, x[0])
     for t in range(1, T):
-        obs = HeadingObservation(y[t].expand(reps), so, period=2 * math.pi)
+        obs = HeadingEvidence(torch.remainder(-y[t], 2 * math.pi).expand(reps), so, frame=0.0)
         p, inc = pf.step(p, h, x[t], u[t - 1], step=t, heading=obs)
         ev = ev + inc
         # the emission's own weights (measured ESS 0.49 K); a heading weight on the transition's
@@ -178,7 +184,7 @@ def test_heading_observation_matches_kalman_with_an_extra_heading_row():
     assert float(p.z[..., 2].std(-1).mean()) < 0.012  # measured 0.0098
     # nan: no observation there, the step is the bootstrap one (same draws, same weights)
     outs = []
-    for heading in (None, HeadingObservation(torch.full((reps,), math.nan), so)):
+    for heading in (None, HeadingEvidence(torch.full((reps,), math.nan), so, frame=0.0)):
         pf.generator.manual_seed(3)
         outs.append(pf.step(p, h, x[1], u[0], step=1, heading=heading))
     torch.testing.assert_close(outs[0][0].z, outs[1][0].z)

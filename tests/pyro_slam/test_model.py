@@ -19,11 +19,11 @@ from pyro_slam.inference import (
     ParticleChunkELBO,
     ParticleFilter,
     Particles,
-    Weighting,
+    ProposalGuide,
+    TransitionProposal,
 )
 from pyro_slam.model import (
     DVBFLM,
-    BootstrapGuide,
     EmissionMLP,
     FilterModel,
     KinematicTransition,
@@ -246,7 +246,7 @@ def elbo_setup(tr, dtype=torch.float32, ess_threshold=0.5, seed=0):
 def test_gradients_flow_into_map_and_emission(small_traversal):
     model, guide, elbo, poses = elbo_setup(small_traversal)
     batch = ChunkBatch(torch.tensor([0, 6]), 4)
-    loss = elbo.loss_and_grads(model.map_model, guide, batch)
+    loss = elbo.loss_and_grads(model.global_model, guide, batch)
     assert math.isfinite(loss)
     store = pyro.get_param_store()
     loc, scale = store["map_loc"], store.get_param("map_scale").unconstrained()
@@ -290,7 +290,7 @@ def test_particle_elbo_gradient_matches_finite_differences(small_traversal, ess_
         elbo.cache.load_state_dict(snapshot)
         elbo.pf.generator.set_state(gen_state)
         torch.manual_seed(11)  # the map sample
-        return elbo.differentiable_loss(model.map_model, guide, batch)
+        return elbo.differentiable_loss(model.global_model, guide, batch)
 
     loc = store["map_loc"]
     scale = store.get_param("map_scale").unconstrained()
@@ -363,7 +363,7 @@ def test_guide_and_model_replay_under_poutine():
 def test_smcfilter_on_learned_map_agrees_with_particle_filter(small_traversal):
     tr = small_traversal
     model, guide, elbo, poses = elbo_setup(tr)
-    svi = SVI(model.map_model, guide, Adam({"lr": 0.05}), loss=elbo)
+    svi = SVI(model.global_model, guide, Adam({"lr": 0.05}), loss=elbo)
     g = torch.Generator().manual_seed(0)
     losses = [svi.step(ChunkBatch(torch.randint(0, 13, (4,), generator=g), 4)) for _ in range(60)]
     assert all(math.isfinite(v) for v in losses)
@@ -374,7 +374,9 @@ def test_smcfilter_on_learned_map_agrees_with_particle_filter(small_traversal):
     init = poses[0]
     K = 400
     torch.manual_seed(0)
-    smc = SMCFilter(FilterModel(model, M), BootstrapGuide(model), K, max_plate_nesting=0)
+    smc = SMCFilter(
+        FilterModel(model, M), ProposalGuide(model, TransitionProposal()), K, max_plate_nesting=0
+    )
     with torch.no_grad():
         smc.init(init_pose=init, x=obs[0])
         smc_means = [smc.get_empirical()["z"].mean]
@@ -402,12 +404,11 @@ def test_bf16_filtering_matches_fp32_and_softsign_in_place_matches(small_travers
     M = torch.randn(model.grid.shape, generator=torch.Generator().manual_seed(1))
     obs = torch.as_tensor(tr.observations, dtype=torch.float32)
     ctl = torch.as_tensor(tr.controls, dtype=torch.float32)
+    model.sigma_emission = 0.2
     out = {}
     for name, dt in (("fp32", None), ("bf16", torch.bfloat16)):
-        pf = ParticleFilter(
-            model, Weighting(sigma=0.2), generator=torch.Generator().manual_seed(0),
-            autocast_dtype=dt,
-        )  # fmt: skip
+        gen = torch.Generator().manual_seed(0)
+        pf = ParticleFilter(model, generator=gen, autocast_dtype=dt)
         out[name] = pf.run(M, obs, ctl, poses[0], 200)
     # same random stream, emission differs by bf16 rounding only: estimates agree closely
     diff = (out["fp32"]["mean"][:, :2] - out["bf16"]["mean"][:, :2]).abs().max()

@@ -1,9 +1,10 @@
-"""One model for everything: the training objective is the model's ELBO (or a stated relation
-to it), a swapped prior or emission noise reaches the filter, the fitted map and the planner,
-and Pyro's own SMCFilter on the same model agrees with our filter, log-evidence included."""
+"""One model for everything: the training objective is the model's ELBO, a swapped prior or
+emission noise reaches the filter, the fitted map and the planner, and Pyro's own SMCFilter on
+the same model agrees with our filter, log-evidence included."""
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 
@@ -16,25 +17,23 @@ from pyro.infer import SMCFilter, Trace_ELBO
 
 from pyro_slam.inference import (
     ChunkBatch,
-    MapBelief,
-    ParticleCache,
-    ParticleChunkELBO,
     ParticleFilter,
     Particles,
-    Weighting,
+    ProposalGuide,
+    TransitionProposal,
 )
 from pyro_slam.model import (
     DVBFLM,
-    BootstrapGuide,
     EmissionMLP,
     FilterModel,
     KinematicTransition,
+    MapBelief,
     MapGrid,
     MapGuide,
     RayEmission,
 )
 from pyro_slam.planning import LearnedEnv
-from pyro_slam.slam import fit_map, presets
+from pyro_slam.slam import SLAM, fit_map, presets
 from simulators import simulate_traversal
 
 B, T = 8, 5
@@ -86,60 +85,73 @@ def mean_and_se(values):
     return float(v.mean()), float(v.std() / math.sqrt(len(v)))
 
 
-def objective_losses(model, map_guide, obs, ctl, init, sigma, n):
-    """``n`` draws of the project's training loss (times ``T``, one chunk over the whole
-    sequence, one particle) with the chunk filter weighing at ``sigma`` (None: the model's)."""
-    g = torch.Generator().manual_seed(3)
-    cache = ParticleCache(T, 4000, dtype=obs.dtype)
-    z0 = init + model.init_scale * torch.randn(4000, 3, generator=g)  # the pose prior
-    cache.store(torch.tensor([0]), Particles(z0[None], torch.full((1, 4000), -math.log(4000))))
-    pf = ParticleFilter(model, Weighting(sigma=sigma), generator=g)
-    elbo = ParticleChunkELBO(pf, cache, obs, ctl, num_particles=1, refresh=False)
+def slam_objective(slam, n: int, seed: int = 3) -> list[float]:
+    """``n`` draws of SLAM's own training loss (``slam.elbo``, the one SLAM builds) times ``T``,
+    on one chunk over the whole traversal with one particle, the start particles from the pose
+    prior."""
+    elbo, T = slam.elbo, slam.T
+    g = torch.Generator().manual_seed(seed)
+    N = slam.cache.num_particles
+    z0 = slam.init_pose + slam.model.init_scale * torch.randn(N, 3, generator=g)
+    elbo.K, elbo.refresh = 1, False
     batch = ChunkBatch(torch.tensor([0]), T)
-    return [T * elbo.loss(model.map_model, map_guide, batch) for _ in range(n)]
+    out = []
+    with slam.scope():
+        for _ in range(n):
+            slam.cache.store(
+                torch.tensor([0]), Particles(z0[None], torch.full((1, N), -math.log(N)))
+            )
+            out.append(T * elbo.loss(slam.model.global_model, slam.guide, batch))
+    return out
+
+
+def preset_traversal(preset: str, steps: int = 6):
+    """A short traversal for ``preset`` (camera frames for the visual ones)."""
+    image = presets.get(preset).config.emission.observation == "image"
+    return simulate_traversal("moderate-medium", steps=steps, seed=2, images=image)
 
 
 @pytest.mark.parametrize("preset", list(presets.PRESETS))
-def test_elbo_matches_pyro_trace_elbo(preset):
-    """At each preset's objective, the training loss equals Pyro's Trace_ELBO on
-    ``DVBFLM.model`` (map guide plus bootstrap pose guide) within 4 Monte Carlo standard
-    errors. ``"elbo"``: the model's own ELBO. ``"filter-sigma"`` (stated relation): the ELBO of
-    the same model with ``sigma_E`` replaced by the filter's std."""
-    cfg = presets.get(preset).config
-    sigma_e, sigma_f = cfg.emission.sigma, cfg.filter.sigma
-    sharpened = cfg.training.objective == "filter-sigma"
-    obs, ctl, init = toy_data()
-    ours_model = toy_model(sigma=sigma_e)
-    guide = toy_guide(ours_model)
-    ours = objective_losses(ours_model, guide, obs, ctl, init, sigma_f if sharpened else None, 300)
-    pyro_model = toy_model(sigma=sigma_f if sharpened else sigma_e)  # same weights (same seed)
+def test_default_objective_is_trace_elbo(preset):
+    """At each preset's defaults, SLAM's own objective (``slam.elbo``, one particle) equals
+    Pyro's ``Trace_ELBO`` on ``DVBFLM.model`` with the SLAM guide (map guide, frame guide with
+    the heading factor, and the filter's proposal for the poses) within 4 Monte Carlo standard
+    errors; and the test tells a model with another emission noise apart."""
+    tr = preset_traversal(preset)
+    slam = SLAM(tr, presets.get(preset).for_traversal(tr), seed=1)
+    if slam.heading is not None:  # the heading factor takes part: a frame and seen walls
+        assert not math.isnan(slam.heading.frame.mean)
+        assert bool(slam.heading.ok[1:].any())
+    n = 200
+    ours = slam_objective(slam, n)
     trace = Trace_ELBO()
-    pg = bootstrap_pose_guide(pyro_model, guide)
-    theirs = [trace.loss(pyro_model.model, pg, obs, ctl, init) for _ in range(300)]
+    args = slam.model_inputs()
+    with slam.scope():
+        theirs = [trace.loss(slam.model.model, slam.sequence_guide(), *args) for _ in range(n)]
     (m1, s1), (m2, s2) = mean_and_se(ours), mean_and_se(theirs)
     assert abs(m1 - m2) < 4 * math.hypot(s1, s2), (m1, s1, m2, s2)
-    # and the test can tell the two objectives apart: the other sigma is far off
-    other = sigma_e if sharpened else sigma_f
-    if other is not None and other != (sigma_f if sharpened else sigma_e):
-        wrong = toy_model(sigma=other)
-        m3, s3 = mean_and_se([trace.loss(wrong.model, pg, obs, ctl, init) for _ in range(100)])
-        assert abs(m1 - m3) > 4 * math.hypot(s1, s3)
+    # another emission noise (twice sigma_E) is told apart
+    slam.model.sigma_emission *= 2
+    with slam.scope():
+        other = [trace.loss(slam.model.model, slam.sequence_guide(), *args) for _ in range(n)]
+    m3, s3 = mean_and_se(other)
+    assert abs(m1 - m3) > 4 * math.hypot(s1, s3), (m1, m3)
 
 
 def test_swapped_prior_reaches_filter_and_planner():
-    """A map prior N(0, 2^2): the filter's trust compares the belief's variance with 4, not 1;
-    a fitted map stays at the prior where no scan reaches; the planner counts a cell as explored
-    by its std relative to the prior's."""
+    """A map prior N(0, 2^2): the filter's marginal emission compares the belief's variance
+    with 4, not 1; a fitted map stays at the prior where no scan reaches; the planner counts a
+    cell as explored by its std relative to the prior's."""
     wide = dist.Normal(torch.zeros(3), 2.0 * torch.ones(3)).to_event(1)
     std_model, wide_model = toy_model(), toy_model(prior=wide)
     loc = torch.zeros(std_model.grid.shape)
     scale = torch.full(std_model.grid.shape, 1.0)
     z = torch.tensor([[0.5, 0.4, 0.0]])
     belief = MapBelief(loc, scale)
-    w = Weighting()
-    # theory: trust = 1 - var(q) / var(prior) at a chart whose four cells have std 1
-    assert torch.allclose(w.trust(std_model, z, belief), torch.tensor([[0.01]]))  # (floor)
-    assert torch.allclose(w.trust(wide_model, z, belief), torch.tensor([[1 - 1 / 4]]))
+    # theory: the reading is unknown with probability var(q) / var(prior) at a chart whose four
+    # cells have std 1 (the model's outlier probability is 0 here)
+    assert torch.allclose(std_model.marginal_emission(belief, z)[1], torch.tensor([[1.0]]))
+    assert torch.allclose(wide_model.marginal_emission(belief, z)[1], torch.tensor([[1 / 4]]))
     # fitting: cells no scan reaches keep the prior (std 2, not 1); the emission is frozen
     tr = simulate_traversal("simple-small", steps=6, seed=0)
     grid = MapGrid((12, 12), 3, origin=(-2.0, -2.0), size=(6.0, 6.0))  # beyond the maze
@@ -167,7 +179,8 @@ def test_swapped_emission_noise_reaches_filter():
     M = torch.randn(model.grid.shape, generator=g)
     z0 = torch.tensor([0.5, 0.4, 0.2]) + 0.05 * torch.randn(64, 3, generator=g)
     x = 0.3 + 0.05 * torch.rand(B, generator=g)
-    pf = ParticleFilter(model, Weighting(sigma=0.07))
+    model.sigma_emission = 0.07
+    pf = ParticleFilter(model)
     p, inc = pf.init(z0, M, x)
     scan = model.emission_mean(M, z0)
     expected = dist.StudentT(3.0, scan, 0.07).log_prob(x).sum(-1)  # [64]
@@ -180,7 +193,8 @@ def test_swapped_emission_noise_reaches_filter():
 def smc_run(model, M, obs, ctl, init, K, resample=True):
     """Pyro's SMCFilter on ``FilterModel``: weighted means ``[T, 3]`` and (without resampling)
     the log-evidence from the particles' log-likelihoods and weights."""
-    smc = SMCFilter(FilterModel(model, M), BootstrapGuide(model), K, max_plate_nesting=0,
+    guide = ProposalGuide(model, TransitionProposal())
+    smc = SMCFilter(FilterModel(model, M), guide, K, max_plate_nesting=0,
                     ess_threshold=0.5 if resample else 1e-12)  # fmt: skip
     log_ev = 0.0
     means = []
@@ -215,8 +229,10 @@ def test_smcfilter_and_ours_agree(ignore_scans):
     K = 2000
     torch.manual_seed(1)
     smc_means, _ = smc_run(model, M, obs, ctl, init, K)
-    sigma = 1e6 if ignore_scans else None
-    pf = ParticleFilter(model, Weighting(sigma=sigma), generator=torch.Generator().manual_seed(0))
+    ours_model = copy.copy(model)
+    if ignore_scans:
+        ours_model.sigma_emission = 1e6
+    pf = ParticleFilter(ours_model, generator=torch.Generator().manual_seed(0))
     ours = pf.run(M, obs, ctl, init, K)
     # the log-evidence of the first 5 steps, where SMCFilter without resampling (sequential
     # importance sampling) still has thousands of effective particles: a sharp reference
@@ -243,25 +259,3 @@ def test_predictive_rollouts_of_the_model_under_planned_controls():
     assert tr.nodes["z_3"]["value"].shape == (2, 3) and tr.nodes["x_3"]["value"].shape == (2, B)
     turned = tr.nodes["z_1"]["value"][:, 2] - init[2]
     assert abs(float(turned[1] - turned[0]) - 0.5) < 0.3  # the second sequence turned
-
-
-def test_slam_runs_with_pyro_smcfilter_as_its_filter():
-    """``SLAM(..., smc=True)``: Pyro's SMCFilter filters the SLAM loop on the same model (our
-    filter still trains the map) and tracks the pose as ours does; weights it cannot compute
-    per particle are refused."""
-    from pyro_slam.metrics import localisation_error
-    from pyro_slam.slam import SLAM, ConfigError, with_overrides
-
-    tr = simulate_traversal("simple-small", steps=30, seed=0)
-    cfg = with_overrides(presets.get("raycast").config, {"filter": {"weighting": "marginal"}})
-    errs = {}
-    for smc in (False, True):
-        slam = SLAM(tr, cfg, seed=1, smc=smc)
-        res = slam.run("online", progress=False)
-        errs[smc] = float(localisation_error(res["mean"], tr.poses).max())
-    assert type(slam.pf).__name__ == "PyroSMCFilter"
-    assert errs[True] < 0.03 and errs[False] < 0.03  # corridors are 1/12 wide here
-    with pytest.raises(ValueError, match="shared"):
-        SLAM(tr, presets.get("raycast").config, smc=True)
-    with pytest.raises(ConfigError, match="heading"):
-        SLAM(tr, with_overrides(cfg, {"heading": {"sigma": 1e-3}}), smc=True)

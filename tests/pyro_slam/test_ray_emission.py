@@ -11,9 +11,16 @@ import pytest
 import torch
 
 from pyro_slam.geometry import wrap_angle
-from pyro_slam.inference import MapBelief, ParticleFilter, Particles, Weighting
+from pyro_slam.inference import ParticleFilter, Particles
 from pyro_slam.metrics import localisation_error
-from pyro_slam.model import DVBFLM, EmissionMLP, KinematicTransition, MapGrid, RayEmission
+from pyro_slam.model import (
+    DVBFLM,
+    EmissionMLP,
+    KinematicTransition,
+    MapBelief,
+    MapGrid,
+    RayEmission,
+)
 from pyro_slam.slam import (
     SLAM,
     ConfigError,
@@ -111,30 +118,38 @@ def test_bad_emission_kind_is_rejected():
         EmissionConfig(kind="nerf")
 
 
-def test_filter_trusts_beams_that_end_on_mapped_walls():
-    """Per-beam trust: a beam that stops on a wall the map knows is trusted even at a new pose;
-    one that runs into cells still at the prior is not (ParticleFilter.trust)."""
+def test_marginal_emission_knows_beams_that_end_on_mapped_walls():
+    """Under a map belief each beam's reading is known where the ray stops on a wall the map
+    knows, even at a new pose, and unknown (uniform over the range) where it runs into cells
+    still at the prior: the marginal emission's outlier probability is the model's on the
+    first, 1 on the second; a chart emission has one per particle."""
     grid, walls = _wall_grid()
     em = RayEmission(torch.tensor([0.0, math.pi]), max_range=0.5, samples=100)
-    model = DVBFLM(grid, em, KinematicTransition((1e-3, 1e-3, 1e-3)))
+    model = DVBFLM(grid, em, KinematicTransition((1e-3, 1e-3, 1e-3)), outlier_prob=0.1,
+                   outlier_range=0.5)  # fmt: skip
     loc = RayEmission.wall_map(grid, walls)
     scale = torch.full_like(loc, 1.0)
     scale[12:30] = 0.05  # mapped: x in [0.3, 0.725], the wall at x = 0.6 included
     belief = MapBelief(loc, scale)
-    pf = ParticleFilter(model, Weighting(per_beam=True))
     z = torch.tensor([[0.4, 0.5, 0.0], [0.45, 0.5, 0.0]])  # [K=2, 3]
-    # default: one trust per particle from its own (unmapped, x < 0.3) chart
-    assert ParticleFilter(model).trust(z, belief).shape == (2, 1)
-    trust = pf.trust(z, belief)  # [2, B=2]
-    assert trust.shape == (2, 2)
-    assert trust[:, 0].min() > 0.99  # east: stops on the mapped wall
-    assert trust[:, 1].max() < 0.05  # west: runs out of range in unmapped cells
-    p = Particles(z, torch.log(torch.tensor([0.5, 0.5])))
-    assert float(pf.cloud_trust(p, belief)) == pytest.approx(float(trust.mean()), abs=1e-6)
-    # an emission without a per-beam variance cannot be weighed per beam
+    mean, eps = model.marginal_emission(belief, z)  # [2, B=2] each
+    assert mean.shape == eps.shape == (2, 2)
+    assert mean[:, 0] == pytest.approx(torch.tensor([0.2, 0.15]), abs=0.02)
+    assert eps[:, 0].max() < 0.11  # east: stops on the mapped wall (the model's 0.1)
+    assert eps[:, 1].min() > 0.99  # west: runs out of range in unmapped cells
+    # the cloud's weighted variance: the same for both particles
+    _, shared = model.marginal_emission(belief, z, torch.log(torch.tensor([0.5, 0.5])))
+    assert shared.shape == (1, 2) and torch.allclose(shared[0], eps.mean(0), atol=1e-6)
+    # under the belief the weights are the model's emission with that outlier probability
+    x = torch.tensor([0.2, 0.3])
+    pf = ParticleFilter(model)
+    ll, _ = pf.log_likelihood(z, belief, x)
+    expect = model.emission_dist(mean, outlier_prob=eps).log_prob(x)
+    torch.testing.assert_close(ll, expect)
+    # a chart emission: one value per particle, from the chart at the pose
     mlp = DVBFLM(MapGrid((5, 5), 2), EmissionMLP(2, 20), KinematicTransition(1e-3), [0.0])
-    with pytest.raises(ValueError, match="per-beam trust needs an emission with beam_variance"):
-        ParticleFilter(mlp, Weighting(per_beam=True))
+    v = mlp.marginal_emission(MapBelief(torch.zeros(5, 5, 2), torch.ones(5, 5, 2)), z)[1]
+    assert v.shape == (2, 1) and torch.allclose(v, torch.ones(2, 1))
 
 
 def test_online_slam_with_the_ray_emission_tracks_and_maps(small_traversal):
@@ -143,7 +158,7 @@ def test_online_slam_with_the_ray_emission_tracks_and_maps(small_traversal):
     prior map (nearly free space, every beam at max range) does."""
     tr = small_traversal
     slam = ray_slam(tr)
-    assert slam.pf.weighting.per_beam and slam.inserter is None
+    assert slam.inserter is None
     res = slam.run("online", progress=False)
     assert res["map_loc"].shape == (*slam.model.grid.cells, 1)
     err = localisation_error(res["mean"], tr.poses)  # [T]
@@ -157,21 +172,23 @@ def test_online_slam_with_the_ray_emission_tracks_and_maps(small_traversal):
 
 
 def test_beam_mixture_weights_bound_one_wild_beam():
-    """``outlier_prob`` (non-tempered weights): each beam scores ``log((1 - eps) N(x; mu,
+    """The model's beam mixture (``outlier_prob``): each beam scores ``log((1 - eps) N(x; mu,
     sigma) + eps / outlier_range)``, so one beam the map cannot explain costs at most
-    ``log(eps / range)`` relative to a match instead of ``r^2 / 2 sigma^2``."""
+    ``log(eps / range)`` relative to a match instead of ``r^2 / 2 sigma^2``; the filter weighs
+    with exactly that."""
     eps, rng, s = 0.1, 0.5, 0.02
-    weighting = Weighting("marginal", s, outlier_prob=eps, outlier_range=rng)
-    x = torch.tensor([[0.3, 0.2]])  # [1, B]
+    x = torch.tensor([0.3, 0.2])  # [B]
     scan = torch.tensor([[0.3, 0.2], [0.3, 0.45], [0.31, 0.2]])  # [K=3, B]
 
     class Model:  # the model's factors the weights read: its noise and its predicted scans
-        noise, sigma_emission, noise_dist = pyro.distributions.Normal, 0.1, DVBFLM.noise_dist
+        noise, sigma_emission, heading = pyro.distributions.Normal, s, None
+        outlier_prob, outlier_range = eps, rng
+        noise_dist, emission_log_prob = DVBFLM.noise_dist, DVBFLM.emission_log_prob
 
         def emission_mean(self, M, z):
             return scan
 
-    lp, _, _ = weighting.log_likelihood(Model(), torch.zeros(3, 3), torch.zeros(1), x[0])  # [3]
+    lp, _ = ParticleFilter(Model()).log_likelihood(torch.zeros(3, 3), torch.zeros(1), x)
     gauss = -0.5 * ((x - scan) / s) ** 2 - math.log(s) - 0.5 * math.log(2 * math.pi)
     expect = torch.log((1 - eps) * gauss.exp() + eps / rng).sum(-1)
     assert torch.allclose(lp, expect, atol=1e-5)
@@ -180,7 +197,8 @@ def test_beam_mixture_weights_bound_one_wild_beam():
     # a near miss still ranks below a match: the mixture keeps the Gaussian's sharpness
     assert lp[0] > lp[2] > lp[1]
     with pytest.raises(ValueError, match="outlier_prob"):
-        Weighting(outlier_prob=1.0)
+        DVBFLM(MapGrid((5, 5), 1), RayEmission([0.0], 1.0), KinematicTransition(1e-3),
+               outlier_prob=1.0)  # fmt: skip
 
 
 def test_scan_insertion_writes_scan_hits_as_walls_once(small_traversal):
@@ -195,19 +213,18 @@ def test_scan_insertion_writes_scan_hits_as_walls_once(small_traversal):
     z = torch.as_tensor(tr.poses[0], dtype=slam.obs.dtype)  # [3] the true start pose
     valid = torch.ones_like(slam.obs[0], dtype=torch.bool)
     inserter.insert(slam.obs[0], valid, z)
-    loc, _ = slam.guide.params()
-    M = loc.detach().clone()
+    M = slam.map_belief().loc
     assert int(inserter.inserted.sum()) > 20 and float(M.max()) == 2.0
-    scale = slam.guide.params()[1].detach()[..., 0]  # [w, h]: 0.3 where written, else the prior
+    scale = slam.map_belief().scale[..., 0]  # [w, h]: 0.3 where written, else the prior
     assert torch.allclose(scale[inserter.inserted], torch.tensor(0.3)) and scale.max() == 1.0
     em, grid = slam.model.emission, slam.model.grid
     hit = slam.obs[0] < em.max_range * 0.999
     err = (em.read(grid, M, z) - slam.obs[0])[hit].abs()
     assert err.median() < 0.01  # measured 0.005 (a few grazing beams stop early)
     with torch.no_grad():
-        loc.fill_(0.5)  # as if SVI had rewritten every cell
+        inserter.loc.fill_(0.5)  # as if SVI had rewritten every cell
     inserter.insert(slam.obs[0], valid, z)
-    assert float(slam.guide.params()[0].detach().max()) == 0.5  # written once only
+    assert float(slam.map_belief().loc.max()) == 0.5  # written once only
     # masked readings write nothing
     inserter.inserted.zero_()
     inserter.insert(slam.obs[0], torch.zeros_like(valid), z)
@@ -278,20 +295,20 @@ def test_manhattan_frame_is_found_in_a_rotated_world_with_a_noisy_lidar():
             tr = simulate_traversal("moderate-medium", steps=200, seed=seed, lidar=lidar,
                                     rotation=0.3)  # fmt: skip
             heading = SLAM(tr, cfg).heading
-            errs.append(abs((heading.frame - 0.3 + q / 2) % q - q / 2))
+            errs.append(abs((heading.frame.mean - 0.3 + q / 2) % q - q / 2))
         # measured noise-free <= 2e-4; noisy 0.0047, 0.0005, 0.0009, 0.0026
         assert max(errs) < (1e-3 if noise == 0 else 1e-2)
         if noise:
             assert 0.3 < heading.noise / (noise * tr.max_range) < 1.5  # measured 0.9
         # noisy ranges: a segment may be a false wall, so the observation gets the filter's
         # outlier component; a noise-free sensor's (short returns aside) is Gaussian
-        assert heading.outlier_prob == (cfg.filter.outlier_prob if noise else 0.0)
-        assert heading.observation().outlier_prob == heading.outlier_prob
+        assert heading.outlier_prob == (cfg.emission.outlier_prob if noise else 0.0)
+        assert heading.factor().outlier_prob == heading.outlier_prob
     ok = torch.nonzero(heading.ok).flatten()
     true = torch.as_tensor(tr.poses[:, 2])
     for t in ok[:100].tolist():  # refining with the true headings
         heading.refine(t, float(true[t]), 1e-3)
-    assert abs((heading.frame - 0.3 + q / 2) % q - q / 2) < 5e-3
+    assert abs((heading.frame.mean - 0.3 + q / 2) % q - q / 2) < 5e-3
     strict = SLAM(tr, replace(cfg, heading=HeadingConfig(support=21))).heading  # > 20 beams
-    assert not bool(strict.ok.any()) and math.isnan(strict.frame)
-    assert bool(strict.observation().value.isnan().all())
+    assert not bool(strict.ok.any()) and math.isnan(strict.frame.mean)
+    assert bool(strict.evidence().direction.isnan().all())
