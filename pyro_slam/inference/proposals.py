@@ -10,7 +10,10 @@ generator (:meth:`Proposal.propose`) and adds the importance correction ``log p(
 * :class:`TransitionProposal` -- the model's transition (bootstrap; no correction);
 * :class:`HeadingProposal` -- the transition conditioned exactly on the model's heading factor
   (the optimal proposal for that observation: every particle lands on a heading the walls
-  allow, however narrow the cloud).
+  allow, however narrow the cloud);
+* :class:`ScanMatchProposal` -- the transition corrected by the step's scan (and heading
+  evidence), matched against the map: the improved proposal of Grisetti et al. (2007), with a
+  defensive share of the transition.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ import pyro.distributions as dist
 import torch
 from pyro.distributions import TorchDistribution, constraints
 
-from ..model.model import HeadingEvidence
+from ..model.model import HeadingEvidence, MapBelief
 from ..model.noise import wrap_period
 from .particles import Particles
 
@@ -69,6 +72,11 @@ class PoseProposal(TorchDistribution):
             self.alt_scale.expand(shape),
             self.alt_weight.expand(shape),
         )
+
+    def squeeze_particle(self):
+        """The same distribution without its last batch dimension (of size 1)."""
+        return PoseProposal(self.loc[..., 0, :], self.scale[..., 0, :], self.alt_loc[..., 0],
+                            self.alt_scale[..., 0], self.alt_weight[..., 0])  # fmt: skip
 
     def log_prob(self, z: torch.Tensor) -> torch.Tensor:
         xy = _normal_log_prob(z[..., :2], self.loc[..., :2], self.scale[..., :2]).sum(-1)
@@ -158,7 +166,186 @@ class HeadingProposal(Proposal):
         return PoseProposal(loc, scale, cond_loc, cond_scale, w)
 
 
-PROPOSALS = {"transition": TransitionProposal, "heading": HeadingProposal}
+class MatchedProposal(TorchDistribution):
+    """``q(z) = a N(loc, diag(scale^2)) + (1 - a) N(mu, cov)`` over poses (event ``[3]``, batch
+    ``[...]``): the transition and a full-covariance Gaussian, with the defensive share ``a``
+    of the transition."""
+
+    arg_constraints = {}
+    support = constraints.real_vector
+    has_rsample = False
+
+    def __init__(self, loc, scale, mu, cov, defensive: float):
+        self.loc, self.scale, self.mu, self.defensive = loc, scale, mu, float(defensive)
+        self.tril = torch.linalg.cholesky(cov)
+        super().__init__(loc.shape[:-1], loc.shape[-1:], validate_args=False)
+
+    def squeeze_particle(self):
+        """The same distribution without its last batch dimension (of size 1)."""
+        cov = self.tril @ self.tril.transpose(-1, -2)
+        return MatchedProposal(self.loc[..., 0, :], self.scale[..., 0, :], self.mu[..., 0, :],
+                               cov[..., 0, :, :], self.defensive)  # fmt: skip
+
+    def expand(self, batch_shape, _instance=None):
+        e3, e33 = torch.Size(batch_shape) + (3,), torch.Size(batch_shape) + (3, 3)
+        cov = self.tril @ self.tril.transpose(-1, -2)
+        return MatchedProposal(self.loc.expand(e3), self.scale.expand(e3), self.mu.expand(e3),
+                               cov.expand(e33), self.defensive)  # fmt: skip
+
+    def log_prob(self, z: torch.Tensor) -> torch.Tensor:
+        lt = _normal_log_prob(z, self.loc, self.scale).sum(-1)
+        d = torch.linalg.solve_triangular(self.tril, (z - self.mu).unsqueeze(-1), upper=False)
+        half_logdet = torch.log(torch.diagonal(self.tril, dim1=-2, dim2=-1)).sum(-1)
+        lm = -0.5 * d.squeeze(-1).pow(2).sum(-1) - half_logdet - 1.5 * math.log(2 * math.pi)
+        a = self.defensive
+        if a <= 0:
+            return lm
+        return torch.logaddexp(math.log(a) + lt, math.log1p(-a) + lm)
+
+    def sample(self, sample_shape=(), generator=None):
+        shape = torch.Size(sample_shape) + self.loc.shape
+        eps = torch.randn(shape, generator=generator, dtype=self.loc.dtype)
+        zt = self.loc + eps * self.scale
+        zm = self.mu + (self.tril @ eps.unsqueeze(-1)).squeeze(-1)
+        pick = torch.rand(shape[:-1], generator=generator, dtype=zt.dtype) < self.defensive
+        return torch.where(pick.unsqueeze(-1), zt, zm)
+
+
+def _cloud_centre(loc: torch.Tensor) -> torch.Tensor:
+    """The mean ``[..., 3]`` of poses ``loc [..., K, 3]``, the heading's circular mean kept on
+    the branch of the first particle's (headings are not wrapped in the model)."""
+    ref = loc[..., :1, 2]
+    d = wrap_period(loc[..., 2] - ref, 2 * math.pi)
+    h = ref[..., 0] + torch.atan2(torch.sin(d).mean(-1), torch.cos(d).mean(-1))
+    return torch.cat([loc[..., :2].mean(-2), h.unsqueeze(-1)], -1)
+
+
+class ScanMatchProposal(Proposal):
+    """The transition corrected by the step's scan: the improved proposal of Grisetti et al.
+    (2007), written as an SMC guide.
+
+    1. **Match**: from the cloud's mean predicted pose, ``iterations`` Gauss-Newton steps on
+       the model's log-likelihood of the scan under the map (a sampled map, or a belief's mean
+       with each reading's chance of being unknown, :meth:`~pyro_slam.model.DVBFLM.
+       marginal_emission`) plus the heading factor's evidence, each reading weighted by its
+       inlier responsibility under the beam mixture (iteratively reweighted least squares),
+       with the transition at the cloud's mean as a prior; Jacobians by finite differences of
+       the emission (any emission).
+    2. **Linearise** the log-likelihood at the match: a Gaussian factor in information form
+       (``H = J^T W J``, the gradient ``b``); a direction the scan does not constrain (a
+       corridor) keeps ``H``'s null space, so the transition rules there.
+    3. Each particle's proposal is its transition times that factor (an exact Gaussian
+       product), mixed with the transition itself with weight ``defensive`` (defensive
+       importance sampling: a bounded weight where the match misleads); where the match fails
+       (non-finite) the proposal is the transition.
+
+    The filter weighs by ``p(z_t | z_{t-1}) p(x_t | z_t) / q(z_t)``, so the target is the
+    model's posterior whatever the match found.
+    """
+
+    def __init__(self, iterations: int = 3, defensive: float = 0.1):
+        self.iterations, self.defensive = int(iterations), float(defensive)
+
+    def dist(self, model, z, scan, u, *, x=None, mask=None, M=None, heading=None, **step):
+        loc, scale = gaussian_transition(model, z, u, scan)  # [..., K, 3]
+        if x is None or M is None:
+            return PoseProposal(loc, scale)
+        if loc.dim() == 1:  # a single pose (a Pyro guide's): a cloud of one
+            q = self.dist(model, z[None], None if scan is None else scan[None], u, x=x,
+                          mask=mask, M=M, heading=heading)  # fmt: skip
+            return q.squeeze_particle()
+        centre = _cloud_centre(loc.reshape(-1, *loc.shape[-2:])).reshape(*loc.shape[:-2], 3)
+        prior = (scale**-2).mean(-2)  # [..., 3] the transition's precision at the centre
+        h = None if heading is None else _squeeze_particles(heading, loc.dim())
+        zm, H, b = _match(model, M, x, mask, h, centre, prior, self.iterations)
+        if not (torch.isfinite(H).all() and torch.isfinite(zm).all()):
+            return PoseProposal(loc, scale)
+        zm = zm.unsqueeze(-2)  # [..., 1, 3], heading on each particle's branch
+        turns = torch.round((loc[..., 2] - zm[..., 2]) / (2 * math.pi)) * (2 * math.pi)
+        zm = torch.cat([zm[..., :2].expand_as(loc[..., :2]), (zm[..., 2] + turns)[..., None]], -1)
+        P = torch.diag_embed(scale**-2)  # [..., K, 3, 3]
+        Hk = H.unsqueeze(-3)
+        eta = (P @ loc.unsqueeze(-1) + Hk @ zm.unsqueeze(-1)).squeeze(-1) + b.unsqueeze(-2)
+        cov = torch.linalg.inv(P + Hk)
+        cov = 0.5 * (cov + cov.transpose(-1, -2))
+        mu = (cov @ eta.unsqueeze(-1)).squeeze(-1)
+        return MatchedProposal(loc, scale, mu, cov, self.defensive)
+
+
+def _squeeze_particles(heading: HeadingEvidence, dim: int) -> HeadingEvidence:
+    """Evidence aligned with particles ``[..., K]`` back to the cloud's batch ``[...]``."""
+
+    def sq(v):
+        return v.squeeze(-1) if torch.is_tensor(v) and v.dim() >= dim - 1 else v
+
+    return HeadingEvidence(sq(heading.direction), sq(heading.sigma), sq(heading.frame),
+                           sq(heading.frame_var))  # fmt: skip
+
+
+def _readings(model, M, z, x, mask):
+    """The predicted readings at poses ``z [4, ..., 3]`` (a pose and its three offsets) and
+    each reading's weight ``[..., B]``: inlier responsibility over the noise variance (the
+    beam mixture, with a belief's unknown readings as outliers), masked."""
+    if isinstance(M, MapBelief):
+        r = model.emission_mean(M.loc, z)
+        eps = model.marginal_emission(M, z[0])[1]
+    else:
+        r = model.emission_mean(M, z)
+        eps = torch.as_tensor(model.outlier_prob, dtype=r.dtype)
+    s = model.sigma_emission
+    e = x - r[0]
+    inlier = (1 - eps) * torch.exp(-0.5 * (e / s) ** 2) / (s * math.sqrt(2 * math.pi))
+    resp = inlier / (inlier + eps / model.outlier_range).clamp_min(1e-30)
+    w = resp / s**2
+    return r, e, w if mask is None else w * mask
+
+
+def _match(model, M, x, mask, heading, centre, prior, iterations: int):
+    """Gauss-Newton from ``centre [..., 3]`` with the prior precision ``prior [..., 3]``; the
+    linearisation ``(z*, H [..., 3, 3], b [..., 3])`` of the log-likelihood at the match."""
+    spacing = min(s / (c - 1) for s, c in zip(model.grid.size, model.grid.cells))
+    delta = torch.tensor([0.2 * spacing, 0.2 * spacing, 0.2 * spacing / model.outlier_range])
+    delta = delta.to(centre.dtype)
+    offsets = torch.cat([torch.zeros(1, 3, dtype=centre.dtype), torch.diag(delta)])  # [4, 3]
+    offsets = offsets.reshape(4, *([1] * (centre.dim() - 1)), 3)
+    z = centre
+    for i in range(iterations + 1):
+        r, e, w = _readings(model, M, z.unsqueeze(0) + offsets, x, mask)
+        J = ((r[1:] - r[:1]) / delta.reshape(3, *([1] * (r.dim() - 1)))).movedim(0, -1)
+        H = J.transpose(-1, -2) @ (w.unsqueeze(-1) * J)  # [..., 3, 3]
+        b = (J * (w * e).unsqueeze(-1)).sum(-2)  # [..., 3]
+        if heading is not None and model.heading is not None:
+            Hh, bh = _heading_terms(model, heading, z)
+            H, b = H + Hh, b + bh
+        if i == iterations:
+            return z, H, b
+        A = H + torch.diag_embed(prior * 1.001)
+        step = torch.linalg.solve(A, (b - prior * (z - centre)).unsqueeze(-1)).squeeze(-1)
+        z = z + step
+
+
+def _heading_terms(model, heading: HeadingEvidence, z):
+    """The heading factor's Gauss-Newton terms at poses ``z [..., 3]``: ``H [..., 3, 3]`` and
+    ``b [..., 3]`` (zero where no direction is seen)."""
+    f = model.heading
+    so = heading.std().to(z.dtype)
+    value = torch.as_tensor(heading.frame, dtype=z.dtype) - heading.direction.nan_to_num()
+    e = wrap_period(value - z[..., 2], f.period)
+    g = torch.exp(-0.5 * (e / so) ** 2) / (so * math.sqrt(2 * math.pi))
+    resp = (1 - f.outlier_prob) * g / ((1 - f.outlier_prob) * g + f.outlier_prob / f.period)
+    w = torch.where(heading.seen(), resp / so**2, 0.0)
+    H = torch.zeros(*z.shape, 3, dtype=z.dtype)
+    H[..., 2, 2] = w
+    b = torch.zeros_like(z)
+    b[..., 2] = w * e
+    return H, b
+
+
+PROPOSALS = {
+    "transition": TransitionProposal,
+    "heading": HeadingProposal,
+    "scan-match": ScanMatchProposal,
+}
 
 
 def sequence_guide(model, proposal: Proposal, global_guide):

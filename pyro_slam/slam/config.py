@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, fields
 
 EMISSIONS = ("mlp", "raycast", "image_mlp", "ray_camera")
 TRANSITIONS = ("kinematic", "learned")
-PROPOSALS = ("transition",)
+PROPOSALS = ("transition", "scan-match")
 ESTIMATES = ("forward", "cache")
 
 

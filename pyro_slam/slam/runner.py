@@ -187,7 +187,10 @@ class SLAM:
         self.guide = GlobalGuide(
             self.map_guide, None if self.heading is None else self.heading.frame
         )
-        self.proposal = HeadingProposal() if self.heading else PROPOSALS[self.cfg.filter.proposal]()
+        name = self.cfg.filter.proposal
+        self.proposal = (
+            HeadingProposal() if self.heading and name == "transition" else PROPOSALS[name]()
+        )
         self.pf = ParticleFilter(self.model, self.proposal, self.gen, shared=self.cfg.filter.shared)
         if smc:
             self.pf = PyroSMCFilter(self.model, self.proposal, shared=self.cfg.filter.shared)

@@ -8,12 +8,14 @@ import copy
 import functools
 import math
 
+import numpy as np
 import pyro
 import pyro.distributions as dist
 import pytest
 import torch
 from pyro import poutine
 from pyro.infer import SMCFilter, Trace_ELBO
+from synthetic_logs import room_log
 
 from pyro_slam.inference import (
     ChunkBatch,
@@ -31,9 +33,10 @@ from pyro_slam.model import (
     MapGrid,
     MapGuide,
     RayEmission,
+    WrappedMixture,
 )
 from pyro_slam.planning import LearnedEnv
-from pyro_slam.slam import SLAM, fit_map, presets
+from pyro_slam.slam import SLAM, fit_map, presets, with_overrides
 from simulators import simulate_traversal
 
 B, T = 8, 5
@@ -106,7 +109,10 @@ def slam_objective(slam, n: int, seed: int = 3) -> list[float]:
 
 
 def preset_traversal(preset: str, steps: int = 6):
-    """A short traversal for ``preset`` (camera frames for the visual ones)."""
+    """A short traversal for ``preset``: camera frames for the visual ones, a metric log (a
+    room) for ``real``."""
+    if preset == "real":
+        return room_log(T=steps)[0]
     image = presets.get(preset).config.emission.observation == "image"
     return simulate_traversal("moderate-medium", steps=steps, seed=2, images=image)
 
@@ -259,3 +265,127 @@ def test_predictive_rollouts_of_the_model_under_planned_controls():
     assert tr.nodes["z_3"]["value"].shape == (2, 3) and tr.nodes["x_3"]["value"].shape == (2, B)
     turned = tr.nodes["z_1"]["value"][:, 2] - init[2]
     assert abs(float(turned[1] - turned[0]) - 0.5) < 0.3  # the second sequence turned
+
+
+def _read_marginal(model, belief, z):
+    """The stated marginalisation, written out: the reading at the belief's mean and its chance
+    of being unknown, ``1 - (1 - eps)(1 - v)``."""
+    rel = belief.scale / model.prior_std()
+    mean, v = model.emission.read_moments(model.grid, belief.loc, rel, z)
+    return mean, 1 - (1 - model.outlier_prob) * (1 - v.clamp(0, 1))
+
+
+@pytest.mark.parametrize("proposal", ["transition", "scan-match"])
+def test_filter_weights_are_model_likelihood(proposal):
+    """On fixed particles and a fixed map belief, the filter's incremental log-weights equal
+    the model's log p(x_t | z_t, M) under the stated marginalisation over q(M), plus the heading
+    factor's log-density, plus the proposal's correction log p(z_t | z_t-1) - log q(z_t); under
+    a map (no belief) the scan's part is exactly the model's emission."""
+    tr = simulate_traversal("moderate-medium", steps=40, seed=2)
+    cfg = presets.get("manhattan").config
+    slam = SLAM(tr, with_overrides(cfg, {"filter": {"proposal": proposal}}), seed=1)
+    slam.run("online", progress=False)
+    model, pf, belief = slam.model, slam.pf, slam.map_belief()
+    pf.ess_threshold = 0.0  # no resampling: the increments are the weights' changes
+    t = 39
+    g = torch.Generator().manual_seed(0)
+    K = 64
+    z_prev = torch.as_tensor(tr.poses[t - 1], dtype=torch.float32) + 0.005 * torch.randn(
+        K, 3, generator=g
+    )
+    logw = torch.log_softmax(torch.randn(K, generator=g), 0)
+    scan_prev = model.emission_mean(belief.loc, z_prev)
+    p = Particles(z_prev, logw, scan_prev)
+    x, u, h = slam.obs[t], slam.ctl[t - 1], slam.heading.evidence().at(t)
+    assert bool(h.seen()), "the step must carry heading evidence"
+    pf.generator.manual_seed(5)
+    new, inc = pf.step(p, belief, x, u, step=t, heading=h)
+    got = new.logw + inc - logw  # [K] the incremental log-weights
+    z = new.z
+    mean, eps = _read_marginal(model, belief, z)
+    scan_ll = model.emission_dist(mean, outlier_prob=eps).log_prob(x)  # [K]
+    frame, std = h.frame, math.sqrt(float(h.sigma) ** 2 + h.frame_var)
+    head_ll = WrappedMixture(frame - z[:, 2], std, math.pi / 2,
+                             model.heading.outlier_prob).log_prob(h.direction)  # fmt: skip
+    q = slam.proposal.dist(model, z_prev, scan_prev, u.unsqueeze(-2), x=x, M=belief,
+                           heading=h.per_particle())  # fmt: skip
+    trans = model.transition_dist(z_prev, u.unsqueeze(-2), scan_prev)
+    correction = trans.log_prob(z) - q.log_prob(z)
+    torch.testing.assert_close(got, scan_ll + head_ll + correction, atol=2e-3, rtol=1e-4)
+    assert correction.abs().max() > 0.1  # the proposal is not the transition
+    # under a map, the scan's part is the model's emission exactly
+    M = belief.loc
+    ll, scan = pf.log_likelihood(z, M, x)
+    torch.testing.assert_close(ll, model.emission_dist(model.emission_mean(M, z)).log_prob(x))
+
+
+def test_two_slam_objects_keep_their_maps():
+    """Each SLAM run keeps its parameters in a store of its own: building and running a second
+    one leaves the first one's map belief as it was, bit for bit, and the caller's own Pyro
+    parameters survive both."""
+    pyro.clear_param_store()
+    mine = pyro.param("users_own", torch.tensor(3.0))
+    tr1 = simulate_traversal("simple-small", steps=30, seed=0)
+    tr2 = simulate_traversal("simple-small", steps=30, seed=1)
+    a = SLAM(tr1, presets.get("raycast").config, seed=1)
+    a.run("online", progress=False)
+    before = a.map_belief()
+    b = SLAM(tr2, presets.get("raycast").config, seed=2)
+    b.run("online", progress=False)
+    after = a.map_belief()
+    assert torch.equal(before.loc, after.loc) and torch.equal(before.scale, after.scale)
+    assert not torch.equal(b.map_belief().loc, after.loc)
+    assert list(pyro.get_param_store().keys()) == ["users_own"]
+    assert pyro.param("users_own") is mine
+
+
+def _expected_increments(slam, prev: Particles, z, M, t):
+    """The model's log-likelihood of step ``t`` at poses ``z [K, 3]`` under the map ``M`` or
+    the belief ``M`` (the stated marginalisation), plus the heading factor's, plus the
+    proposal's correction from the parents ``prev``: ``[K]``."""
+    model, x, u = slam.model, slam.obs[t], slam.ctl[t - 1]
+    mask = None if slam.mask is None else slam.mask[t]
+    if isinstance(M, MapBelief):
+        mean, eps = _read_marginal(model, M, z)
+        ll = model.emission_dist(mean, mask, outlier_prob=eps).log_prob(x)
+    else:
+        ll = model.emission_dist(model.emission_mean(M, z), mask).log_prob(x)
+    h = None if slam.heading is None else slam.heading.evidence().at(t)
+    if h is not None:
+        ll = ll + model.heading_log_prob(z[:, 2], h)
+    q = slam.proposal.dist(model, prev.z, prev.scan, u.unsqueeze(-2), x=x, mask=mask, M=M,
+                           heading=None if h is None else h.per_particle())  # fmt: skip
+    trans = model.transition_dist(prev.z, u.unsqueeze(-2), prev.scan)
+    return ll + trans.log_prob(z) - q.log_prob(z)
+
+
+@pytest.mark.parametrize("preset", list(presets.PRESETS))
+def test_pyro_smcfilter_runs_every_preset(preset):
+    """Pyro's SMCFilter drop-in (``SLAM(..., smc=True)``) runs every preset with its proposal:
+    over a short run its posterior means agree with our filter's; and one of its steps weighs
+    each particle by the model's likelihood of the scan (and heading) -- under the map belief
+    through the stated marginalisation, under a map exactly -- plus the proposal's correction,
+    as our filter does (up to the normaliser)."""
+    tr = preset_traversal(preset, steps=24)
+    cfg = presets.get(preset).for_traversal(tr)
+    means = {}
+    for smc in (False, True):
+        slam = SLAM(tr, cfg, seed=1, smc=smc)
+        means[smc] = slam.run("online", progress=False)["mean"]
+    assert type(slam.pf).__name__ == "PyroSMCFilter"
+    gap = np.hypot(*(means[True][:, :2] - means[False][:, :2]).T).max()
+    scale = 1.0 if preset == "real" else 0.01  # metres, maze units
+    assert gap < scale, gap  # measured <= 0.004 (mazes)
+    pf, t = slam.pf, slam.T - 1
+    belief = slam.map_belief()
+    pf.smc.ess_threshold = 1e-9  # one more step without resampling
+    for M in (belief, belief.loc):
+        prev = pf._particles()
+        h = None if slam.heading is None else slam.heading.evidence().at(t)
+        with torch.no_grad():
+            m = None if slam.mask is None else slam.mask[t]
+            new, _ = pf.step(prev, M, slam.obs[t], slam.ctl[t - 1], m, heading=h)
+            want = _expected_increments(slam, prev, new.z, M, t)
+        diff = new.logw - prev.logw - want
+        assert float((diff - diff.mean()).abs().max()) < 2e-3
+    assert float(want.std()) > 0.1  # under the map, the scan counts
