@@ -91,10 +91,12 @@ def smcfilter(model, M, obs, ctl, init, K, steps):
     import pyro
     from pyro.infer import SMCFilter
 
-    from pyro_slam.model import BootstrapGuide, FilterModel
+    from pyro_slam.inference import ProposalGuide, TransitionProposal
+    from pyro_slam.model import FilterModel
 
     pyro.set_rng_seed(0)
-    smc = SMCFilter(FilterModel(model, M), BootstrapGuide(model), K, max_plate_nesting=0)
+    guide = ProposalGuide(model, TransitionProposal())
+    smc = SMCFilter(FilterModel(model, M), guide, K, max_plate_nesting=0)
     with torch.no_grad():
         smc.init(init_pose=init, x=obs[0])
         t0 = time.perf_counter()

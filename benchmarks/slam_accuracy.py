@@ -127,7 +127,8 @@ def run_one(job) -> dict:
     }
     if slam.heading is not None:  # the Manhattan frame's error (modulo a quarter turn)
         q = math.pi / 2
-        out["frame_error"] = (slam.heading.frame.mean - world.get("rotation", 0.0) + q / 2) % q - q / 2
+        frame = slam.heading.frame.mean - world.get("rotation", 0.0)
+        out["frame_error"] = (frame + q / 2) % q - q / 2
     np.savez(path, **out)
     return {"mode": mode, "maze": maze_seed, "seed": seed, "final": float(out["slam"][-1]),
             "pi": float(out["pi"][-1]), "wall_s": wall}  # fmt: skip

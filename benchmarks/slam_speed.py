@@ -37,7 +37,7 @@ import torch
 
 from benchmarks._common import add_config_args, slam_config
 from pyro_slam.metrics import localisation_error
-from pyro_slam.slam import SLAM, presets, with_overrides
+from pyro_slam.slam import SLAM, presets
 from simulators import simulate_traversal
 from simulators.maze import make_maze
 
@@ -117,8 +117,8 @@ def parse(argv):
     p.add_argument("--profile-steps", type=int, default=300)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--smc", action="store_true",
-                   help="also time the online run with Pyro's SMCFilter as the filter, and ours "
-                   "with the same (per-particle, 'marginal') weights")  # fmt: skip
+                   help="also time the online run with Pyro's SMCFilter as the filter (the same "
+                   "model, proposal and weights)")  # fmt: skip
     p.add_argument("--against", metavar="REV", help="also time this commit's code")
     p.add_argument("--against-config", default="{}", metavar="JSON",
                    help="the preset's settings in that commit's --config format")  # fmt: skip
@@ -150,10 +150,8 @@ def main(argv=None) -> int:
         row = {}
         cfg = configs[name]
         runs = [(mode, mode, cfg, False) for mode in modes]
-        if args.smc:  # SMCFilter weighs each particle alone: both filters with marginal weights
-            marginal = with_overrides(cfg, {"filter": {"weighting": "marginal"}})
-            runs += [("online_marginal", "online", marginal, False),
-                     ("online_smc", "online", marginal, True)]  # fmt: skip
+        if args.smc:  # Pyro's SMCFilter as the filter, same model, proposal and weights
+            runs += [("online_smc", "online", cfg, True)]
         for key, mode, config, smc in runs:
             wall, err = time_run(tr, config, mode, smc)
             row[key] = {"wall_s": round(wall, 1), "steps_per_s": round(args.steps / wall, 2),

@@ -129,13 +129,13 @@ def test_gradients_reach_map_and_emission_through_particle_elbo():
     slam = small_slam(image_traversal())
     assert isinstance(slam.model.emission, ImageEmission)
     slam._filter_pass(False, "fill cache")
-    loss = slam.elbo.differentiable_loss(
-        slam.model.map_model, slam.guide, ChunkBatch(torch.tensor([0, 20]), 4)
-    )
-    assert torch.isfinite(loss)
-    loss.backward()
-    store = pyro.get_param_store()
-    g_map = store["map_loc"].grad
+    with slam.scope():
+        loss = slam.elbo.differentiable_loss(
+            slam.model.global_model, slam.guide, ChunkBatch(torch.tensor([0, 20]), 4)
+        )
+        assert torch.isfinite(loss)
+        loss.backward()
+        g_map = pyro.get_param_store()["map_loc"].grad
     assert g_map is not None and torch.isfinite(g_map).all() and g_map.abs().sum() > 0
     for p in slam.model.emission.parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all()

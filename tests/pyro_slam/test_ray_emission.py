@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from pyro_slam.geometry import wrap_angle
-from pyro_slam.inference import ParticleFilter, Particles
+from pyro_slam.inference import ParticleFilter
 from pyro_slam.metrics import localisation_error
 from pyro_slam.model import (
     DVBFLM,

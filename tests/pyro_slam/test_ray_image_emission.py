@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from pyro_slam.geometry import wrap_angle
-from pyro_slam.inference import ChunkBatch, MapBelief, ParticleFilter
-from pyro_slam.model import MapGrid, RayEmission, RayImageEmission
+from pyro_slam.inference import ChunkBatch
+from pyro_slam.model import MapBelief, MapGrid, RayEmission, RayImageEmission
 from pyro_slam.slam import (
     SLAM,
     ConfigError,
@@ -143,12 +143,13 @@ def test_gradients_reach_occupancy_albedo_and_camera_constants(image_traversal):
     torch.manual_seed(0)
     slam = SLAM(image_traversal, SMALL)
     slam._filter_pass(False, "fill cache")
-    loss = slam.elbo.differentiable_loss(
-        slam.model.map_model, slam.guide, ChunkBatch(torch.tensor([0, 20]), 4)
-    )
-    assert torch.isfinite(loss)
-    loss.backward()
-    g = pyro.get_param_store()["map_loc"].grad
+    with slam.scope():
+        loss = slam.elbo.differentiable_loss(
+            slam.model.global_model, slam.guide, ChunkBatch(torch.tensor([0, 20]), 4)
+        )
+        assert torch.isfinite(loss)
+        loss.backward()
+        g = pyro.get_param_store()["map_loc"].grad
     assert g is not None and torch.isfinite(g).all()
     assert g[..., 0].abs().sum() > 0 and g[..., 1:].abs().sum() > 0
     em = slam.model.emission
@@ -160,25 +161,22 @@ def test_gradients_reach_occupancy_albedo_and_camera_constants(image_traversal):
     assert len(res["losses"]) == 60 - 4 + 1 + 4  # the online sweep's SVI steps, then 4 offline
 
 
-def test_trust_reads_the_occupancy_at_the_pose_not_the_wall_albedo(image_traversal):
+def test_unknownness_reads_the_occupancy_where_rays_stop_not_the_wall_albedo(image_traversal):
     prep = prepare_traversal(image_traversal, CFG)
     model, guide = build_model(prep, CFG)
-    assert model.emission.trust_features == 1
     # occupancy mapped everywhere (std 0.1), albedo only where rays stop: still the prior's std
     scale = torch.ones(guide.shape)
     scale[..., 0] = 0.1
     belief = MapBelief(torch.zeros(guide.shape), scale)
     z = torch.as_tensor(image_traversal.poses[:5], dtype=torch.float32)
-    trust = ParticleFilter(model).trust(z, belief)  # [5, 1]
-    assert trust.shape == (5, 1)
-    torch.testing.assert_close(trust, torch.full((5, 1), 0.99))
-    # an emission that reads every feature of the chart (the default) would see var 0.89
-    model.emission.trust_features = None
-    assert float(ParticleFilter(model).trust(z, belief).max()) < 0.12
-    # per-ray trust (the beam variance) likewise reads the occupancy where each ray stops
-    var = model.emission.beam_variance(model.grid, belief.loc, belief.scale, z)  # [5, 32]
-    assert var.shape == (5, 32)
-    torch.testing.assert_close(var, torch.full((5, 32), 0.01))
+    mean, v = model.emission.read_moments(model.grid, belief.loc, belief.scale, z)
+    rows, cols = model.emission.rows, model.emission.cols
+    assert mean.shape == v.shape == (5, rows * cols)
+    torch.testing.assert_close(v, torch.full((5, rows * cols), 0.01))
+    # each pixel is as unknown as its column's ray: unmapped occupancy makes it unknown
+    belief.scale[..., 0] = 1.0
+    v = model.emission.read_moments(model.grid, belief.loc, belief.scale, z)[1]
+    torch.testing.assert_close(v, torch.ones(5, rows * cols))
 
 
 def test_heading_observation_from_images(image_traversal, monkeypatch):

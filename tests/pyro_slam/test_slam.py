@@ -11,13 +11,14 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+import pyro.distributions as dist
 import pytest
 import torch
 
 import pyro_slam.data
-from pyro_slam.inference import ChunkBatch, MapBelief, ParticleFilter, Particles, Weighting
+from pyro_slam.inference import ChunkBatch, ParticleFilter, Particles
 from pyro_slam.metrics import localisation_error
-from pyro_slam.model import EmissionMLP, KinematicTransition
+from pyro_slam.model import EmissionMLP, KinematicTransition, MapBelief
 from pyro_slam.pretrained import EMISSION_FILE, PRETRAINED, load_emission
 from pyro_slam.slam import (
     SLAM,
@@ -26,7 +27,6 @@ from pyro_slam.slam import (
     FilterConfig,
     OfflineConfig,
     SLAMConfig,
-    SLAMState,
     TrainingConfig,
     TransitionConfig,
     checkpoint,
@@ -217,12 +217,10 @@ def test_transition_scale_scales_a_copy_of_sigma_t(traversal):
             TransitionConfig(scale=bad)
 
 
-@pytest.mark.parametrize("objective", ["elbo", "filter-sigma"])
-def test_elbo_chunk_filter_weighs_with_the_objectives_emission(traversal, objective):
-    # "elbo": the model's own sigma_E (0.1 here); "filter-sigma": the filter's sharper std;
-    # never the filter's outlier mixture
-    over = {"filter": {"sigma": 0.02, "outlier_prob": 0.2}, "training": {"objective": objective}}
-    slam = make_slam(traversal, over)
+def test_elbo_chunk_filter_weighs_with_the_models_emission(traversal):
+    # the training objective's chunk filter weighs with the model's emission: its sigma_E and
+    # its beam mixture, as the filter does
+    slam = make_slam(traversal, {"emission": {"sigma": 0.02, "outlier_prob": 0.2}})
     t = 5
     true = torch.as_tensor(traversal.poses, dtype=slam.cache.z.dtype)
     slam.cache.z[:] = true.unsqueeze(1)  # every cached particle at the true pose
@@ -231,19 +229,18 @@ def test_elbo_chunk_filter_weighs_with_the_objectives_emission(traversal, object
     with torch.no_grad():
         ev = slam.elbo.chunk_log_evidence(M, ChunkBatch(torch.tensor([t]), 1))
         scan = slam.model.emission_mean(M, true[t])
-        sigma = 0.02 if objective == "filter-sigma" else slam.model.sigma_emission
-        expected = slam.model.emission_log_prob(slam.obs[t], scan, sigma=sigma)
-    assert slam.pf.weighting.sigma == 0.02 and slam.pf.weighting.outlier_prob == 0.2
-    assert slam.elbo.pf.weighting.outlier_prob == 0
+        gauss = dist.Normal(scan, 0.02).log_prob(slam.obs[t]).exp()
+        expected = torch.log(0.8 * gauss + 0.2 / slam.model.outlier_range).sum()
+    assert slam.model.sigma_emission == 0.02 and slam.model.outlier_prob == 0.2
     torch.testing.assert_close(ev[0], expected, rtol=1e-3, atol=1e-2)
 
 
-@pytest.mark.parametrize("weighting", ["marginal", "shared"])
-def test_shared_trust_removes_the_pull_towards_often_written_cells(traversal, weighting):
+@pytest.mark.parametrize("shared", [False, True])
+def test_shared_unknownness_removes_the_pull_towards_often_written_cells(traversal, shared):
     # a map whose mean is the same everywhere (every particle predicts the same scan, and the
     # observation is that scan) but whose scale falls from 1 (unmapped) to 0.2 (written often)
-    # along x: per-particle trust ("marginal") prefers the particles in the often-written cells
-    # through the normaliser -B log sigma alone; one trust for the cloud ("shared") does not
+    # along x: per particle, the marginal emission prefers the particles in the often-written
+    # cells (their readings are known); with one unknown-ness for the cloud it does not
     slam = make_slam(traversal)
     w, h, D = slam.model.grid.shape
     scale = torch.linspace(1.0, 0.2, w).view(w, 1, 1).expand(w, h, D).contiguous()
@@ -252,12 +249,12 @@ def test_shared_trust_removes_the_pull_towards_often_written_cells(traversal, we
     z = torch.zeros(64, 3)
     z[:, 0] = torch.linspace(x0 + 0.05, x1 - 0.05, 64)
     z[:, 1] = 0.5 * (y0 + y1)
-    pf = ParticleFilter(slam.model, Weighting(weighting, 0.05))
+    pf = ParticleFilter(slam.model, shared=shared)
     flat = torch.full((64,), -math.log(64))
     x = slam.model.emission_mean(belief.loc, z[0]).detach()  # [B] a perfect match everywhere
     p, _ = pf._weigh(z, belief, x, None, flat, step=0)
     logw = p.logw.detach()
-    if weighting == "shared":
+    if shared:
         torch.testing.assert_close(logw, flat)
     else:
         assert logw[-1] - logw[0] > 1.0 and (logw.diff() >= -1e-6).all()
@@ -267,7 +264,7 @@ def test_an_emission_with_a_finer_world_profile_reads_the_traversals_beams(trave
     emission = small_emission(traversal, n_world=40)
     slam = make_slam(traversal, emission=emission, learn_emission=True)
     assert slam.model.emission.n_world == 40
-    assert slam.model.emission_mean(slam.guide.params()[0].detach(), torch.zeros(3)).shape == (
+    assert slam.model.emission_mean(slam.map_belief().loc, torch.zeros(3)).shape == (
         traversal.num_beams,
     )
     # the shipped 20-direction emission does not fit a 40-beam LiDAR
@@ -292,7 +289,7 @@ def test_path_integration_reproduces_noiseless_motion():
 
 
 # ---------------------------------------------------------------------------- resume
-RAYCAST = {"emission": {"kind": "raycast", "insert": {}}, "filter": {"outlier_prob": 0.1}}
+RAYCAST = {"emission": {"kind": "raycast", "insert": {}, "outlier_prob": 0.1}}
 
 
 @pytest.mark.parametrize(
@@ -404,43 +401,3 @@ def test_checkpoint_every_must_be_a_positive_integer(traversal):
     for bad in (0, -3, 2.5):
         with pytest.raises(ValueError, match="checkpoint_every must be a positive integer"):
             make_slam(traversal, checkpoint_every=bad)
-
-
-def test_transition_scale_trusted_loosens_sigma_t_with_the_clouds_trust(traversal):
-    # sigma_T moves from the transition.scale one (unmapped map: trust 0.01) to the
-    # transition.scale_trusted one (map with scale 0: trust 1), and the filter spreads by it
-    lo_scale, hi_scale = (1.0, 1.0, 0.2), (1.0, 1.0, 1.0)
-    slam = make_slam(traversal, {"transition": {"scale": lo_scale, "scale_trusted": hi_scale}})
-    base = make_slam(traversal, {"transition": {"scale": lo_scale}})
-    assert base._transition_sigma(base.map_belief()) is None  # off by default
-    lo = slam.model.transition.sigma.clone()
-    w, h, D = slam.model.grid.shape
-    K = 4000
-    z = torch.tensor(traversal.poses[0], dtype=torch.float32).expand(K, 3).clone()
-    slam.particles = Particles(z, torch.full((K,), -math.log(K)))
-    unmapped = MapBelief(torch.zeros(w, h, D), torch.ones(w, h, D))
-    mapped = MapBelief(torch.zeros(w, h, D), torch.zeros(w, h, D))
-    hi = lo / torch.tensor(lo_scale) * torch.tensor(hi_scale)
-    torch.testing.assert_close(slam._transition_sigma(unmapped), lo + 0.01 * (hi - lo))
-    torch.testing.assert_close(slam._transition_sigma(mapped), hi)
-    assert hi[2] == pytest.approx(5 * lo[2]) and hi[0] == pytest.approx(lo[0])
-    u = slam.ctl[0]
-    for M, sigma in ((unmapped, lo), (mapped, hi)):
-        spread = slam.pf.propagate(slam.particles, u, slam._transition_sigma(M)).std(0)
-        torch.testing.assert_close(spread, sigma, rtol=0.08, atol=0)
-    res = slam.run("online", progress=False)  # runs end to end with it
-    assert np.isfinite(res["mean"]).all()
-    # during a run the schedule reads the trust the last step's weights computed
-    slam.state = SLAMState("online")
-    slam.pf.init(z[:64], mapped, slam.obs[0])
-    torch.testing.assert_close(slam.pf.last_cloud_trust, torch.tensor(1.0))
-    torch.testing.assert_close(slam._transition_sigma(unmapped), hi)
-    slam.pf.last_cloud_trust = None
-    # the offline filter passes (a finished map, no frontier) keep the model's sigma_T
-    slam.state = SLAMState("offline", phase="online-init")
-    torch.testing.assert_close(slam._transition_sigma(mapped), hi)
-    for phase in ("offline-filter", "offline-final"):
-        slam.state = SLAMState("offline", phase=phase)
-        assert slam._transition_sigma(mapped) is None
-    with pytest.raises(ConfigError, match="transition.scale_trusted must be 3 positive"):
-        TransitionConfig(scale_trusted=(1.0, 0.0, 1.0))
