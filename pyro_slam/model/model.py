@@ -97,7 +97,7 @@ class HeadingEvidence:
 
     def seen(self) -> torch.Tensor:
         """``[...]`` bool: a direction is observed (and a frame known)."""
-        known = not (isinstance(self.frame, float) and math.isnan(self.frame))
+        known = ~torch.isnan(torch.as_tensor(self.frame, dtype=self.direction.dtype))
         return ~torch.isnan(self.direction) & known
 
     def std(self) -> torch.Tensor:
@@ -379,8 +379,10 @@ class DVBFLM(nn.Module):
         """``log p(h_t | theta_t, phi)`` at headings ``theta [...]`` for ``evidence`` that
         broadcasts with them (:meth:`HeadingEvidence.per_particle`), marginalised over the
         frame's belief where it holds one; zero where no direction is seen: ``[...]``."""
-        d = self.heading_dist(theta, evidence.frame, evidence.std().to(theta.dtype))
-        return torch.where(evidence.seen(), d.log_prob(evidence.direction.nan_to_num()), 0.0)
+        seen = evidence.seen()
+        frame = torch.as_tensor(evidence.frame, dtype=theta.dtype).nan_to_num()  # (unseen)
+        d = self.heading_dist(theta, frame, evidence.std().to(theta.dtype))
+        return torch.where(seen, d.log_prob(evidence.direction.nan_to_num()), 0.0)
 
     def map_prior(self):
         """``p(M)`` per cell (event ``[D_m]``): the given prior, or ``N(0, 1)``."""

@@ -189,7 +189,8 @@ def test_heading_observation_from_images(image_traversal, monkeypatch):
     base = replace(CFG, filter=FilterConfig(particles=32), training=TrainingConfig(particles=4))
     on = replace(base, heading=HeadingConfig(sigma=1e-3))
     slam = SLAM(tr, on, emission=ray_camera(tr, samples=24), learn_emission=True)
-    value = slam.heading.observation().value  # [T] -heading mod pi / 2, nan: no walls agree
+    e = slam.heading.evidence()  # wall directions [T], nan: no walls agree
+    value = torch.remainder(e.frame - e.direction, math.pi / 2)  # the heading mod pi / 2
     seen = ~value.isnan()
     assert float(seen.double().mean()) > 0.8
     r = torch.remainder(torch.as_tensor(tr.poses[:, 2]) - value + math.pi / 4, math.pi / 2)
