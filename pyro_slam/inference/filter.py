@@ -58,6 +58,19 @@ class ParticleFilter:
         self.autocast_dtype = autocast_dtype
         self.last_cloud_trust: torch.Tensor | None = None  # [...] set by each weighing
 
+    def state_dict(self) -> dict:
+        """What the next step reads besides the particles (tensors only): the cloud's trust in
+        the map at the last weighing (``last_cloud_trust``, ``[...]`` or None)."""
+        trust = self.last_cloud_trust
+        return {"last_cloud_trust": None if trust is None else trust.detach().clone()}
+
+    def load_state_dict(self, d: dict) -> None:
+        """Restore :meth:`state_dict`; ``TypeError`` / ``KeyError`` for anything else."""
+        trust = d["last_cloud_trust"]
+        if trust is not None and not isinstance(trust, torch.Tensor):
+            raise TypeError(f"last_cloud_trust must be a tensor or None, got {type(trust)}")
+        self.last_cloud_trust = None if trust is None else trust.clone()
+
     def trust(self, z: torch.Tensor, M: MapBelief) -> torch.Tensor:
         """The weights' trust in ``M`` at poses ``z [..., K, 3]`` (:meth:`Weighting.trust`)."""
         return self.weighting.trust(self.model, z, M)

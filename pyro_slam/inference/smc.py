@@ -40,6 +40,14 @@ class PyroSMCFilter:
         log_lik, scan, _ = self.weighting.log_likelihood(self.model, z, self._belief, x, mask)
         return log_lik, scan
 
+    def state_dict(self) -> dict:
+        """Nothing beyond the particles (the interface of :class:`~.filter.ParticleFilter`)."""
+        return {}
+
+    def load_state_dict(self, d: dict) -> None:
+        if d:
+            raise KeyError(f"unexpected filter state {sorted(d)}")
+
     def trust(self, z, M: MapBelief) -> torch.Tensor:
         return self.weighting.trust(self.model, z, M)
 

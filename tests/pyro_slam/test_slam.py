@@ -305,6 +305,9 @@ RAYCAST = {"emission": {"kind": "raycast", "insert": {}}, "filter": {"outlier_pr
         ("offline", 5, {"transition": {"scale": [3.0, 3.0, 0.2]}}),  # scaled once, not on resume
         ("offline", 5, {"offline": {"estimate": "cache"}}),  # between rounds without filter passes
         ("online", 2, RAYCAST),  # the scan inserter's record of written cells is restored
+        # the transition noise follows the cloud's trust in the map as the last step weighed
+        # it (before that step's SVI): the filter's state is restored, not recomputed
+        ("online", 2, {"transition": {"scale_trusted": [1.0, 1.0, 3.0]}}),
     ],
 )
 def test_resume_reproduces_uninterrupted_run(traversal, tmp_path, mode, crash_at, over):
