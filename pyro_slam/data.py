@@ -177,19 +177,31 @@ MAX_LOAD_BYTES = 1 << 30  # a data set's arrays, uncompressed, at most (1 GiB)
 def atomic_write(path: Path, write) -> None:
     """Call ``write(fileobj)`` on a temporary file next to ``path``, then rename it into place:
     a failure leaves any previous ``path`` as it was. The file gets the usual permissions."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    atomic_write_all({Path(path): write})
+
+
+def atomic_write_all(writes: dict) -> None:
+    """:func:`atomic_write` for several files together (``{path: write}``): every file is
+    written to a temporary file first, and only when all of them are written are they renamed
+    into place; a failure leaves every previous file as it was."""
+    done: list[tuple[str, Path]] = []
     try:
-        os.fchmod(fd, _file_mode())
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        for path, write in writes.items():
+            path = Path(path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+            done.append((tmp, path))
+            os.fchmod(fd, _file_mode())
+            with os.fdopen(fd, "wb") as f:
+                write(f)
+                f.flush()
+                os.fsync(f.fileno())
+        for tmp, path in done:
+            os.replace(tmp, path)
     except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        for tmp, _ in done:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
         raise
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -10,6 +11,7 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
+from pyro_slam import cli
 from pyro_slam.io import ParseError, read_any, read_rosbag
 from pyro_slam.io.common import compose, relative
 
@@ -204,3 +206,25 @@ def test_odometry_from_tf_and_the_laser_mounting_offset(tmp_path, with_odom):
     assert tr.metadata["base_frame"] == "base_link"
     source = "/odom" if with_odom else "/tf odom -> base_link"
     assert tr.metadata["odometry_source"].startswith(source)
+
+
+TINY = '{"filter": {"particles": 16}, "training": {"particles": 4, "chunks": 2}}'
+
+
+def test_a_bag_with_two_scan_topics_runs_with_scan_topic(tmp_path, capsys):
+    """From the command line: two LaserScan topics are refused naming ``--scan-topic``, which
+    picks one; an Odometry topic that is not in the bag is named."""
+    path = write_ros2(tmp_path / "two", extra_scan_topic=True)
+    args = ["slam", str(path), "--config", TINY]
+    assert cli.main([*args, "--out", str(tmp_path / "a")]) == 2
+    assert "--scan-topic" in capsys.readouterr().err
+    scan2 = ["--scan-topic", "/scan2"]
+    assert cli.main([*args, "--out", str(tmp_path / "b"), *scan2, "--odom-topic", "/nope"]) == 2
+    assert "/nope" in capsys.readouterr().err
+    assert cli.main([*args, "--out", str(tmp_path / "c"), *scan2]) == 0
+    report = json.loads((tmp_path / "c" / "metrics.json").read_text())
+    assert report["steps"] == T and report["preset"] == "real"
+    # five scans: no two of them are far enough apart in time to score each other
+    consistency = report["scan_consistency"]["slam"]
+    assert consistency["mean"] is None and "too short" in consistency["reason"]
+    assert "NaN" not in (tmp_path / "c" / "metrics.json").read_text()
