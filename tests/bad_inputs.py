@@ -772,7 +772,7 @@ def overwrite_cases(shared) -> list[Case]:
         ),
         Case(
             "pretrain into the package",
-            ["pretrain", "--out", str(PRETRAINED_DIR), "--overwrite", "--steps", "10"],
+            ["pretrain", "--out", str(PRETRAINED_DIR / "sub"), "--steps", "10"],
             "--into-package",
         ),
         Case(

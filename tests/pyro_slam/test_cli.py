@@ -281,12 +281,18 @@ PRETRAIN_FAST = ["--steps", "60", "--emission-steps", "2", "--transition-epochs"
 def test_pretrain_refuses_to_write_into_the_package(tmp_path, monkeypatch, capsys):
     """``pretrain`` writes into the installed package only with ``--into-package``; by default
     into ``pretrained/`` in the current folder, and never over network files without
-    ``--overwrite``; the networks it writes load."""
-    package = {p.name: p.read_bytes() for p in pretrained.PRETRAINED.glob("*.pt")}
-    for out in (pretrained.PRETRAINED, pretrained.PRETRAINED / "sub"):
+    ``--overwrite``; the networks it writes load. (The package's folder is a copy here, so that
+    a failure cannot replace the shipped networks.)"""
+    package = tmp_path / "package" / "pretrained"
+    package.mkdir(parents=True)
+    for name in (pretrained.EMISSION_FILE, pretrained.TRANSITION_FILE):
+        (package / name).write_bytes((pretrained.PRETRAINED / name).read_bytes())
+    monkeypatch.setattr(pretrained, "PRETRAINED", package)
+    shipped = _files(package)
+    for out in (package, package / "sub", package / ".." / "pretrained"):
         assert cli.main(["pretrain", "--out", str(out), "--overwrite", *PRETRAIN_FAST]) == 2
         assert "--into-package" in capsys.readouterr().err
-    assert {p.name: p.read_bytes() for p in pretrained.PRETRAINED.glob("*.pt")} == package
+    assert _files(package) == shipped
     monkeypatch.chdir(tmp_path)
     assert cli.main(["pretrain", *PRETRAIN_FAST]) == 0
     out = tmp_path / "pretrained"
