@@ -5,20 +5,23 @@
     pyro-slam slam traversal.npz --preset manhattan --config '{"filter": {"particles": 256}}'
     pyro-slam slam traversal.npz --out run/ --resume          # continue from run/checkpoint.pt
     pyro-slam demo --out out/                       # simulate + SLAM + plots + metrics.json
-    pyro-slam navigate --maze-seed 1001             # hybrid A* in the learned model
+    pyro-slam navigate --from run/                  # hybrid A* in the SLAM run's map
     pyro-slam pretrain --out pretrained/            # emission + learned transition
 
 Every sub-command validates its inputs before computing and exits with status 2 and a one-line
-message naming the file and problem on bad input.
+message naming the file and problem on bad input; ``navigate`` exits with status 1 when it
+finds no plan.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import math
 import os
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -30,15 +33,27 @@ from simulators.plotting import plot_traversal
 from simulators.traversal import integrate_controls
 
 from . import pretrained
-from .data import DatasetError, Traversal, one_line
-from .io import read_any
+from .data import DatasetError, Traversal, atomic_write_all, one_line
+from .io import input_kind, read_any
 from .model import pretrain_transition
-from .planning import GroundTruthEnv, execute, free_grid, learned_env, lookalikes, plan
+from .planning import (
+    GroundTruthEnv,
+    execute,
+    free_grid,
+    learned_env,
+    lookalikes,
+    plan,
+    run_env,
+)
 from .planning.inverse import fit_inverse
 from .plotting import plot_navigation
-from .slam import SLAM, ConfigError, SLAMConfig, presets, with_overrides
-from .slam.outputs import prepare_out_dir, run_slam
+from .runtime import package_version
+from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets, with_overrides
+from .slam.build import check_hits, prepare_traversal
+from .slam.outputs import prepare_out_dir, read_run, run_slam
 from .slam.training import pretrain_emission
+
+DEFAULT_MAZE, DEFAULT_MAZE_SEED = "moderate-medium", 1001  # navigate's own maze
 
 
 # ----------------------------------------------------------------------------------- helpers
@@ -47,6 +62,16 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+class _Help(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Help that shows each option's default (an option without one says in words what
+    happens) and keeps descriptions and epilogues as written."""
+
+    def _get_help_string(self, action):
+        if action.default is None:
+            return action.help
+        return super()._get_help_string(action)
 
 
 def _number(kind, low: float, inclusive: bool = True):
@@ -72,12 +97,31 @@ FINITE = _number(float, -math.inf)
 
 
 def _read(args) -> Traversal:
-    """The input traversal (``--lenient``: a log's malformed lines are skipped and counted)."""
-    kw = {"lenient": True} if getattr(args, "lenient", False) else {}
+    """The input traversal. ``--lenient`` (text logs): malformed lines are skipped, and said
+    in one line on stderr; ``--scan-topic`` / ``--odom-topic``: a ROS bag's topics."""
     path = Path(args.traversal)
-    if kw and path.suffix.lower() == ".npz":
-        raise DatasetError(f"{path}: --lenient applies to text logs, not .npz data sets")
-    return read_any(path, **kw)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file or directory")
+    kind, kw = input_kind(path), {}
+    if getattr(args, "lenient", False):
+        if kind != "carmen":
+            raise DatasetError(f"{path}: --lenient applies to CARMEN text logs, not this input")
+        kw["lenient"] = True
+    for opt in ("scan_topic", "odom_topic"):
+        if getattr(args, opt, None) is not None:
+            if kind != "rosbag":
+                raise DatasetError(f"{path}: --{opt.replace('_', '-')} applies to ROS bags")
+            kw[opt] = getattr(args, opt)
+    tr = read_any(path, **kw)
+    skipped = tr.metadata.get("skipped_lines", 0)
+    if skipped:
+        first = (tr.metadata.get("skip_reasons") or ["?"])[0]
+        print(
+            f"pyro-slam {args.command}: --lenient skipped {skipped} malformed line(s) of "
+            f"{path} (listed in metrics.json; the first: {first})",
+            file=sys.stderr,
+        )
+    return tr
 
 
 def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
@@ -97,8 +141,10 @@ def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
             try:
                 text = Path(text).read_text()
             except (OSError, UnicodeDecodeError) as e:
-                raise DatasetError(f"--config {text[:60]!r}: not a JSON object, nor a readable "
-                                   f"file ({one_line(e)})") from None  # fmt: skip
+                raise DatasetError(
+                    f"--config {text[:60]!r}: not a JSON object, nor a readable "
+                    f"file ({one_line(e)})"
+                ) from None
         try:
             over = json.loads(text)
         except json.JSONDecodeError as e:
@@ -121,21 +167,23 @@ def _print_report(report: dict, out: Path) -> None:
         )
     if "scan_consistency" in report:
         c = report["scan_consistency"]
-        line += (
-            f" | scan consistency SLAM {c['slam']['mean']:.3f} vs path integration "
-            f"{c['path_integration']['mean']:.3f}"
-        )
+        if c["slam"]["mean"] is None:
+            line += f" | scan consistency undefined: {c['slam']['reason']}"
+        else:
+            line += (
+                f" | scan consistency SLAM {c['slam']['mean']:.3f} vs path integration "
+                f"{c['path_integration']['mean']:.3f}"
+            )
     print(line + f" -> {out}/ (metrics.json, slam.png, map.png / error.png, checkpoint.pt)")
 
 
-# ----------------------------------------------------------------------------------- commands
-DEMO_INPUTS = ("traversal.npz", "traversal.png")
-
-
-def _writable(path: Path, what: str) -> None:
-    """Refuse an output path that cannot be written (before any work is done)."""
+def _writable(path: Path, what: str, overwrite: bool = True) -> None:
+    """Refuse an output path that cannot be written, or (without ``overwrite``) that exists,
+    before any work is done."""
     if path.is_dir():
         raise DatasetError(f"{what} {path}: is a folder, not a file")
+    if path.exists() and not overwrite:
+        raise DatasetError(f"{what} {path}: exists; use --overwrite to replace it")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         probe = path.parent / f".write-test-{os.getpid()}"
@@ -143,6 +191,10 @@ def _writable(path: Path, what: str) -> None:
         probe.unlink()
     except OSError as e:
         raise DatasetError(f"{what} {path}: cannot write there ({e.strerror or e})") from None
+
+
+# ----------------------------------------------------------------------------------- commands
+DEMO_INPUTS = ("traversal.npz", "traversal.png")
 
 
 def cmd_simulate(args) -> int:
@@ -170,12 +222,16 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_slam(args) -> int:
+    """Read the input, the configuration and the networks, then run SLAM into ``--out``
+    (with ``--overwrite`` the previous run there is replaced only after all of that)."""
     torch.manual_seed(args.seed)
     prepare_out_dir(args.out, args.resume, args.overwrite)
     tr = _read(args)
     if args.steps:
         tr = tr.slice(0, min(args.steps, tr.num_steps))
     name, config = _config(args, tr)
+    source = str(Path(args.traversal).resolve())
+    check_hits(prepare_traversal(tr, config), config, source)
     emission = None
     if args.emission is not None:
         if config.emission.kind != "mlp":
@@ -185,27 +241,84 @@ def cmd_slam(args) -> int:
             )
         emission = pretrained.load_emission(args.emission, tr)
     transition = pretrained.load_transition(args.transition) if args.transition else None
-    report = run_slam(tr, args.out, args.mode, config, emission, transition, args.resume,
-                      seed=args.seed, preset=name)  # fmt: skip
+    report = run_slam(
+        tr,
+        args.out,
+        args.mode,
+        config,
+        emission,
+        transition,
+        args.resume,
+        seed=args.seed,
+        preset=name,
+        overwrite=args.overwrite,
+        source=source,
+        checkpoint_every=args.checkpoint_every,
+    )
     _print_report(report, args.out)
     return 0
 
 
+def _pretrain_out(args) -> Path:
+    """``--out`` of ``pretrain``, refused inside the installed package's folder of shipped
+    networks unless ``--into-package``, and where it would replace networks without
+    ``--overwrite``."""
+    package = pretrained.PRETRAINED.resolve()
+    out = Path(args.out) if args.out is not None else None
+    if out is None:
+        out = package if args.into_package else Path("pretrained")
+    inside = out.resolve() == package or package in out.resolve().parents
+    if inside and not args.into_package:
+        raise DatasetError(
+            f"--out {out}: is inside the installed package ({package}), whose networks every "
+            "run uses by default; pass --into-package to replace them there"
+        )
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"--out {out}: exists and is not a folder")
+    names = [
+        n for n in (pretrained.EMISSION_FILE, pretrained.TRANSITION_FILE) if (out / n).exists()
+    ]
+    if names and not args.overwrite:
+        raise DatasetError(
+            f"--out {out}: holds {', '.join(names)}; use --overwrite to replace them, or "
+            "another folder"
+        )
+    _writable(out / pretrained.EMISSION_FILE, "--out")
+    return out
+
+
+def _torch_writer(obj):
+    """A writer of ``obj`` in ``torch.save``'s format (for :func:`atomic_write_all`)."""
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    data = buf.getvalue()
+    return lambda f: f.write(data)
+
+
 def cmd_pretrain(args) -> int:
-    if args.out.exists() and not args.out.is_dir():
-        raise DatasetError(f"--out {args.out}: exists and is not a folder")
-    _writable(args.out / pretrained.EMISSION_FILE, "--out")
+    """Pretrain the emission and the learned transition; both files are written together at
+    the end (a failure leaves the previous ones as they were)."""
+    out = _pretrain_out(args)
     tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
     em, stats = pretrain_emission([tr], SLAMConfig(), steps=args.emission_steps, seed=args.seed)
     blob = {
         "state_dict": em.state_dict(),
-        "meta": {"n_world": em.n_world, "map_dim": em.map_dim, "scale": tr.max_range,
-                 "maze": args.maze, "seed": args.seed, **stats},
-    }  # fmt: skip
-    torch.save(blob, args.out / pretrained.EMISSION_FILE)
+        "meta": {
+            "n_world": em.n_world,
+            "map_dim": em.map_dim,
+            "scale": tr.max_range,
+            "maze": args.maze,
+            "seed": args.seed,
+            **stats,
+        },
+    }
     tran, tstats = pretrain_transition([tr], epochs=args.transition_epochs, seed=args.seed)
-    torch.save(tran.to_state(), args.out / pretrained.TRANSITION_FILE)
-    print(json.dumps({"emission": stats, "transition": tstats}, default=float))
+    files = {
+        out / pretrained.EMISSION_FILE: _torch_writer(blob),
+        out / pretrained.TRANSITION_FILE: _torch_writer(tran.to_state()),
+    }
+    atomic_write_all(files)
+    print(json.dumps({"emission": stats, "transition": tstats, "out": str(out)}, default=float))
     return 0
 
 
@@ -214,31 +327,119 @@ def cmd_demo(args) -> int:
     torch.manual_seed(args.seed)
     out = Path(args.out)
     prepare_out_dir(out, args.resume, args.overwrite, keep=DEMO_INPUTS)
-    if args.overwrite:
-        for name in DEMO_INPUTS:
-            (out / name).unlink(missing_ok=True)
     tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
-    tr.save(out / "traversal.npz")
-    plot_traversal(tr, out / "traversal.png")
     config = presets.get(args.preset).for_traversal(tr)
-    report = run_slam(tr, out, args.mode, config, resume=args.resume, seed=args.seed,
-                      preset=args.preset)  # fmt: skip
+    inputs = {"traversal.npz": tr.save, "traversal.png": lambda p: plot_traversal(tr, p)}
+    report = run_slam(
+        tr,
+        out,
+        args.mode,
+        config,
+        resume=args.resume,
+        seed=args.seed,
+        preset=args.preset,
+        overwrite=args.overwrite,
+        inputs=inputs,
+        source=str((out / "traversal.npz").resolve()),
+        checkpoint_every=args.checkpoint_every,
+    )
     _print_report(report, out)
     return 0
 
 
-def _navigation_map(args, maze, tr):
-    """The learned environment of ``navigate``: ``q(M)`` fitted at the true poses or at an
-    online SLAM run's pose means (``--map slam``, the ``paper`` preset: the map the planner
-    reads is the paper's chart map)."""
+# ----------------------------------------------------------------------------------- navigate
+def _maze_of(tr: Traversal, src, args):
+    """The simulator's maze a traversal was recorded in (its ``metadata.maze``), checked
+    against its walls and against ``--maze`` / ``--maze-seed`` where given."""
+    spec = tr.metadata.get("maze")
+    if not (
+        isinstance(spec, dict) and spec.get("name") in SCALES and isinstance(spec.get("seed"), int)
+    ):
+        raise DatasetError(
+            f"{src}: field 'metadata.maze' names no simulated maze; navigate executes its plan "
+            "in the simulator, so it needs a traversal simulated by pyro-slam"
+        )
+    for opt, given, have in (
+        ("--maze", args.maze, spec["name"]),
+        ("--maze-seed", args.maze_seed, spec["seed"]),
+    ):
+        if given is not None and given != have:
+            raise DatasetError(
+                f"{opt} {given}: {src} was recorded in maze {spec['name']} seed {spec['seed']}"
+            )
+    maze = make_maze(spec["name"], spec["seed"])
+    if maze.walls.shape != tr.walls.shape or not np.allclose(maze.walls, tr.walls):
+        raise DatasetError(
+            f"{src}: field 'walls' differs from maze {spec['name']} seed {spec['seed']} "
+            "(rotated or edited): navigate executes its plan in the simulator's own maze"
+        )
+    return maze
+
+
+def _navigation_data(args):
+    """``(maze, mapping traversal, run)``: simulated here (``--seed``), given
+    (``--traversal``), or a finished SLAM run's (``--from``; ``run`` from
+    :func:`~pyro_slam.slam.outputs.read_run`, else None)."""
+    if args.from_run is None and args.traversal is None:
+        maze = make_maze(
+            args.maze or DEFAULT_MAZE,
+            DEFAULT_MAZE_SEED if args.maze_seed is None else args.maze_seed,
+        )
+        return maze, simulate_traversal(maze, steps=args.traversal_steps, seed=args.seed), None
+    run = None
+    path = args.traversal
+    if args.from_run is not None:
+        if args.map is not None:
+            raise DatasetError("--map: the map of --from is the SLAM run's own; give one of them")
+        run = read_run(args.from_run)
+        own = Path(args.from_run) / DEMO_INPUTS[0]  # a demo run keeps its traversal
+        path = path or (own if own.is_file() else run["metrics"].get("input"))
+        if path is None:
+            raise DatasetError(
+                f"--from {args.from_run}: its metrics.json names no input; "
+                "give the run's traversal with --traversal"
+            )
+    tr = read_any(path)
+    if run is not None and run["metrics"]["steps"] != tr.num_steps:
+        tr = tr.slice(0, min(run["metrics"]["steps"], tr.num_steps))  # (a run of --steps N)
+    if run is not None and run["pose_mean"].shape[0] != tr.num_steps:
+        raise DatasetError(
+            f"{path}: {tr.num_steps} steps, but the run --from "
+            f"{args.from_run} has {run['pose_mean'].shape[0]}"
+        )
+    return _maze_of(tr, path, args), tr, run
+
+
+def _navigation_map(args, maze, tr, run):
+    """The learned environment of ``navigate``: the SLAM run's own ``q(M)`` (``--from``), or
+    ``q(M)`` fitted at the true poses or at an online SLAM run's pose means (``--map slam``,
+    the ``paper`` preset: the map the planner reads is the paper's chart map)."""
+    if run is not None:
+        try:
+            return run_env(
+                maze,
+                tr,
+                from_dict(run["metrics"]["config"]),
+                run["map_loc"],
+                run["map_scale"],
+                run["pose_mean"],
+            )
+        except (ConfigError, ValueError, TypeError) as e:
+            raise DatasetError(f"--from {args.from_run}: {one_line(e)}") from None
     poses = None
     if args.map == "slam":
-        res = SLAM(tr, presets.get("paper").config).run("online", progress=True)
+        res = SLAM(tr, presets.get("paper").config, seed=args.seed).run("online", progress=True)
         poses = np.asarray(res["mean"])
     lenv, _, _ = learned_env(
-        maze, tr, fit_steps=args.fit_steps, poses=poses, progress=True,
-        emission_steps=args.emission_steps, n_world=args.n_world,
-    )  # fmt: skip
+        maze,
+        tr,
+        fit_steps=args.fit_steps,
+        poses=poses,
+        progress=True,
+        seed=args.seed,
+        emission_steps=args.emission_steps,
+        n_world=args.n_world,
+    )
     return lenv
 
 
@@ -251,21 +452,24 @@ def _observation_goal(args, maze, lenv, tr):
     pz, pd = truth.places(tscan.numpy())[0]  # every place that looks like the target
     n_lookalikes = lookalikes(pz, pd, target)[0]
     if args.planner == "learned":
-        inv = fit_inverse(lenv, tr, steps=args.inverse_steps, sleep_steps=args.inverse_sleep_steps,
-                          progress=True)  # fmt: skip
+        inv = fit_inverse(
+            lenv, tr, steps=args.inverse_steps, sleep_steps=args.inverse_sleep_steps, progress=True
+        )
         return inv.infer(tscan[0])[0].numpy(), target, n_lookalikes
     return pz[0], target, n_lookalikes  # the truth's own inverse: its best-matching place
 
 
 def cmd_navigate(args) -> int:
-    _writable(Path(args.out), "--out")
+    """Plan with hybrid A*, execute the plan in the simulator, plot both and print a JSON
+    report; exit status 1 when no plan was found."""
+    _writable(Path(args.out), "--out", args.overwrite)
+    torch.manual_seed(args.seed)
     torch.set_num_threads(1)
-    maze = make_maze(args.maze, args.maze_seed)
+    maze, tr, run = _navigation_data(args)
     pts = free_grid(maze)
     start = np.array(args.start) if args.start else np.array([*pts[0], 0.0])
     goal = np.array(args.goal) if args.goal else pts[-1]
-    tr = simulate_traversal(maze, steps=args.traversal_steps, seed=1)
-    lenv = _navigation_map(args, maze, tr)
+    lenv = _navigation_map(args, maze, tr, run)
     if args.planner == "learned":  # the agent's own scan at the start: trusted free space
         env = lenv.with_observation(start, GroundTruthEnv(maze).scan(start)[0].numpy())
     else:
@@ -275,28 +479,48 @@ def cmd_navigate(args) -> int:
         inferred, target, n_lookalikes = _observation_goal(args, maze, lenv, tr)
         goal = inferred[:2]
     res = plan(env, start, goal, max_expansions=args.max_expansions)
-    executed, coll = execute(maze, start, res.controls, noise=None if args.noise else 0)
+    executed, coll = execute(
+        maze, start, res.controls, noise=None if args.noise else 0, seed=args.seed
+    )
     true_goal = goal if inferred is None else target[:2]
     err = float(np.hypot(*(executed[-1, :2] - true_goal)))
-    title = f"maze {args.maze_seed}, {args.planner} planner" + (
+    title = f"maze {maze.seed}, {args.planner} planner" + (
         "" if inferred is None else " (x: goal inferred from the target scan)"
     )
     shown = lenv if args.planner == "learned" else env
     plot_navigation(maze, shown, res, executed, true_goal, args.out, title, inferred=inferred)
-    report = {"found": res.success, "expansions": res.expansions, "steps": len(res.controls),
-              "final_error": err, "success": bool(res.success and err <= 0.05),
-              "collisions": int(coll), "plot": str(args.out)}  # fmt: skip
+    report = {
+        "found": res.success,
+        "expansions": res.expansions,
+        "steps": len(res.controls),
+        "final_error": err,
+        "success": bool(res.success and err <= 0.05),
+        "collisions": int(coll),
+        "plot": str(args.out),
+    }
     if inferred is not None:
         report["inferred_goal"] = inferred.tolist()
         report["inference_error"] = float(np.hypot(*(inferred[:2] - target[:2])))
         report["target_lookalikes_exact"] = n_lookalikes  # places > 0.05 away that look the same
     print(json.dumps(report))
-    return 0
+    return 0 if res.success else 1
 
 
 # ----------------------------------------------------------------------------------- parsers
+def _sub(sub, name: str, summary: str, description: str, **kw) -> argparse.ArgumentParser:
+    """A sub-command's parser: ``summary`` in the command list, ``description`` atop its help."""
+    text = textwrap.fill(description, 88)
+    return sub.add_parser(name, help=summary, description=text, formatter_class=_Help, **kw)
+
+
 def _add_simulate(sub) -> None:
-    p = sub.add_parser("simulate", help="simulate a maze traversal and save it as .npz")
+    p = _sub(
+        sub,
+        "simulate",
+        "simulate a maze traversal and save it as .npz",
+        "Simulate an agent exploring a generated maze with a LiDAR (and, with --images, a "
+        "camera): the data set SLAM runs on, and a plot of it.",
+    )
     p.add_argument("--maze", default="moderate-medium", choices=sorted(SCALES), help="maze scale")
     p.add_argument("--steps", type=POSITIVE, default=3000, help="number of time steps T")
     p.add_argument("--seed", type=COUNT, default=1, help="seeds maze, noise and driver")
@@ -308,105 +532,248 @@ def _add_simulate(sub) -> None:
     p.set_defaults(func=cmd_simulate)
 
 
+def _add_run_options(p, out: str, what: str) -> None:
+    """The options ``slam`` and ``demo`` share: the folder, the mode, resume or overwrite."""
+    p.add_argument("--out", type=Path, default=Path(out), help=f"folder for {what}")
+    p.add_argument(
+        "--mode",
+        choices=["online", "offline"],
+        default="online",
+        help="online: one filtering sweep with SVI; offline: then rounds of SVI on "
+        "the whole traversal",
+    )
+    again = p.add_mutually_exclusive_group()
+    again.add_argument(
+        "--resume", action="store_true", help="continue the run in OUT from OUT/checkpoint.pt"
+    )
+    again.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the run in a non-empty OUT, once the new one has read its "
+        "input and configuration (a failure before leaves OUT as it was)",
+    )
+    p.add_argument(
+        "--checkpoint-every",
+        type=POSITIVE,
+        default=1000,
+        metavar="N",
+        help="write OUT/checkpoint.pt every N steps (and at the end)",
+    )
+
+
 def _add_slam(sub) -> None:
-    s = sub.add_parser(
-        "slam", help="run DVBF-LM SLAM on a traversal (.npz, CARMEN, ROS bag)",
+    s = _sub(
+        sub,
+        "slam",
+        "run DVBF-LM SLAM on a traversal (.npz, CARMEN, ROS bag)",
+        "Run DVBF-LM SLAM on a simulated traversal (.npz) or a real laser log (CARMEN .clf / "
+        ".log, ROS 1 .bag, ROS 2 bag folder) and write plots, trajectories (TUM), the "
+        "posterior, the occupancy map, metrics.json and a resumable checkpoint into OUT.",
         epilog="presets:\n" + presets.describe(),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )  # fmt: skip
-    s.add_argument("traversal", type=Path)
-    s.add_argument("--mode", choices=["online", "offline"], default="online")
-    s.add_argument("--out", type=Path, default=Path("run"))
+    )
+    s.add_argument("traversal", type=Path, help="the input: .npz, .clf / .log, .bag or a folder")
+    _add_run_options(s, "run", "the run's outputs")
     s.add_argument("--steps", type=COUNT, default=0, help="use only the first N steps (0: all)")
-    s.add_argument("--seed", type=COUNT, default=0)
+    s.add_argument("--seed", type=COUNT, default=0, help="seeds Pyro and the particle filter")
     s.add_argument(
-        "--preset", choices=list(presets.PRESETS), default=None,
+        "--preset",
+        choices=list(presets.PRESETS),
+        default=None,
         help=f"named configuration (default: {presets.DEFAULT}; 'real' for real laser logs)",
-    )  # fmt: skip
-    s.add_argument("--config", help="JSON object (or file) of overrides, e.g. "
-                   '\'{"filter": {"particles": 256}}\'')  # fmt: skip
-    s.add_argument("--emission", help="a pretrained LiDAR emission MLP .pt (emission.kind 'mlp'; "
-                   "default: the shipped one when the sensor matches the simulator's)")  # fmt: skip
-    s.add_argument("--transition", help="a pretrained LearnedTransition .pt (default: the "
-                   "preset's: the shipped one for transition.kind 'learned')")  # fmt: skip
-    s.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    s.add_argument("--overwrite", action="store_true", help="replace the run in a non-empty OUT")
-    s.add_argument("--lenient", action="store_true",
-                   help="text logs: skip malformed lines (counted in metrics.json) instead of "
-                   "stopping at the first")  # fmt: skip
+    )
     s.add_argument(
-        "--odometry-noise", type=_number(float, 0.0, inclusive=False),
+        "--config",
+        help="JSON object (or file) of overrides on top of the preset, e.g. "
+        '\'{"filter": {"particles": 256}}\' (default: none)',
+    )
+    s.add_argument(
+        "--emission",
+        help="a pretrained LiDAR emission MLP .pt (emission.kind 'mlp'; default: the shipped "
+        "one when the sensor matches the simulator's)",
+    )
+    s.add_argument(
+        "--transition",
+        help="a pretrained LearnedTransition .pt (default: the preset's: the shipped one for "
+        "transition.kind 'learned')",
+    )
+    s.add_argument(
+        "--lenient",
+        action="store_true",
+        help="CARMEN logs: skip malformed lines (counted and listed in metrics.json, said on "
+        "stderr) instead of stopping at the first",
+    )
+    s.add_argument(
+        "--odometry-noise",
+        type=_number(float, 0.0, inclusive=False),
         help="real logs: transition std as this fraction of the RMS odometry step (default 0.1)",
-    )  # fmt: skip
+    )
+    s.add_argument(
+        "--scan-topic",
+        help="ROS bags: the LaserScan topic (default: the bag's only one)",
+    )
+    s.add_argument(
+        "--odom-topic",
+        help="ROS bags: the Odometry topic (default: the bag's only one; without one, "
+        "odometry from /tf, odom -> the laser's base frame)",
+    )
     s.set_defaults(func=cmd_slam)
 
 
-def _add_pretrain_and_demo(sub) -> None:
-    t = sub.add_parser("pretrain", help="pretrain emission + transition on a held-out maze")
-    t.add_argument("--out", type=Path, default=pretrained.PRETRAINED)
-    t.add_argument("--maze", default="moderate-medium")
-    t.add_argument("--seed", type=COUNT, default=100)
-    t.add_argument("--steps", type=POSITIVE, default=6000)
-    t.add_argument("--emission-steps", type=POSITIVE, default=3000)
-    t.add_argument("--transition-epochs", type=POSITIVE, default=30)
+def _add_pretrain(sub) -> None:
+    t = _sub(
+        sub,
+        "pretrain",
+        "pretrain emission + transition on a held-out maze",
+        "Pretrain the LiDAR emission MLP and the learned transition on a simulated held-out "
+        "maze and write them into OUT (use them with slam --emission / --transition). The "
+        "networks shipped inside the installed package are replaced only with --into-package.",
+    )
+    t.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="folder for the two network files (default: pretrained/ in the current folder; "
+        "with --into-package the package's own)",
+    )
+    t.add_argument(
+        "--into-package",
+        action="store_true",
+        help=f"allow writing into the installed package's networks ({pretrained.PRETRAINED})",
+    )
+    t.add_argument("--overwrite", action="store_true", help="replace network files in OUT")
+    t.add_argument("--maze", default="moderate-medium", choices=sorted(SCALES), help="maze scale")
+    t.add_argument("--seed", type=COUNT, default=100, help="maze and training seed")
+    t.add_argument("--steps", type=POSITIVE, default=6000, help="steps of the training traversal")
+    t.add_argument("--emission-steps", type=POSITIVE, default=3000, help="emission SGD steps")
+    t.add_argument("--transition-epochs", type=POSITIVE, default=30, help="transition epochs")
     t.set_defaults(func=cmd_pretrain)
-    d = sub.add_parser("demo", help="simulate the default maze and run SLAM (plots + metrics)")
-    d.add_argument("--out", type=Path, default=Path("out"))
-    d.add_argument("--maze", default="moderate-medium")
-    d.add_argument("--steps", type=POSITIVE, default=3000)
-    d.add_argument("--seed", type=COUNT, default=1)
-    d.add_argument("--mode", choices=["online", "offline"], default="online")
-    d.add_argument("--preset", choices=list(presets.PRESETS), default=presets.DEFAULT)
-    d.add_argument("--resume", action="store_true", help="continue the demo run in OUT")
-    d.add_argument("--overwrite", action="store_true", help="replace the demo run in OUT")
+
+
+def _add_demo(sub) -> None:
+    d = _sub(
+        sub,
+        "demo",
+        "simulate the default maze and run SLAM (plots + metrics)",
+        "Simulate a maze traversal and run SLAM on it: the traversal, plots, trajectories, "
+        "the posterior, metrics.json and a checkpoint in OUT (what `make demo` runs).",
+    )
+    _add_run_options(d, "out", "the traversal and the run's outputs")
+    d.add_argument("--maze", default="moderate-medium", choices=sorted(SCALES), help="maze scale")
+    d.add_argument("--steps", type=POSITIVE, default=3000, help="number of time steps T")
+    d.add_argument("--seed", type=COUNT, default=1, help="seeds the simulation and SLAM")
+    d.add_argument(
+        "--preset", choices=list(presets.PRESETS), default=presets.DEFAULT, help="SLAM preset"
+    )
     d.set_defaults(func=cmd_demo)
 
 
-def _add_navigate(sub) -> None:
-    p = sub.add_parser(
-        "navigate", help="plan with hybrid A* in the learned model and execute in the simulator"
-    )
-    p.add_argument("--maze", default="moderate-medium")
-    p.add_argument("--maze-seed", type=COUNT, default=1001)
-    p.add_argument("--start", type=FINITE, nargs=3, default=None, help="x y heading")
-    p.add_argument("--goal", type=FINITE, nargs=2, default=None, help="x y")
+def _add_navigate_inputs(p) -> None:
+    """Where ``navigate``'s maze and map come from."""
     p.add_argument(
-        "--target-scan-from-pose", type=FINITE, nargs=3, default=None, metavar=("X", "Y", "H"),
-        help="observation target: render the simulator's scan at this pose and infer the goal "
-        "with the inverse model q(z|x) (with --planner ground_truth the truth's own inverse, "
-        "GroundTruthEnv.places); overrides --goal",
-    )  # fmt: skip
-    p.add_argument("--inverse-steps", type=POSITIVE, default=1000, help="ELBO steps of q(z|x)")
-    p.add_argument("--inverse-sleep-steps", type=COUNT, default=3000, help="sleep steps of q(z|x)")
-    p.add_argument("--planner", choices=["learned", "ground_truth"], default="learned")
+        "--from",
+        dest="from_run",
+        type=Path,
+        metavar="OUT",
+        help="plan in the map of a finished SLAM run: OUT/posterior.npz and OUT/metrics.json "
+        "(its traversal: OUT/traversal.npz, the input metrics.json names, or --traversal; "
+        "default: no run)",
+    )
+    p.add_argument(
+        "--traversal",
+        type=Path,
+        help="a simulated traversal (.npz) to map and plan in (its maze is the one the plan "
+        "runs in; default: simulate one of --traversal-steps steps)",
+    )
+    p.add_argument(
+        "--maze",
+        choices=sorted(SCALES),
+        help=f"maze scale (default: {DEFAULT_MAZE}, or the traversal's)",
+    )
+    p.add_argument(
+        "--maze-seed",
+        type=COUNT,
+        help=f"maze seed (default: {DEFAULT_MAZE_SEED}, or the traversal's)",
+    )
     p.add_argument(
         "--map",
         choices=["known_poses", "slam"],
-        default="known_poses",
-        help="q(M) fitted at the true poses, or at an online SLAM run's pose means",
+        help="q(M) fitted at the true poses, or at the pose means of an online SLAM run with "
+        "the 'paper' preset (default: known_poses; with --from the run's own map)",
     )
-    p.add_argument("--traversal-steps", type=POSITIVE, default=3000)
-    p.add_argument("--fit-steps", type=POSITIVE, default=1500)
+    p.add_argument("--seed", type=COUNT, default=1, help="seeds the simulation, fits and actuation")
+    p.add_argument("--traversal-steps", type=POSITIVE, default=3000, help="mapping traversal T")
+    p.add_argument("--fit-steps", type=POSITIVE, default=1500, help="SVI steps fitting q(M)")
     p.add_argument(
         "--emission-steps",
         type=COUNT,
         default=0,
-        help="fit the emission on the "
-        "mapping traversal for this many steps (0: the shipped one, frozen)",
+        help="fit the emission on the mapping traversal for this many steps (0: the shipped "
+        "one, frozen)",
     )
     p.add_argument(
         "--n-world", type=_number(int, 20), default=20, help="world directions of a fitted emission"
     )
-    p.add_argument("--max-expansions", type=POSITIVE, default=3000)
+
+
+def _add_navigate(sub) -> None:
+    p = _sub(
+        sub,
+        "navigate",
+        "plan with hybrid A* in the learned model and execute in the simulator",
+        "Plan a path with hybrid A* in a learned map (a finished SLAM run's, or one fitted "
+        "here), execute it open loop in the simulator, plot both and print a JSON report. "
+        "Exit status 1 when no plan is found.",
+    )
+    _add_navigate_inputs(p)
+    p.add_argument(
+        "--start",
+        type=FINITE,
+        nargs=3,
+        metavar=("X", "Y", "H"),
+        help="start pose (default: the first free grid point, heading 0)",
+    )
+    p.add_argument(
+        "--goal",
+        type=FINITE,
+        nargs=2,
+        metavar=("X", "Y"),
+        help="goal position (default: the last free grid point)",
+    )
+    p.add_argument(
+        "--target-scan-from-pose",
+        type=FINITE,
+        nargs=3,
+        metavar=("X", "Y", "H"),
+        help="observation target: render the simulator's scan at this pose and infer the goal "
+        "with the inverse model q(z|x) (with --planner ground_truth the truth's own inverse, "
+        "GroundTruthEnv.places); overrides --goal (default: none)",
+    )
+    p.add_argument("--inverse-steps", type=POSITIVE, default=1000, help="ELBO steps of q(z|x)")
+    p.add_argument("--inverse-sleep-steps", type=COUNT, default=3000, help="sleep steps of q(z|x)")
+    p.add_argument(
+        "--planner",
+        choices=["learned", "ground_truth"],
+        default="learned",
+        help="plan in the learned map, or in the simulator's truth",
+    )
+    p.add_argument("--max-expansions", type=POSITIVE, default=3000, help="A* node expansions")
     p.add_argument("--noise", action="store_true", help="execute with actuation noise")
-    p.add_argument("--out", type=Path, default=Path("navigate.png"))
+    p.add_argument("--out", type=Path, default=Path("navigate.png"), help="output plot (PNG)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     p.set_defaults(func=cmd_navigate)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="pyro-slam", description=__doc__.split("\n")[0])
-    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    for add in (_add_simulate, _add_slam, _add_pretrain_and_demo, _add_navigate):
+    p = _Parser(
+        prog="pyro-slam",
+        description="DVBF-LM SLAM in Pyro: simulate maze traversals, run SLAM on them or on\n"
+        "real laser logs, plan in the learned map, pretrain the networks.",
+        epilog="`pyro-slam command --help` describes each command.",
+        formatter_class=_Help,
+    )
+    p.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser, metavar="command")
+    for add in (_add_simulate, _add_slam, _add_demo, _add_navigate, _add_pretrain):
         add(sub)
     return p
 

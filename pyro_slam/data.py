@@ -177,19 +177,31 @@ MAX_LOAD_BYTES = 1 << 30  # a data set's arrays, uncompressed, at most (1 GiB)
 def atomic_write(path: Path, write) -> None:
     """Call ``write(fileobj)`` on a temporary file next to ``path``, then rename it into place:
     a failure leaves any previous ``path`` as it was. The file gets the usual permissions."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    atomic_write_all({Path(path): write})
+
+
+def atomic_write_all(writes: dict) -> None:
+    """:func:`atomic_write` for several files together (``{path: write}``): every file is
+    written to a temporary file first, and only when all of them are written are they renamed
+    into place; a failure leaves every previous file as it was."""
+    done: list[tuple[str, Path]] = []
     try:
-        os.fchmod(fd, _file_mode())
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        for path, write in writes.items():
+            path = Path(path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+            done.append((tmp, path))
+            os.fchmod(fd, _file_mode())
+            with os.fdopen(fd, "wb") as f:
+                write(f)
+                f.flush()
+                os.fsync(f.fileno())
+        for tmp, path in done:
+            os.replace(tmp, path)
     except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        for tmp, _ in done:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
         raise
 
 
@@ -252,12 +264,71 @@ def _observations(tr: Traversal, src: str):
     return obs, max_range, mask
 
 
+CONTROL_MODELS = {"rotate_forward": 2, "odometry_delta": 3}  # name -> D_u
+FAR = 1000.0  # a position this many data spreads plus sensor ranges from the rest is corrupt
+
+
+def _control_model(src: str, metadata: dict, d_u: int) -> None:
+    """``metadata["control_model"]`` (default ``"rotate_forward"``) is one the transitions
+    apply, with at least its number of control components."""
+    model = metadata.get("control_model", "rotate_forward")
+    if not isinstance(model, str) or model not in CONTROL_MODELS:
+        raise DatasetError(
+            f"{src}: field 'metadata.control_model' is {model!r}; known control models: "
+            f"{', '.join(CONTROL_MODELS)}"
+        )
+    if d_u < CONTROL_MODELS[model]:
+        raise DatasetError(
+            f"{src}: field 'controls' has {d_u} components per step; control_model {model!r} "
+            f"needs {CONTROL_MODELS[model]}"
+        )
+
+
+def _step_lengths(controls: np.ndarray, model: str) -> np.ndarray:
+    """``[T-1]``: how far each control moves the agent (``rotate_forward``: the forward
+    offset; ``odometry_delta``: the length of the robot-frame translation)."""
+    c = np.asarray(controls, dtype=np.float64)
+    if model == "odometry_delta":
+        return np.hypot(c[:, 0], c[:, 1])
+    return np.abs(c[:, 1]) if c.shape[1] > 1 else np.zeros(len(c))
+
+
+def _far_from_the_rest(src, walls, poses, controls, metadata, max_range) -> None:
+    """Refuse a wall end point or pose ``[2]`` (or a control's step) farther from the median of
+    all wall end points and poses than :data:`FAR` times (their median distance from it plus
+    the sensor's range): corrupt data, which would otherwise size the map grid. Names the field
+    and the index."""
+    named = [("walls", np.asarray(walls, dtype=np.float64).reshape(-1, 2), 2)]
+    if poses is not None:
+        named.append(("poses", np.asarray(poses, dtype=np.float64)[:, :2], 1))
+    points = np.concatenate([p for _, p, _ in named])  # [N, 2]
+    center = np.median(points, 0) if len(points) else np.zeros(2)
+    spread = float(np.median(np.linalg.norm(points - center, axis=1))) if len(points) else 0.0
+    limit = FAR * (spread + max_range)
+    where = f"(median position ({center[0]:.4g}, {center[1]:.4g}), at most {limit:.4g} away)"
+    for name, pts, per_row in named:
+        d = np.linalg.norm(pts - center, axis=1)
+        if len(d) and d.max() > limit:
+            i = int(np.argmax(d > limit))
+            raise DatasetError(
+                f"{src}: field '{name}' has the point ({pts[i, 0]:.6g}, {pts[i, 1]:.6g}) at index "
+                f"{i // per_row}, {d[i]:.4g} from the rest of the data {where}: corrupt?"
+            )
+    steps = _step_lengths(controls, metadata.get("control_model", "rotate_forward"))
+    if len(steps) and steps.max() > limit:
+        i = int(np.argmax(steps > limit))
+        raise DatasetError(
+            f"{src}: field 'controls' moves {steps[i]:.4g} at index {i}, far beyond the rest of "
+            f"the data {where}: corrupt?"
+        )
+
+
 def validate(tr: Traversal, src: str = "traversal") -> Traversal:
     """Check shapes, dtypes, lengths and values; raise :class:`DatasetError` on the first problem.
 
     Converts float fields to ``float32`` (``float64`` is kept) in place.
     """
-    obs, _, mask = _observations(tr, src)
+    obs, max_range, mask = _observations(tr, src)
     T, B = obs.shape
     ctl = _float_array(src, "controls", tr.controls, 2)
     if ctl.shape[0] != T - 1 or ctl.shape[1] < 1:
@@ -296,6 +367,8 @@ def validate(tr: Traversal, src: str = "traversal") -> Traversal:
         tr.timestamps = ts.astype(np.float64)
     if not isinstance(tr.metadata, dict):
         raise DatasetError(f"{src}: field 'metadata' must be a dict, got {type(tr.metadata)}")
+    _control_model(src, tr.metadata, ctl.shape[1])
+    _far_from_the_rest(src, walls, tr.poses, ctl, tr.metadata, float(max_range))
     tr.observations = obs.astype(np.float32) if obs.dtype != np.float64 else obs
     tr.controls = ctl.astype(obs.dtype if obs.dtype == np.float64 else np.float32)
     tr.walls = walls.astype(np.float64)
@@ -374,6 +447,18 @@ def _check_sizes(src: str, archive: zipfile.ZipFile) -> None:
             )
 
 
+def _scalar(src: str, name: str, value, kinds: str):
+    """A data set's scalar field as a Python number, its dtype kind one of ``kinds`` (numpy's
+    ``"f"``, ``"i"``, ``"u"``); :class:`DatasetError` naming the field otherwise."""
+    arr = np.asarray(value)
+    what = "an integer" if "f" not in kinds else "a number"
+    if arr.shape != ():
+        raise DatasetError(f"{src}: field '{name}' must be a scalar ({what}), got {arr.shape}")
+    if arr.dtype.kind not in kinds:
+        raise DatasetError(f"{src}: field '{name}' must be {what}, got {arr.item()!r}")
+    return arr.item()
+
+
 def load(path: str | os.PathLike) -> Traversal:
     """Read and validate a traversal written by :meth:`Traversal.save`."""
     path = Path(path)
@@ -402,21 +487,19 @@ def load(path: str | os.PathLike) -> Traversal:
     missing = [k for k in REQUIRED_FIELDS if k not in data]
     if missing:
         raise DatasetError(f"{src}: missing field(s) {', '.join(repr(m) for m in missing)}")
-    version = int(data.get("format_version", FORMAT_VERSION))
+    version = _scalar(src, "format_version", data.get("format_version", FORMAT_VERSION), "iu")
     if version > FORMAT_VERSION:
         raise DatasetError(f"{src}: format_version {version} is newer than supported")
     try:
         metadata = json.loads(str(data["metadata"])) if "metadata" in data else {}
     except json.JSONDecodeError as e:
         raise DatasetError(f"{src}: field 'metadata' is not valid JSON ({e})") from e
-    if np.asarray(data["max_range"]).shape != ():
-        raise DatasetError(f"{src}: field 'max_range' must be a scalar")
     tr = Traversal.__new__(Traversal)
     tr.observations = data["observations"]
     tr.controls = data["controls"]
     tr.walls = data["walls"]
     tr.beam_angles = data["beam_angles"]
-    tr.max_range = float(data["max_range"])
+    tr.max_range = _scalar(src, "max_range", data["max_range"], "fiu")
     for name in OPTIONAL_FIELDS:
         setattr(tr, name, data.get(name))
     tr.metadata = metadata

@@ -202,25 +202,32 @@ def scan_consistency(
     scans at least ``exclude`` steps away in time (so a scan is not matched against its own
     neighbours, which agree under any smooth trajectory); distances are capped at ``cap`` (a
     region seen only once has no partner). Lower is better. Returns mean / median distance,
-    the fraction of points within 0.1 and the number of points.
+    the fraction of points within 0.1 and the number of points; where they are undefined (no
+    endpoint, or a log too short for any scan to have a partner) they are None and ``reason``
+    says why.
     """
     from scipy.spatial import cKDTree
 
     xy, t = scan_points(traversal, poses, max_range)
     blocks = t // exclude
     dist = np.full(len(xy), cap)
+    paired = False
     for b in np.unique(blocks):
         q = blocks == b
         ref = np.abs(blocks - b) > 1  # at least `exclude` steps away
         if not ref.any():
             continue
+        paired = True
         d, _ = cKDTree(xy[ref]).query(xy[q], distance_upper_bound=cap)
         dist[q] = np.minimum(d, cap)
-    return {
-        "mean": float(dist.mean()),
-        "median": float(np.median(dist)),
-        "frac_within_0.1": float((dist < 0.1).mean()),
-        "points": len(dist),
-        "exclude_steps": exclude,
-        "cap": cap,
-    }
+    out = dict.fromkeys(("mean", "median", "frac_within_0.1"))
+    out.update(points=len(dist), exclude_steps=exclude, cap=cap)
+    if not len(dist):
+        return {**out, "reason": "no valid scan endpoint below the range limit"}
+    if not paired:
+        steps = traversal.num_steps
+        why = f"too short ({steps} steps): no two scans with endpoints {exclude} steps apart"
+        return {**out, "reason": why}
+    out.update(mean=float(dist.mean()), median=float(np.median(dist)))
+    out["frac_within_0.1"] = float((dist < 0.1).mean())
+    return out

@@ -1,4 +1,5 @@
-"""How many CPU threads torch uses for SLAM: as many as the machine has idle cores.
+"""The runtime: the installed package's version, and how many CPU threads torch uses for SLAM:
+as many as the machine has idle cores.
 
 Intra-op threads that spin-wait against another busy process on the same cores slow a run down
 by an order of magnitude; with one thread per idle core (at least one) a run degrades
@@ -11,8 +12,18 @@ from __future__ import annotations
 
 import contextlib
 import os
+from importlib import metadata
 
 import torch
+
+
+def package_version() -> str:
+    """The installed ``pyro_slam``'s version (its package metadata), ``"unknown"`` when it runs
+    from a folder that was never installed."""
+    try:
+        return metadata.version("pyro_slam")
+    except metadata.PackageNotFoundError:
+        return "unknown"
 
 
 def idle_cores() -> int:

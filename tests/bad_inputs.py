@@ -28,6 +28,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.typesys import Stores, get_typestore
+
+from pyro_slam.pretrained import PRETRAINED as PRETRAINED_DIR
 
 TINY = {"filter": {"particles": 16}, "training": {"particles": 4, "chunks": 2}}
 TINY_JSON = json.dumps(TINY)
@@ -548,9 +552,242 @@ def _copy_good(shared, d: Path) -> None:
     (d / "keep.npz").write_bytes(shared["good"].read_bytes())
 
 
+def _ros2_bag(path: Path, ranges: np.ndarray, topics=("/scan",)) -> None:
+    """A ROS 2 bag of LaserScans ``ranges [T, B]`` (10 Hz, 0.2 rad apart, range_max 8) on
+    ``topics`` and an Odometry stream moving 0.1 m per scan."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    ty, gm = store.types, "geometry_msgs/msg/"
+    scan_type, odom_type = "sensor_msgs/msg/LaserScan", "nav_msgs/msg/Odometry"
+    with Writer2(path, version=9) as w:
+        conns = {t: w.add_connection(t, scan_type, typestore=store) for t in topics}
+        conns["/odom"] = w.add_connection("/odom", odom_type, typestore=store)
+        for k, r in enumerate(np.asarray(ranges, dtype=np.float32)):
+            t = 100.0 + 0.1 * k
+            stamp = ty["builtin_interfaces/msg/Time"](sec=int(t), nanosec=int(t % 1 * 1e9))
+            header = ty["std_msgs/msg/Header"](stamp=stamp, frame_id="laser")
+            scan = ty[scan_type](
+                header=header,
+                angle_min=-0.2 * (len(r) // 2),
+                angle_max=0.2 * (len(r) // 2),
+                angle_increment=0.2,
+                time_increment=0.0,
+                scan_time=0.1,
+                range_min=0.05,
+                range_max=8.0,
+                ranges=r,
+                intensities=np.zeros(0, np.float32),
+            )
+            for topic in topics:
+                w.write(conns[topic], int(t * 1e9), store.serialize_cdr(scan, scan_type))
+            pose = ty[gm + "Pose"](
+                position=ty[gm + "Point"](x=0.1 * k, y=0.0, z=0.0),
+                orientation=ty[gm + "Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+            )
+            zero = ty[gm + "Vector3"](x=0.0, y=0.0, z=0.0)
+            odom = ty[odom_type](
+                header=header,
+                child_frame_id="base_link",
+                pose=ty[gm + "PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+                twist=ty[gm + "TwistWithCovariance"](
+                    twist=ty[gm + "Twist"](linear=zero, angular=zero), covariance=np.zeros(36)
+                ),
+            )
+            w.write(conns["/odom"], int(t * 1e9), store.serialize_cdr(odom, odom_type))
+
+
+def _walls_away(a: dict) -> dict:
+    w = a["walls"].copy()
+    w[2, 1] = 1e6
+    return {**a, "walls": w}
+
+
+def _pose_away(a: dict) -> dict:
+    p = a["poses"].copy()
+    p[5, 0] = 1e6
+    return {**a, "poses": p}
+
+
+def _control_away(a: dict) -> dict:
+    c = a["controls"].copy()
+    c[3, 1] = 1e6  # the loader's magnitude limit
+    return {**a, "controls": c}
+
+
+def _path_too_wide(a: dict) -> dict:
+    """Turns of 90 degrees and steps of 500 units: each step plausible, the path's square too
+    wide for the exported map."""
+    c = a["controls"].copy()
+    c[:, 0], c[:, 1] = np.pi / 2, 500.0
+    return {**a, "controls": c}
+
+
+def _metadata(a: dict, **changes) -> dict:
+    meta = {**json.loads(str(a["metadata"])), **changes}
+    return {**a, "metadata": np.asarray(json.dumps(meta))}
+
+
+def silent_cases(shared) -> list[Case]:
+    """Inputs that once ran silently (exit 0) or failed with a message that named no field:
+    an implausible field of view, an unknown control model, no usable hit, a string where a
+    number belongs, a wall, pose or control far outside the rest of the data."""
+    ok = [_flaser([1.0 + 0.1 * i] * 8, (0.1 * i, 0.0, 0.0), t=float(i)) for i in range(6)]
+    cases = []
+    for value in ("1e-300", "0", "-90", "nan", "inf", "abc", "720"):
+        text = f"PARAM laser_front_laser_fov {value}\n" + "\n".join(ok) + "\n"
+        cases.append(
+            Case(
+                f"log field of view {value}",
+                ["slam", "l.clf", "--out", "o"],
+                "laser_front_laser_fov",
+                _text("l.clf", text),
+            )
+        )
+    text = "PARAM robot_front_laser_max -8\n" + "\n".join(ok) + "\n"
+    cases.append(
+        Case(
+            "log maximum range -8",
+            ["slam", "l.clf", "--out", "o"],
+            "robot_front_laser_max",
+            _text("l.clf", text),
+        )
+    )
+    changes = {
+        "control model teleport": lambda a: _metadata(a, control_model="teleport"),
+        "control model a number": lambda a: _metadata(a, control_model=3),
+        "control model needs three components": lambda a: _metadata(
+            a, control_model="odometry_delta"
+        ),
+        "format version a string": lambda a: {**a, "format_version": np.asarray("one")},
+        "max range a string": lambda a: {**a, "max_range": np.asarray("abc")},
+        "wall far away": _walls_away,
+        "pose far away": _pose_away,
+        "control at the loader's limit": _control_away,
+        "path too wide for the map": _path_too_wide,
+    }
+    fields = {
+        "control model": "control_model",
+        "needs three": "controls",
+        "format": "format_version",
+        "max range": "max_range",
+        "wall": "'walls'",
+        "pose": "'poses'",
+        "control at": "'controls'",
+        "path": "'controls'",
+    }
+    for name, change in changes.items():
+        expect = next(v for k, v in fields.items() if k in name)
+        f = name.replace(" ", "_").replace("'", "") + ".npz"
+        cases.append(
+            Case(f"data {name}", ["slam", f, "--out", "o"], expect, _npz(shared, f, change))
+        )
+    flat = np.full((12, 7), 2.0)  # every valid reading equal: the range clip, no hit below it
+    cases.append(
+        Case(
+            "bag every valid range at the clip",
+            ["slam", "bag", "--out", "o"],
+            ("'observations'", "no usable hit"),
+            lambda d: _ros2_bag(d / "bag", flat),
+        )
+    )
+    cases.append(
+        Case(
+            "bag two scan topics",
+            ["slam", "bag", "--out", "o"],
+            "--scan-topic",
+            lambda d: _ros2_bag(d / "bag", flat + np.arange(7), ("/a", "/b")),
+        )
+    )
+    cases.append(
+        Case(
+            "bag lenient",
+            ["slam", "bag", "--out", "o", "--lenient"],
+            "--lenient",
+            lambda d: _ros2_bag(d / "bag", flat + np.arange(7)),
+        )
+    )
+    cases.append(
+        Case(
+            "npz scan topic",
+            ["slam", str(shared["good"]), "--out", "o", "--scan-topic", "/scan"],
+            "--scan-topic",
+        )
+    )
+    return cases
+
+
+def overwrite_cases(shared) -> list[Case]:
+    """``--overwrite`` onto a finished run with a bad configuration, input or network file:
+    refused before the previous run is touched (the corpus checks every file is unchanged)."""
+    good = str(shared["good"])
+    over = ["--out", "run", "--overwrite"]
+    paper = ["slam", good, *over, "--preset", "paper", "--config", TINY_JSON]
+    return [
+        Case(
+            "overwrite with an unknown config field",
+            ["slam", good, *over, "--config", '{"filter_partcles": 64}'],
+            "filter_partcles",
+            _copy_run(shared),
+        ),
+        Case(
+            "overwrite with a corrupt input",
+            ["slam", "d.npz", *over],
+            "d.npz",
+            lambda d: (_copy_run(shared)(d), _bytes("d.npz", b"not a zip")(d)),
+        ),
+        Case(
+            "overwrite with a missing input",
+            ["slam", "missing.npz", *over],
+            "missing.npz",
+            _copy_run(shared),
+        ),
+        Case(
+            "overwrite with a wall far away",
+            ["slam", "w.npz", *over],
+            "'walls'",
+            lambda d: (_copy_run(shared)(d), _npz(shared, "w.npz", _walls_away)(d)),
+        ),
+        Case(
+            "overwrite with a bad emission file",
+            [*paper, "--emission", "n.pt"],
+            "n.pt",
+            lambda d: (_copy_run(shared)(d), _bytes("n.pt", b"garbage")(d)),
+        ),
+        Case(
+            "overwrite with a bad transition file",
+            [*paper, "--transition", "n.pt"],
+            "n.pt",
+            lambda d: (_copy_run(shared)(d), _bytes("n.pt", _torch_bytes({"a": 1}))(d)),
+        ),
+        Case(
+            "navigate overwrite from a missing run",
+            ["navigate", "--from", "missing", "--out", "n.png", "--overwrite"],
+            "missing",
+            _text("n.png", "keep"),
+        ),
+        Case(
+            "navigate onto an existing plot",
+            ["navigate", "--out", "n.png"],
+            "--overwrite",
+            _text("n.png", "keep"),
+        ),
+        Case(
+            "pretrain into the package",
+            ["pretrain", "--out", str(PRETRAINED_DIR / "sub"), "--steps", "10"],
+            "--into-package",
+        ),
+        Case(
+            "pretrain onto networks",
+            ["pretrain", "--out", "p", "--steps", "10"],
+            "--overwrite",
+            lambda d: ((d / "p").mkdir(), _text("p/emission_lidar20.pt", "keep")(d)),
+        ),
+    ]
+
+
 def corpus(shared) -> list[Case]:
     return (option_cases() + config_cases(shared) + data_cases(shared) + log_cases(shared)
-            + resume_cases(shared) + network_cases(shared) + output_cases(shared))  # fmt: skip
+            + resume_cases(shared) + network_cases(shared) + output_cases(shared)
+            + silent_cases(shared) + overwrite_cases(shared))  # fmt: skip
 
 
 # ------------------------------------------------------------------------------ running

@@ -56,10 +56,31 @@ def test_byte_order_mark_and_crlf_keep_every_scan(tmp_path, newline, bom):
     assert json.loads((out / "metrics.json").read_text())["steps"] == 6
 
 
-def test_lenient_skips_a_truncated_last_line(tmp_path, capsys):
-    log = _log(tmp_path / "l.clf", [_flaser(i) for i in range(6)] + ["FLASER 8 1.0 1."])
+def test_lenient_counts_and_lists_what_it_skipped(tmp_path, capsys):
+    """``--lenient`` skips a truncated line and a corrupt one, says so in one line on stderr
+    and counts and lists them in ``metrics.json``."""
+    lines = [_flaser(i) for i in range(6)]
+    lines.insert(3, "FLASER 8 abc")
+    log = _log(tmp_path / "l.clf", lines + ["FLASER 8 1.0 1."])
     args = ["slam", str(log), "--config", TINY_JSON]
     assert cli.main([*args, "--out", str(tmp_path / "strict")]) == 2
-    assert "l.clf:7" in capsys.readouterr().err
+    assert "l.clf:4" in capsys.readouterr().err
     assert cli.main([*args, "--out", str(tmp_path / "lenient"), "--lenient"]) == 0
-    assert json.loads((tmp_path / "lenient" / "metrics.json").read_text())["steps"] == 6
+    err = [line for line in capsys.readouterr().err.splitlines() if "skipped" in line]
+    assert len(err) == 1 and "skipped 2 malformed line(s)" in err[0] and "l.clf:4" in err[0]
+    report = json.loads((tmp_path / "lenient" / "metrics.json").read_text())
+    assert report["steps"] == 6 and report["skipped_lines"] == 2
+    assert [r.split(": ")[0].rsplit(":", 1)[1] for r in report["skip_reasons"]] == ["4", "8"]
+
+
+def test_a_metric_undefined_for_a_short_log_is_null_with_the_reason(tmp_path):
+    """Six scans: no two are far enough apart in time to score each other's map, so scan
+    consistency is ``null`` with the reason, never NaN nor a capped 1.0."""
+    log = _log(tmp_path / "l.clf", [_flaser(i) for i in range(6)])
+    out = tmp_path / "o"
+    assert cli.main(["slam", str(log), "--out", str(out), "--config", TINY_JSON]) == 0
+    text = (out / "metrics.json").read_text()
+    assert "NaN" not in text
+    for path in ("slam", "path_integration"):
+        c = json.loads(text)["scan_consistency"][path]
+        assert c["mean"] is None and c["median"] is None and "too short" in c["reason"]

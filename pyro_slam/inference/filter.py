@@ -82,6 +82,17 @@ class ParticleFilter:
             ll = ll + m.heading_log_prob(z[..., 2], heading.per_particle())
         return ll, scan
 
+    def state_dict(self) -> dict:
+        """What the next step reads besides the particles and the run's generator: nothing (the
+        weights are the model's, the proposal keeps no state); kept so that a checkpoint stores
+        any filter alike."""
+        return {}
+
+    def load_state_dict(self, d: dict) -> None:
+        """Restore :meth:`state_dict`; ``TypeError`` for anything but a dict."""
+        if not isinstance(d, dict):
+            raise TypeError(f"a filter state must be a dict, got {type(d).__name__}")
+
     def _weigh(self, z, M, x, mask, logw, step, correction=None, heading=None):
         """Weigh poses ``z [..., K, 3]`` (plus ``correction [..., K]``, the proposal's log
         transition-over-proposal density ratio). Returns new particles and the log-evidence

@@ -66,6 +66,14 @@ class PyroSMCFilter:
         logw = self.smc.get_empirical()["z"].log_weights.clone()
         return logw - torch.logsumexp(logw, -1)
 
+    def state_dict(self) -> dict:
+        """Nothing beyond the particles (the interface of :class:`~.filter.ParticleFilter`)."""
+        return {}
+
+    def load_state_dict(self, d: dict) -> None:
+        if d:
+            raise KeyError(f"unexpected filter state {sorted(d)}")
+
     def _particles(self) -> Particles:
         return Particles(self.smc.state["z"].clone(), self._logw(), self.smc.state["scan"].clone())
 

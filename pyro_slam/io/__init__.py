@@ -24,6 +24,7 @@ CARMEN_SUFFIXES = (".clf", ".log", ".carmen")
 
 __all__ = [
     "OccupancyGrid",
+    "input_kind",
     "ParseError",
     "odometry_poses",
     "parse_carmen",
@@ -41,8 +42,25 @@ __all__ = [
 ]
 
 
+def input_kind(path: str | os.PathLike) -> str | None:
+    """Which reader :func:`read_any` picks for ``path``: ``"npz"``, ``"carmen"``, ``"rosbag"``,
+    or None for an unknown type (by suffix; a ROS 2 bag is a folder with ``metadata.yaml``)."""
+    path = Path(path)
+    suffixes = [s.lower() for s in path.suffixes]
+    if suffixes and suffixes[-1] == ".gz":
+        suffixes = suffixes[:-1]
+    last = suffixes[-1] if suffixes else ""
+    if path.is_dir() and (path / "metadata.yaml").is_file() or last == ".bag":
+        return "rosbag"
+    if last == ".npz" and not path.is_dir():
+        return "npz"
+    if last in CARMEN_SUFFIXES and not path.is_dir():
+        return "carmen"
+    return None
+
+
 def read_any(path: str | os.PathLike, **kw) -> Traversal:
-    """Read a traversal from ``path``, choosing the reader by file type.
+    """Read a traversal from ``path``, choosing the reader by file type (:func:`input_kind`).
 
     ``.npz`` -> :func:`pyro_slam.data.load`; ``.clf`` / ``.log`` / ``.carmen`` (optionally
     ``.gz``) -> :func:`read_carmen`; ``.bag`` or a directory holding ``metadata.yaml`` (ROS 2
@@ -51,17 +69,14 @@ def read_any(path: str | os.PathLike, **kw) -> Traversal:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or directory")
-    suffixes = [s.lower() for s in path.suffixes]
-    if suffixes and suffixes[-1] == ".gz":
-        suffixes = suffixes[:-1]
-    last = suffixes[-1] if suffixes else ""
-    if path.is_dir() and (path / "metadata.yaml").is_file() or last == ".bag":
+    kind = input_kind(path)
+    if kind == "rosbag":
         return read_rosbag(path, **kw)
-    if last == ".npz" and not path.is_dir():
+    if kind == "npz":
         if kw:
             raise TypeError(f"{path}: .npz datasets take no reader options, got {sorted(kw)}")
         return load(path)
-    if last in CARMEN_SUFFIXES and not path.is_dir():
+    if kind == "carmen":
         return read_carmen(path, **kw)
     raise ValueError(
         f"{path}: unknown log type; expected .npz, {' / '.join(CARMEN_SUFFIXES)} (CARMEN), "

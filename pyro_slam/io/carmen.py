@@ -1,7 +1,8 @@
 """CARMEN laser logs (``.clf`` / ``.log``, optionally gzipped) -> :class:`Traversal`.
 
-Parsed messages (everything else -- ``PARAM`` values aside, ``NEFF``, ``RAWLASER*``, ``#``
-comments, blank lines -- is counted in ``metadata["ignored"]`` and otherwise skipped)::
+Parsed messages (everything else -- ``PARAM`` lines other than the laser's field of view and
+maximum range, ``NEFF``, ``RAWLASER*``, ``#`` comments, blank lines -- is counted in
+``metadata["ignored"]`` and otherwise skipped)::
 
     FLASER n r1..rn x y theta odom_x odom_y odom_theta ipc_timestamp hostname logger_timestamp
     ODOM x y theta tv rv accel ipc_timestamp hostname logger_timestamp
@@ -52,6 +53,8 @@ from pyro_slam.io.common import (
 SCAN_MESSAGES = ("FLASER", "ROBOTLASER1")
 FOV_PARAMS = ("laser_front_laser_fov",)  # degrees
 MAX_RANGE_PARAMS = ("robot_front_laser_max", "laser_front_laser_max_range")  # metres
+SENSOR_PARAMS = FOV_PARAMS + MAX_RANGE_PARAMS  # applied (and checked), not ignored
+MIN_FOV_DEG = 1e-3  # a narrower field of view is a corrupt value, not a laser
 MAX_REASONS = 5  # skip reasons kept in metadata
 MAX_ABS = 1e15  # |timestamp| / config values beyond this are corruption (keeps maths finite)
 MAX_COORD = 1e6  # |pose| in metres: a robot 1000 km from its origin is a corrupt line
@@ -226,9 +229,11 @@ def parse_carmen(source, *, lenient: bool = False, name: str | None = None) -> C
                 elif kind == "PARAM":
                     if len(tokens) < 3:
                         raise ValueError("PARAM needs a name and a value")
+                    _check_param(tokens[1], tokens[2])
                     log.params[tokens[1]] = tokens[2]
-                    log.ignored[kind] += 1
-                    continue
+                    if tokens[1] not in SENSOR_PARAMS:  # (the sensor's are applied)
+                        log.ignored[kind] += 1
+                        continue
                 else:
                     log.ignored[kind[:32]] += 1
                     continue
@@ -246,6 +251,25 @@ def parse_carmen(source, *, lenient: bool = False, name: str | None = None) -> C
         if opened:
             lines.close()
     return log
+
+
+def _check_param(name: str, value: str) -> None:
+    """A sensor ``PARAM`` the reader applies must be a plausible number: a field of view in
+    ``[MIN_FOV_DEG, 360]`` degrees, a maximum range in ``(0, MAX_COORD]`` metres."""
+    if name not in SENSOR_PARAMS:
+        return
+    fov = name in FOV_PARAMS
+    low, high, unit = (MIN_FOV_DEG, 360.0, "degrees") if fov else (0.0, MAX_COORD, "metres")
+    try:
+        v = parse_float(value)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and low <= v <= high and v > 0):
+        what = "the laser's field of view" if fov else "the laser's maximum range"
+        raise ValueError(
+            f"PARAM {name} {value[:40]}: {what} must be a number in "
+            f"{'[' if low else '('}{low:g}, {high:g}] {unit}"
+        )
 
 
 def _is_anchor(scan: Scan | None, pose: np.ndarray, time: float) -> bool:

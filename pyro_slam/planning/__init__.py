@@ -12,6 +12,7 @@ from .envs import (
     learned_env,
     lookalikes,
     maze_bounds,
+    run_env,
 )
 from .planner import (
     PlanResult,
@@ -36,6 +37,7 @@ __all__ = [
     "lookalikes",
     "maze_bounds",
     "plan",
+    "run_env",
     "safety",
     "safety_cost",
     "segments_cross",

@@ -18,8 +18,15 @@ from simulators import LidarConfig, World, raycast, simulate_traversal
 from simulators.world import point_segment_distance
 
 from ..model import DVBFLM, EmissionMLP, KinematicTransition
-from ..pretrained import EMISSION_FILE, PRETRAINED, load_emission
-from ..slam import EmissionConfig, SLAMConfig, build_model, fit_map, pretrain_emission
+from ..pretrained import EMISSION_FILE, PRETRAINED, emission_for, load_emission
+from ..slam import (
+    EmissionConfig,
+    SLAMConfig,
+    build_model,
+    fit_map,
+    prepare_traversal,
+    pretrain_emission,
+)
 from ..slam.build import LAYERS, LIDAR_HIDDEN, MAP_DIM
 from .planner import SAFETY_DELTA, inside_scan
 
@@ -428,6 +435,34 @@ def _mapping_model(traversal, poses, emission_steps, n_world, seed, progress, pr
     else:
         em = load_emission(PRETRAINED / EMISSION_FILE, traversal)
     return build_model(traversal, MAPPING, emission=em, prior=prior, noise=noise)[0]
+
+
+def run_env(
+    maze, traversal, config: SLAMConfig, map_loc, map_scale, poses, hit_margin: float = 0.02
+) -> LearnedEnv:
+    """A :class:`LearnedEnv` in the map a SLAM run left: its ``q(M)`` (``map_loc``,
+    ``map_scale [w, h, D_m]``, e.g. a run folder's ``posterior.npz``) under the model its
+    ``config`` builds over ``traversal`` (the ray-cast emission, or the shipped emission MLP),
+    keeping ``hit_margin`` from the scans placed at the run's pose means ``poses [T, 3]``.
+    ``ValueError`` for a map this model cannot read."""
+    tr = prepare_traversal(traversal, config)
+    kind = config.emission.kind
+    emission = emission_for(tr, kind)
+    if kind not in ("raycast", "mlp") or (kind == "mlp" and emission is None):
+        raise ValueError(
+            f"the run's emission.kind {kind!r} cannot be rebuilt for planning (the ray-cast "
+            "LiDAR emission or the shipped emission MLP can)"
+        )
+    model, _ = build_model(tr, config, emission=emission)
+    loc, scale = (torch.as_tensor(np.asarray(a), dtype=torch.float32) for a in (map_loc, map_scale))
+    if tuple(loc.shape) != tuple(model.grid.shape) or loc.shape != scale.shape:
+        raise ValueError(
+            f"the run's map {tuple(loc.shape)} does not fit the grid {tuple(model.grid.shape)} "
+            "its configuration builds over this traversal (another traversal?)"
+        )
+    hits = ScanHits(tr, poses) if hit_margin > 0 else None
+    bounds = maze_bounds(maze)
+    return LearnedEnv(model, loc, bounds=bounds, scale=scale, hits=hits, hit_margin=hit_margin)
 
 
 def maze_bounds(maze, margin: float = SAFETY_DELTA):

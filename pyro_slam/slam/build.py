@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from ..data import Traversal
+from ..data import DatasetError, Traversal
 from ..geometry import wrap_angle
 from ..metrics import odometry_poses
 from ..model import (
@@ -107,9 +107,32 @@ def _gib(n: float) -> str:
     return f"{n / 2**30:.3g} GiB"
 
 
+def check_hits(traversal: Traversal, config: SLAMConfig, src: str = "traversal") -> None:
+    """Refuse a (prepared) LiDAR traversal without one usable hit: a valid reading below the
+    range clip (or, without one, the sensor's range). Nothing could be mapped, and the scan
+    metrics would be undefined."""
+    if config.emission.observation != "lidar":
+        return
+    reach = min(float(config.range_clip or traversal.max_range), traversal.max_range)
+    obs = np.asarray(traversal.observations)
+    hit = obs < reach * (1 - 1e-6)
+    if traversal.obs_mask is not None:
+        hit &= traversal.obs_mask
+    if not hit.any():
+        at = f"the sensor's range {traversal.max_range:g}"
+        if config.range_clip:
+            at = f"the range clip {config.range_clip:g} (range_clip)"
+        raise DatasetError(
+            f"{src}: field 'observations' has no usable hit: every valid reading lies at or "
+            f"beyond {at}"
+        )
+
+
 def check_size(traversal: Traversal, config: SLAMConfig) -> None:
     """Refuse, before anything is allocated, a configuration whose map grid or particle
-    tensors for this (prepared) traversal would not fit in memory, naming the field."""
+    tensors for this (prepared) traversal would not fit in memory, naming the field; and a
+    traversal without a usable hit (:func:`check_hits`)."""
+    check_hits(traversal, config)
     x0, y0, x1, y1 = _extent(traversal, config)
     e = config.emission
     cells = [(hi - lo + 2 * e.margin) / e.resolution + 1 for lo, hi in ((x0, x1), (y0, y1))]

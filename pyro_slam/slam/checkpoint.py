@@ -18,7 +18,7 @@ from pyro.distributions import constraints
 
 from ..data import DatasetError, atomic_write, load_tensors
 
-FORMAT = 2
+FORMAT = 3
 
 
 class CheckpointError(DatasetError):

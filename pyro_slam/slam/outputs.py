@@ -3,17 +3,23 @@ checkpoint, written into one folder (what ``pyro-slam slam`` and ``pyro-slam dem
 
 from __future__ import annotations
 
+import contextlib
 import json
+import math
 import os
+import shutil
+import tempfile
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 
 from .. import metrics, plotting
-from ..data import DatasetError, Traversal, atomic_write
+from ..data import DatasetError, Traversal, atomic_write, one_line
 from ..io.ros_map import occupancy_grid, write_map
-from .build import path_integration
+from ..runtime import package_version
+from .build import MAX_BYTES, path_integration
 from .config import SLAMConfig
 from .runner import SLAM
 
@@ -22,6 +28,7 @@ OUTPUTS = ("checkpoint.pt", "metrics.json", "posterior.npz", "slam.png", "error.
            "map.pgm", "map.yaml", "trajectory_slam.tum",
            "trajectory_path_integration.tum")  # fmt: skip
 MAP_CELL = 0.05  # the finest cell of the exported occupancy grid (metres on real logs)
+MAP_BYTES_PER_CELL = 32  # the export's working set per cell (log odds, probabilities, image)
 
 
 def prepare_out_dir(out: Path, resume: bool = False, overwrite: bool = False,
@@ -52,9 +59,32 @@ def prepare_out_dir(out: Path, resume: bool = False, overwrite: bool = False,
             f"--out {out}: not empty ({shown}); use --resume to continue the run in it, "
             "--overwrite to replace it, or another folder"
         )
-    elif overwrite:
-        for name in OUTPUTS:
-            (out / name).unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def replacing(out: Path, names: Iterable[str], overwrite: bool = True):
+    """Replace the files ``names`` of a previous run in the folder ``out`` (``overwrite``;
+    otherwise the block just runs) only once the new run has written one of its own.
+
+    Enter the block after the input and configuration have been read: the previous files are
+    moved into a hidden folder ``out/.previous-*`` when it starts and deleted when it ends. If
+    it fails before it wrote any of ``names``, they are moved back: ``out`` is as it was. (A
+    process killed in between leaves them in that hidden folder.)"""
+    out, names = Path(out), tuple(names)
+    old = [n for n in names if (out / n).exists()] if overwrite else []
+    backup = Path(tempfile.mkdtemp(prefix=".previous-", dir=out)) if old else None
+    for n in old:
+        os.replace(out / n, backup / n)
+    try:
+        yield
+    except BaseException:
+        if backup is not None and not any((out / n).exists() for n in names):
+            for n in old:
+                os.replace(backup / n, out / n)
+        raise
+    finally:
+        if backup is not None:
+            shutil.rmtree(backup, ignore_errors=True)
 
 
 def _write_trajectories(out: Path, traversal: Traversal, res: dict) -> None:
@@ -68,16 +98,32 @@ def _write_trajectories(out: Path, traversal: Traversal, res: dict) -> None:
     atomic_write(out / "posterior.npz", lambda f: np.savez_compressed(f, **arrays))
 
 
-def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float, preset) -> dict:
+def _json_safe(value):
+    """``value`` with every non-finite float replaced by None (``null``: JSON has no NaN)."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    return value
+
+
+def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float, run: dict):
+    """What ``metrics.json`` holds; ``run``: ``preset``, ``seed`` and ``input`` (path)."""
     report = {
         "mode": mode,
-        "preset": preset,
+        **run,
+        "version": package_version(),
         "steps": traversal.num_steps,
         "wall_time_s": wall,
         "seconds_per_step": wall / traversal.num_steps,
         "config": slam.cfg.to_dict(),
         "metadata": {k: traversal.metadata.get(k) for k in ("source", "seed", "maze")},
     }
+    if "skipped_lines" in traversal.metadata:  # a text log: what --lenient skipped
+        report["skipped_lines"] = traversal.metadata["skipped_lines"]
+        report["skip_reasons"] = traversal.metadata.get("skip_reasons", [])
     if traversal.poses is not None:
         report["slam"] = metrics.summary(res["mean"], traversal.poses)
         report["path_integration"] = metrics.summary(res["path_integration"], traversal.poses)
@@ -107,6 +153,60 @@ def _plots(out: Path, slam: SLAM, traversal: Traversal, res: dict) -> None:
         )  # fmt: skip
 
 
+RUN_ARRAYS = ("pose_mean", "map_loc", "map_scale")  # what read_run takes from posterior.npz
+
+
+def read_run(out: Path) -> dict:
+    """A finished run's folder: ``metrics.json`` (``"metrics"``) and from ``posterior.npz``
+    the pose means ``pose_mean [T, 3]`` and the map belief ``map_loc``, ``map_scale [w, h,
+    D_m]``, checked (finite, matching shapes); :class:`DatasetError` naming the file otherwise.
+    Nothing in them is unpickled."""
+    out = Path(out)
+    if not out.is_dir():
+        raise DatasetError(f"--from {out}: not the folder of a SLAM run")
+    path = out / "metrics.json"
+    try:
+        report = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DatasetError(f"{path}: not a finished run's metrics ({one_line(e)})") from None
+    keys = isinstance(report, dict) and isinstance(report.get("config"), dict)
+    if not keys or not isinstance(report.get("steps"), int):
+        raise DatasetError(f"{path}: not a finished run's metrics (no 'config' or 'steps')")
+    path = out / "posterior.npz"
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            arrays = {k: np.asarray(f[k], dtype=np.float64) for k in RUN_ARRAYS}
+    except Exception as e:  # numpy and zipfile raise many types for missing or damaged files
+        raise DatasetError(f"{path}: not a run's posterior ({one_line(e)})") from None
+    loc, scale, poses = arrays["map_loc"], arrays["map_scale"], arrays["pose_mean"]
+    for name, a in arrays.items():
+        if not np.isfinite(a).all():
+            raise DatasetError(f"{path}: field '{name}' has non-finite values")
+    if poses.shape != (report["steps"], 3) or loc.ndim != 3 or scale.shape != loc.shape:
+        raise DatasetError(
+            f"{path}: fields pose_mean {poses.shape}, map_loc {loc.shape}, map_scale "
+            f"{scale.shape} do not fit a run of {report['steps']} steps"
+        )
+    return {"metrics": report, **arrays}
+
+
+def check_map_extent(slam: SLAM, path: np.ndarray, src: str = "traversal") -> None:
+    """Refuse, before SLAM runs, a traversal whose exported occupancy grid (``map.pgm``) would
+    not fit in memory: the dead-reckoned ``path [T, 3]`` plus the sensor's range, at the
+    export's cell, naming the field that spans it."""
+    cell = min(slam.cfg.emission.resolution, MAP_CELL)
+    reach = slam.tr.max_range + 2 * cell
+    lo, hi = path[:, :2].min(0) - reach, path[:, :2].max(0) + reach
+    cells = np.prod((hi - lo) / cell + 1)
+    if cells * MAP_BYTES_PER_CELL > MAX_BYTES:
+        w, h = hi - lo
+        raise DatasetError(
+            f"{src}: field 'controls' moves the dead-reckoned path over {w:.4g} x {h:.4g}: the "
+            f"exported map would need {cells:.3g} cells of {cell:g} (at most "
+            f"{MAX_BYTES / MAP_BYTES_PER_CELL:.3g})"
+        )
+
+
 def run_slam(
     traversal: Traversal,
     out: Path,
@@ -118,23 +218,39 @@ def run_slam(
     progress: bool = True,
     seed: int = 0,
     preset: str | None = None,
+    overwrite: bool = False,
+    source: str | None = None,
+    checkpoint_every: int = 1000,
+    inputs: dict | None = None,
 ) -> dict:
-    """SLAM on ``traversal`` writing plots, trajectories, metrics and a checkpoint into the
-    folder ``out`` (made ready by :func:`prepare_out_dir` first). Returns the report written to
-    ``metrics.json``."""
+    """SLAM on ``traversal`` writing plots, trajectories, metrics and a checkpoint (every
+    ``checkpoint_every`` steps) into the folder ``out`` (made ready by :func:`prepare_out_dir`
+    first; ``overwrite``: the previous run's outputs are replaced only once SLAM has been set
+    up, see :func:`replacing`). ``source``: the input's path, recorded in ``metrics.json``;
+    ``inputs``: files the command writes into ``out`` first, ``{name: write(path)}`` (the
+    demo's traversal). Returns the report written to ``metrics.json``."""
+    inputs = inputs or {}
     ckpt = Path(out) / "checkpoint.pt"
-    slam = SLAM(traversal, config, transition, emission, checkpoint=ckpt, seed=seed)
+    slam = SLAM(
+        traversal, config, transition, emission, ckpt, checkpoint_every=checkpoint_every, seed=seed
+    )
+    dead_reckoning = path_integration(traversal, slam.model.transition)
+    check_map_extent(slam, dead_reckoning, source or "traversal")
     if resume:
         slam.resume(ckpt)
-    t0 = time.perf_counter()
-    res = slam.run(mode, progress=progress)
-    wall = time.perf_counter() - t0
-    res["path_integration"] = path_integration(traversal, slam.model.transition)
-    _write_trajectories(out, traversal, res)
-    report = _report(slam, traversal, res, mode, wall, preset)
-    _plots(out, slam, traversal, res)
-    if slam.cfg.emission.observation == "lidar":
-        _occupancy(out, slam, res)
-    text = json.dumps(report, indent=2, default=float)
-    atomic_write(out / "metrics.json", lambda f: f.write(text.encode()))
+    with replacing(out, (*inputs, *OUTPUTS), overwrite):
+        for name, write in inputs.items():
+            write(Path(out) / name)
+        t0 = time.perf_counter()
+        res = slam.run(mode, progress=progress)
+        wall = time.perf_counter() - t0
+        res["path_integration"] = dead_reckoning
+        _write_trajectories(out, traversal, res)
+        run = {"preset": preset, "seed": seed, "input": source}
+        report = _json_safe(_report(slam, traversal, res, mode, wall, run))
+        text = json.dumps(report, indent=2, default=float)
+        atomic_write(out / "metrics.json", lambda f: f.write(text.encode()))
+        _plots(out, slam, traversal, res)
+        if slam.cfg.emission.observation == "lidar":
+            _occupancy(out, slam, res)
     return report

@@ -472,6 +472,7 @@ class SLAM:
             "model": self.model.state_dict(),
             "cache": self.cache.state_dict(),
             "particles": None if p is None else {"z": p.z, "logw": p.logw, "scan": p.scan},
+            "filter": self.pf.state_dict(),
             "gen": self.gen.get_state(),
             "torch_rng": torch.get_rng_state(),
             "elbo_seen": self.elbo.num_steps_seen,
@@ -510,6 +511,7 @@ class SLAM:
         self.optim.set_state(d["optim"])
         self.cache.load_state_dict(d["cache"])
         self.particles = None if d["particles"] is None else Particles(**d["particles"])
+        self.pf.load_state_dict(d["filter"])
         self.gen.set_state(d["gen"])
         torch.set_rng_state(d["torch_rng"])
         self.elbo.num_steps_seen = int(d["elbo_seen"])

@@ -1,12 +1,24 @@
-"""The ``pyro-slam`` command line: simulate -> slam -> resume, and bad input."""
+"""The ``pyro-slam`` command line: simulate -> slam -> resume -> navigate, pretrain, help, and
+bad input."""
 
+import argparse
+import hashlib
 import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from pyro_slam import cli
+from pyro_slam import cli, pretrained
+from pyro_slam.runtime import package_version
+from pyro_slam.slam import SLAM
 
+REPO = Path(__file__).resolve().parents[2]
 TINY = json.dumps(
     {"filter": {"particles": 16}, "training": {"particles": 4, "chunks": 2, "chunk_length": 4}}
 )
@@ -38,6 +50,9 @@ def test_slam_writes_outputs_and_metrics(traversal, tmp_path, capsys):
         assert (out / name).is_file(), name
     report = json.loads((out / "metrics.json").read_text())
     assert report["steps"] == 30 and report["mode"] == "online"
+    # what the run was: its seed, input, preset and the package's version
+    assert report["seed"] == 1 and report["input"] == str(traversal.resolve())
+    assert report["version"] == package_version() != "unknown"
     # the default preset, with the overrides applied
     assert report["preset"] == "raycast" and report["config"]["filter"]["particles"] == 16
     assert report["config"]["emission"]["kind"] == "raycast"
@@ -151,3 +166,240 @@ def test_slam_with_the_ray_emission_writes_an_occupancy_map(traversal, tmp_path,
     args = ["slam", str(traversal), "--out", str(tmp_path / "r2"), "--config", cfg]
     assert cli.main(args + ["--emission", "pyro_slam/pretrained/emission_lidar20.pt"]) == 2
     assert "raycast" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------ overwrite, resume
+def _files(folder: Path) -> dict[str, str]:
+    """Every file under ``folder`` (hidden ones too) and its SHA-256."""
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+def _diverge(*_args, **_kw):
+    raise FloatingPointError("SVI loss became nan")
+
+
+def test_overwrite_keeps_previous_run_on_bad_input(traversal, tmp_path, capsys, monkeypatch):
+    """``--overwrite`` with a bad ``--config``, a bad input file or a bad network file fails
+    before it touches the previous run: every file of it is unchanged, byte for byte, and no
+    other file appears; so does a run that fails before it wrote an output. A good run then
+    replaces it."""
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+    assert cli.main(args) == 0
+    before = _files(out)
+    corrupt = tmp_path / "corrupt.npz"
+    corrupt.write_bytes(b"not a zip file")
+    garbage = tmp_path / "net.pt"
+    garbage.write_bytes(b"garbage" * 10)
+    paper = [*args, "--preset", "paper", "--overwrite"]
+    bad = [
+        ([*args[:4], "--config", '{"filter_partcles": 64}', "--overwrite"], "filter_partcles"),
+        (["slam", str(corrupt), *args[2:], "--overwrite"], "corrupt.npz"),
+        ([*paper, "--emission", str(garbage)], "net.pt"),
+        ([*paper, "--transition", str(garbage)], "net.pt"),
+    ]
+    capsys.readouterr()
+    for argv, named in bad:
+        assert cli.main(argv) == 2, argv
+        assert named in capsys.readouterr().err
+        assert _files(out) == before, argv
+    # a failure after the input was read but before the new run wrote anything: put back
+    with monkeypatch.context() as m:
+        m.setattr(SLAM, "run", _diverge)
+        with pytest.raises(FloatingPointError):
+            cli.main([*args, "--overwrite"])
+    assert _files(out) == before
+    assert cli.main([*args, "--overwrite", "--seed", "5"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["seed"] == 5
+    assert sorted(_files(out)) == sorted(before)  # the same outputs, none left behind
+
+
+KILL_AT_FIRST_CHECKPOINT = textwrap.dedent(
+    """
+    import os, signal, sys
+    import torch
+    torch.set_num_threads(1)
+    from pyro_slam import cli
+    from pyro_slam.slam import SLAM
+    save = SLAM.save
+    def save_and_die(self, path):
+        save(self, path)
+        os.kill(os.getpid(), signal.SIGKILL)
+    SLAM.save = save_and_die
+    sys.exit(cli.main(sys.argv[1:]))
+    """
+)
+# the default preset (its transition noise follows the cloud's trust in the map), shrunk; the
+# first checkpoint (step 5) follows an SVI step (step 4), so the map has changed since the last
+# weighing: the trust must come from the checkpoint, not be recomputed
+RESUME_CONFIG = json.dumps(
+    {
+        "filter": {"particles": 32},
+        "training": {"particles": 4, "chunks": 2},
+        "offline": {"rounds": 1, "svi_steps": 6},
+    }
+)
+
+
+def _assert_resume_is_byte_identical(traversal, tmp_path, mode):
+    args = [str(traversal), "--mode", mode, "--config", RESUME_CONFIG, "--checkpoint-every", "5"]
+    ref, killed = tmp_path / "uninterrupted", tmp_path / "killed"
+    assert cli.main(["slam", *args, "--out", str(ref)]) == 0
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    argv = [sys.executable, "-c", KILL_AT_FIRST_CHECKPOINT, "slam", *args, "--out", str(killed)]
+    proc = subprocess.run(argv, env=env, capture_output=True, timeout=300)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
+    assert sorted(p.name for p in killed.iterdir()) == ["checkpoint.pt"]  # killed at step 5
+    # a fresh run object that knows only the checkpoint file
+    assert cli.main(["slam", *args, "--out", str(killed), "--resume"]) == 0
+    for name in ("trajectory_slam.tum", "map.pgm"):
+        assert (killed / name).read_bytes() == (ref / name).read_bytes(), name
+    a, b = np.load(ref / "posterior.npz"), np.load(killed / "posterior.npz")
+    for key in a.files:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_resume_is_byte_identical_online(traversal, tmp_path):
+    """An online run SIGKILLed right after its first checkpoint and resumed in a new process
+    ends with exactly the trajectory, posterior and map of an uninterrupted run."""
+    _assert_resume_is_byte_identical(traversal, tmp_path, "online")
+
+
+def test_resume_is_byte_identical_offline(traversal, tmp_path):
+    """The same for offline SLAM, killed inside the online sweep it starts with."""
+    _assert_resume_is_byte_identical(traversal, tmp_path, "offline")
+
+
+# ------------------------------------------------------------------------------ pretrain
+PRETRAIN_FAST = ["--steps", "60", "--emission-steps", "2", "--transition-epochs", "1"]
+
+
+def test_pretrain_refuses_to_write_into_the_package(tmp_path, monkeypatch, capsys):
+    """``pretrain`` writes into the installed package only with ``--into-package``; by default
+    into ``pretrained/`` in the current folder, and never over network files without
+    ``--overwrite``; the networks it writes load. (The package's folder is a copy here, so that
+    a failure cannot replace the shipped networks.)"""
+    package = tmp_path / "package" / "pretrained"
+    package.mkdir(parents=True)
+    for name in (pretrained.EMISSION_FILE, pretrained.TRANSITION_FILE):
+        (package / name).write_bytes((pretrained.PRETRAINED / name).read_bytes())
+    monkeypatch.setattr(pretrained, "PRETRAINED", package)
+    shipped = _files(package)
+    for out in (package, package / "sub", package / ".." / "pretrained"):
+        assert cli.main(["pretrain", "--out", str(out), "--overwrite", *PRETRAIN_FAST]) == 2
+        assert "--into-package" in capsys.readouterr().err
+    assert _files(package) == shipped
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["pretrain", *PRETRAIN_FAST]) == 0
+    out = tmp_path / "pretrained"
+    written = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert sorted(written) == sorted([pretrained.EMISSION_FILE, pretrained.TRANSITION_FILE])
+    capsys.readouterr()
+    assert cli.main(["pretrain", *PRETRAIN_FAST, "--seed", "3"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == written
+    pretrained.load_transition(out / pretrained.TRANSITION_FILE)
+    assert cli.main(["pretrain", *PRETRAIN_FAST, "--seed", "3", "--overwrite"]) == 0
+    assert {p.name: p.read_bytes() for p in out.iterdir()} != written
+
+
+# ------------------------------------------------------------------------------ navigate
+@pytest.fixture(scope="module")
+def mapped(tmp_path_factory):
+    """A finished SLAM run over a 300-step traversal of a small maze."""
+    root = tmp_path_factory.mktemp("mapped")
+    tr = root / "tr.npz"
+    sim = ["simulate", "--maze", "simple-small", "--steps", "300", "--seed", "2", "--no-plot"]
+    assert cli.main([*sim, "--out", str(tr)]) == 0
+    assert cli.main(["slam", str(tr), "--out", str(root / "run"), "--config", TINY]) == 0
+    return tr, root / "run"
+
+
+def test_navigate_from_a_slam_run_plans_in_its_map(mapped, tmp_path, capsys):
+    """``navigate --from OUT`` plans in the map a finished SLAM run left (its own traversal's
+    maze executes the plan) and reaches a goal it has mapped; exit status 1 when no plan is
+    found ("found": false)."""
+    tr_path, run = mapped
+    poses = np.load(tr_path)["poses"]
+    start, goal = poses[0], poses[150, :2]
+    out = tmp_path / "nav.png"
+    argv = [
+        "navigate",
+        "--from",
+        str(run),
+        "--out",
+        str(out),
+        "--max-expansions",
+        "1500",
+        "--start",
+        *map(str, start),
+        "--goal",
+        *map(str, goal),
+    ]
+    capsys.readouterr()
+    assert cli.main(argv) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["found"] and report["final_error"] < 0.05 and out.is_file()
+    assert cli.main([*argv, "--max-expansions", "1"]) == 2  # the plot exists: no --overwrite
+    assert "--overwrite" in capsys.readouterr().err
+    assert cli.main([*argv, "--max-expansions", "1", "--overwrite"]) == 1
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["found"] is False
+
+
+def test_navigate_reads_a_given_traversal(mapped, tmp_path, capsys):
+    """``navigate --traversal FILE`` maps and plans in the traversal's own maze; a maze option
+    that contradicts it is refused, naming it."""
+    tr_path, _ = mapped
+    argv = [
+        "navigate",
+        "--traversal",
+        str(tr_path),
+        "--out",
+        str(tmp_path / "n.png"),
+        "--fit-steps",
+        "20",
+        "--max-expansions",
+        "20",
+    ]
+    rc = cli.main(argv)
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert rc == (0 if report["found"] else 1)
+    assert cli.main([*argv, "--maze-seed", "7", "--overwrite"]) == 2
+    assert "--maze-seed 7" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------ help
+def _subparsers(parser: argparse.ArgumentParser) -> dict:
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return action.choices
+
+
+def test_every_option_has_help_and_shows_its_default(capsys):
+    """Walk the parser: every option and argument of every sub-command has help text, shows
+    its default (or says in words what happens without one), every sub-command has a
+    description and a ``--seed``; ``--version`` prints the package's version."""
+    parser = cli.build_parser()
+    subs = _subparsers(parser)
+    assert set(subs) == {"simulate", "slam", "demo", "navigate", "pretrain"}
+    for name, sub in subs.items():
+        assert sub.description and len(sub.description) > 40, name
+        assert any("--seed" in a.option_strings for a in sub._actions), name
+        text = " ".join(sub.format_help().split())
+        for action in sub._actions:
+            if isinstance(action, argparse._HelpAction):
+                continue
+            what = f"{name} {action.option_strings or action.dest}"
+            assert action.help and len(action.help) > 8, what
+            if action.default is None and action.nargs != 0 and action.option_strings:
+                assert "default" in action.help, what  # said in words
+            elif action.option_strings:
+                shown = f"(default: {action.default})"
+                assert " ".join(shown.split()) in text, what
+    with pytest.raises(SystemExit) as info:
+        cli.main(["--version"])
+    assert info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"pyro-slam {package_version()}"

@@ -351,3 +351,23 @@ def test_structurally_wrong_files(tmp_path, good_file):
     for path, pattern in cases:
         with pytest.raises(DatasetError, match=f"^{re.escape(str(path))}: .*{pattern}"):
             load(path)
+
+
+@pytest.mark.parametrize("field, index", [("walls", 1), ("poses", 2), ("controls", 1)])
+def test_a_point_far_from_the_rest_is_named_with_its_index(field, index):
+    """A wall end, pose or control step far outside the rest of the data (corrupt, and it
+    would size the map) is refused, naming the field and the index; the same values near the
+    rest are fine."""
+    walls = np.array([[0.0, 0.0, 1.0, 0.0], [0.0, 1.0, 1.0, 1.0]])
+    fields = base(walls=walls, poses=np.full((3, 3), 0.5), controls=np.zeros((2, 2)))
+    far = {"walls": (1, 3), "poses": (2, 0), "controls": (1, 1)}[field]
+    fields[field] = fields[field].copy()
+    fields[field][far] = 5.0
+    Traversal(**fields)
+    fields[field][far] = 1e6
+    rejects(fields, field, f"at index {index}")
+
+
+def test_unknown_control_model_is_named():
+    rejects(base(metadata={"control_model": "teleport"}), "metadata.control_model", "teleport")
+    rejects(base(metadata={"control_model": "odometry_delta"}), "controls", "needs 3")

@@ -105,7 +105,7 @@ def test_scan_consistency_prefers_the_true_poses():
 
 
 def test_cli_slam_on_carmen_log(tmp_path, capsys):
-    tr, poses = room_log(T=14)
+    tr, poses = room_log(T=24)  # scans 20 steps apart score each other
     log = write_carmen(tr, tmp_path / "room.clf")
     out = tmp_path / "run"
     rc = cli.main(

@@ -302,6 +302,8 @@ RAYCAST = {"emission": {"kind": "raycast", "insert": {}, "outlier_prob": 0.1}}
         ("offline", 5, {"transition": {"scale": [3.0, 3.0, 0.2]}}),  # scaled once, not on resume
         ("offline", 5, {"offline": {"estimate": "cache"}}),  # between rounds without filter passes
         ("online", 2, RAYCAST),  # the scan inserter's record of written cells is restored
+        # the heading factor's frame guide, refined online, and the scan-matching proposal
+        ("online", 2, {"heading": {"sigma": 1e-3}, "filter": {"proposal": "scan-match"}}),
     ],
 )
 def test_resume_reproduces_uninterrupted_run(traversal, tmp_path, mode, crash_at, over):

@@ -40,7 +40,9 @@ def test_small_log_fields(tmp_path):
     np.testing.assert_allclose(tr.beam_angles, [-math.pi / 2, 0, math.pi / 2])
     np.testing.assert_array_equal(tr.obs_mask, [[1, 1, 1], [1, 0, 1], [1, 1, 0]])
     np.testing.assert_array_equal(tr.observations[1:, :], [[1.5, 10, 2.5], [2, 2, 10]])
-    assert tr.metadata["ignored"] == {"#": 1, "blank": 1, "PARAM": 1, "NEFF": 1}
+    # the sensor's PARAM is applied, not ignored
+    assert tr.metadata["ignored"] == {"#": 1, "blank": 1, "NEFF": 1}
+    assert tr.metadata["counts"]["PARAM"] == 1
     assert tr.metadata["sensor"]["max_range_source"] == "PARAM"
     np.testing.assert_array_equal(tr.timestamps, [1, 2, 3])
     assert tr.poses is None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -10,8 +11,9 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
+from pyro_slam import cli
 from pyro_slam.io import ParseError, read_any, read_rosbag
-from pyro_slam.io.common import relative
+from pyro_slam.io.common import compose, relative
 
 B, T, RANGE_MAX = 7, 5, 8.0
 ANGLE_MIN, ANGLE_INC = -1.5, 0.5
@@ -139,3 +141,90 @@ def test_unreadable_bag(tmp_path):
     bad.write_bytes(b"not a bag at all")
     with pytest.raises(ParseError, match="junk.bag: cannot open bag"):
         read_rosbag(bad)
+
+
+# ------------------------------------------------------------------- TF and the CLI's topics
+MOUNT = [("base_link", "laser_mount", (0.1, 0.0, 0.0)), ("laser_mount", "laser", (0.1, -0.1, 0.3))]
+LASER_ON_BASE = np.array([0.2, -0.1, 0.3])  # the two static transforms composed
+
+
+def transform(store, parent, child, t, pose):
+    """A ``geometry_msgs/msg/TransformStamped`` of the 2-D ``pose`` at time ``t``."""
+    T_, gm = store.types, "geometry_msgs/msg/"
+    stamp = T_["builtin_interfaces/msg/Time"](sec=int(t), nanosec=int(round((t % 1) * 1e9)))
+    x, y, th = pose
+    return T_[gm + "TransformStamped"](
+        header=T_["std_msgs/msg/Header"](stamp, parent),
+        child_frame_id=child,
+        transform=T_[gm + "Transform"](
+            translation=T_[gm + "Vector3"](x=x, y=y, z=0.0),
+            rotation=T_[gm + "Quaternion"](x=0.0, y=0.0, z=math.sin(th / 2), w=math.cos(th / 2)),
+        ),
+    )
+
+
+def write_tf_bag(path, with_odom: bool):
+    """Scans in the frame ``laser``, mounted on ``base_link`` by two ``/tf_static`` transforms;
+    ``/tf`` holds ``odom -> base_link`` (the true pose, 20 Hz) and a ``map -> odom`` that is
+    not odometry; with ``with_odom`` an Odometry topic too."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    tf_type = "tf2_msgs/msg/TFMessage"
+    TFMessage = store.types[tf_type]
+    with Writer2(path, version=9) as w:
+        conns = {}
+
+        def put(topic, msgtype, t, msg):
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, msgtype, typestore=store)
+            w.write(conns[topic], int(t * 1e9), store.serialize_cdr(msg, msgtype))
+
+        static = [transform(store, p, c, 99.0, pose) for p, c, pose in MOUNT]
+        put("/tf_static", tf_type, 99.0, TFMessage(transforms=static))
+        for topic, msgtype, t, msg in messages(store, ros1=False):
+            if topic == "/odom":
+                tfs = [
+                    transform(store, "odom", "base_link", t, true_pose(t)),
+                    transform(store, "map", "odom", t, (5.0, 5.0, 1.0)),
+                ]
+                put("/tf", tf_type, t, TFMessage(transforms=tfs))
+                if not with_odom:
+                    continue
+            put(topic, msgtype, t, msg)
+    return path
+
+
+@pytest.mark.parametrize("with_odom", [False, True])
+def test_odometry_from_tf_and_the_laser_mounting_offset(tmp_path, with_odom):
+    """Without an Odometry topic the odometry is ``/tf``'s ``odom -> base_link``; either way
+    the laser's mounting offset on ``base_link`` from ``/tf_static`` (a chain of two) is
+    applied: the controls move the laser's frame."""
+    tr = read_rosbag(write_tf_bag(tmp_path / "bag", with_odom))
+    base = np.stack([true_pose(t) for t in SCAN_TIMES])
+    laser = compose(base, np.broadcast_to(LASER_ON_BASE, base.shape))
+    np.testing.assert_allclose(tr.controls, relative(laser[:-1], laser[1:]), atol=1e-6)
+    np.testing.assert_allclose(tr.metadata["laser_offset"], LASER_ON_BASE, atol=1e-9)
+    assert tr.metadata["base_frame"] == "base_link"
+    source = "/odom" if with_odom else "/tf odom -> base_link"
+    assert tr.metadata["odometry_source"].startswith(source)
+
+
+TINY = '{"filter": {"particles": 16}, "training": {"particles": 4, "chunks": 2}}'
+
+
+def test_a_bag_with_two_scan_topics_runs_with_scan_topic(tmp_path, capsys):
+    """From the command line: two LaserScan topics are refused naming ``--scan-topic``, which
+    picks one; an Odometry topic that is not in the bag is named."""
+    path = write_ros2(tmp_path / "two", extra_scan_topic=True)
+    args = ["slam", str(path), "--config", TINY]
+    assert cli.main([*args, "--out", str(tmp_path / "a")]) == 2
+    assert "--scan-topic" in capsys.readouterr().err
+    scan2 = ["--scan-topic", "/scan2"]
+    assert cli.main([*args, "--out", str(tmp_path / "b"), *scan2, "--odom-topic", "/nope"]) == 2
+    assert "/nope" in capsys.readouterr().err
+    assert cli.main([*args, "--out", str(tmp_path / "c"), *scan2]) == 0
+    report = json.loads((tmp_path / "c" / "metrics.json").read_text())
+    assert report["steps"] == T and report["preset"] == "real"
+    # five scans: no two of them are far enough apart in time to score each other
+    consistency = report["scan_consistency"]["slam"]
+    assert consistency["mean"] is None and "too short" in consistency["reason"]
+    assert "NaN" not in (tmp_path / "c" / "metrics.json").read_text()
