@@ -74,15 +74,16 @@ def make_emission(traversal: Traversal, config: SLAMConfig) -> Emission | Emissi
     """A new (untrained) emission of ``config.emission.kind`` for a prepared traversal."""
     kind = config.emission.kind
     reach = float(config.range_clip or traversal.max_range)
+    ray = ray_settings(config, reach)
     if kind == "raycast":
-        return RayEmission(traversal.beam_angles, reach)
+        return RayEmission(traversal.beam_angles, reach, **ray)
     if kind == "mlp":
         n_world = max(traversal.num_beams, MIN_WORLD_DIRECTIONS)
         return EmissionMLP(MAP_DIM, n_world, LIDAR_HIDDEN, LAYERS, scale=reach)
     rows, cols = traversal.metadata["image_shape"]
     angles = traversal.beam_angles[:cols]
     if kind == "ray_camera":
-        return RayImageEmission(angles, rows, reach)
+        return RayImageEmission(angles, rows, reach, **ray)
     return ImageEmission(
         IMAGE_BINS, rows, cols, hidden=IMAGE_HIDDEN, layers=LAYERS, column_angles=angles
     )
@@ -101,6 +102,19 @@ def _extent(traversal: Traversal, config: SLAMConfig):
 
 MAX_BYTES = 8 << 30  # the largest working set a configuration may ask for (8 GiB)
 RAY_SAMPLES = 48  # points per ray of the ray-cast emissions (their constructors' default)
+# the occupancy's density per grid spacing of the ray-cast emissions (their constructors' 100
+# per unit length on the mazes' 1/63 grid)
+DENSITY_PER_SPACING = 100 / 63
+
+
+def ray_settings(config: SLAMConfig, reach: float) -> dict:
+    """The ray-cast emissions' ``samples`` and ``density`` for a configuration (see
+    :class:`~pyro_slam.slam.config.EmissionConfig`'s ``ray_spacing``); empty: their defaults."""
+    e = config.emission
+    if e.ray_spacing is None:
+        return {}
+    samples = max(2, math.ceil(reach / (e.ray_spacing * e.resolution)))
+    return {"samples": samples, "density": DENSITY_PER_SPACING / e.resolution}
 
 
 def _gib(n: float) -> str:
@@ -144,7 +158,9 @@ def check_size(traversal: Traversal, config: SLAMConfig) -> None:
             f"extent needs a {cells[0]:.0f} x {cells[1]:.0f} grid ({_gib(grid)}; at most "
             f"{_gib(MAX_BYTES)}): use a coarser resolution"
         )
-    per_point = traversal.num_beams * (RAY_SAMPLES if e.kind in ("raycast", "ray_camera") else 1)
+    reach = float(config.range_clip or traversal.max_range)
+    samples = ray_settings(config, reach).get("samples", RAY_SAMPLES)
+    per_point = traversal.num_beams * (samples if e.kind in ("raycast", "ray_camera") else 1)
     per_point *= 4 * 8  # float32 points, stops, weights and their gradients
     t = config.training
     for name, n in (

@@ -85,7 +85,9 @@ class EmissionConfig:
     an occupancy and albedo map). ``resolution``: grid spacing (world units); ``margin``: the
     grid's margin around the walls; ``sigma``: the model's ``sigma_E``; ``outlier_prob``: the
     model's beam-mixture outlier probability (uniform over the sensor's range); ``insert``:
-    scan insertion (``"raycast"``).
+    scan insertion (``"raycast"``); ``ray_spacing``: the ray-cast emissions' points along a
+    ray, in grid spacings (None: 48 points over the range), with the occupancy's density per
+    unit length scaled to the grid (the same per grid spacing at every resolution).
     """
 
     kind: str = "mlp"
@@ -94,6 +96,7 @@ class EmissionConfig:
     sigma: float = 0.1
     outlier_prob: float = 0.0
     insert: ScanInsertionConfig | None = None
+    ray_spacing: float | None = None
 
     def __post_init__(self):
         _choice("emission.kind", self.kind, EMISSIONS)
@@ -102,6 +105,7 @@ class EmissionConfig:
             raise ConfigError(f"emission.margin must be a number >= 0, got {self.margin!r}")
         _positive("emission.sigma", self.sigma)
         _probability("emission.outlier_prob", self.outlier_prob)
+        _positive("emission.ray_spacing", self.ray_spacing, optional=True)
         if self.insert is not None and self.kind != "raycast":
             raise ConfigError(
                 "emission.insert writes LiDAR hits into an occupancy map: it needs "
