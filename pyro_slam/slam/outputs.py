@@ -4,6 +4,7 @@ checkpoint, written into one folder (what ``pyro-slam slam`` and ``pyro-slam dem
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
 from pathlib import Path
@@ -21,6 +22,7 @@ from .runner import SLAM
 OUTPUTS = ("checkpoint.pt", "metrics.json", "posterior.npz", "slam.png", "error.png", "map.png",
            "map.pgm", "map.yaml", "trajectory_slam.tum",
            "trajectory_path_integration.tum")  # fmt: skip
+log = logging.getLogger(__name__)
 MAP_CELL = 0.05  # the finest cell of the exported occupancy grid (metres on real logs)
 
 
@@ -89,11 +91,15 @@ def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float,
     return report
 
 
-def _occupancy(out: Path, slam: SLAM, res: dict) -> None:
-    """``map.pgm`` + ``map.yaml`` (ROS ``map_server``): the scans placed at the SLAM poses."""
+def _occupancy(out: Path, slam: SLAM, res: dict, progress: bool) -> None:
+    """``map.pgm`` + ``map.yaml`` (ROS ``map_server``): the scans SLAM read (strided, clipped at
+    the range clip) placed at the SLAM poses."""
     cell = min(slam.cfg.emission.resolution, MAP_CELL)
-    grid = occupancy_grid(slam.tr, res["mean"], cell, margin=2 * cell)
+    t0 = time.perf_counter()
+    grid = occupancy_grid(slam.tr, res["mean"], cell, margin=2 * cell, progress=progress)
     write_map(grid, out / "map.yaml")
+    h, w = grid.image.shape
+    log.info("map.pgm: %d x %d cells of %g in %.1f s", w, h, cell, time.perf_counter() - t0)
 
 
 def _plots(out: Path, slam: SLAM, traversal: Traversal, res: dict) -> None:
@@ -134,7 +140,7 @@ def run_slam(
     report = _report(slam, traversal, res, mode, wall, preset)
     _plots(out, slam, traversal, res)
     if slam.cfg.emission.observation == "lidar":
-        _occupancy(out, slam, res)
+        _occupancy(out, slam, res, progress)
     text = json.dumps(report, indent=2, default=float)
     atomic_write(out / "metrics.json", lambda f: f.write(text.encode()))
     return report

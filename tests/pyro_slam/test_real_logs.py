@@ -11,7 +11,7 @@ import pytest
 
 from pyro_slam import cli, metrics
 from pyro_slam.data import Traversal
-from pyro_slam.io import write_carmen
+from pyro_slam.io import read_map, write_carmen
 from pyro_slam.io.common import relative
 from pyro_slam.slam import (
     SLAM,
@@ -157,6 +157,11 @@ def test_cli_slam_on_carmen_log(tmp_path, capsys):
     np.testing.assert_allclose(config["transition"]["sigma"], sigma, rtol=1e-4)
     assert report["scan_consistency"]["slam"]["mean"] >= 0
     assert "scan consistency" in capsys.readouterr().out
+    # the exported map spans the room the beams saw (10 x 6 m plus its margin), not the
+    # sensor's 81.91 m "no return" range around the path
+    grid = read_map(out / "map.yaml")
+    h, w = grid.image.shape
+    assert w * grid.resolution <= 10.5 and h * grid.resolution <= 6.5
 
 
 def test_scan_points_leave_out_clipped_readings():
