@@ -19,9 +19,19 @@ from .config import SLAMConfig
 from .runner import SLAM
 
 # what a run writes into its folder (an --overwrite run removes these first)
-OUTPUTS = ("checkpoint.pt", "metrics.json", "posterior.npz", "slam.png", "error.png", "map.png",
-           "map.pgm", "map.yaml", "trajectory_slam.tum",
-           "trajectory_path_integration.tum")  # fmt: skip
+OUTPUTS = (
+    "checkpoint.pt",
+    "metrics.json",
+    "posterior.npz",
+    "slam.png",
+    "error.png",
+    "map.png",
+    "map.pgm",
+    "map.yaml",
+    "trajectory_slam.tum",
+    "trajectory_path_integration.tum",
+    "trajectory_true.tum",
+)
 log = logging.getLogger(__name__)
 MAP_CELL = 0.05  # the finest cell of the exported occupancy grid (metres on real logs)
 
@@ -60,10 +70,13 @@ def prepare_out_dir(out: Path, resume: bool = False, overwrite: bool = False,
 
 
 def _write_trajectories(out: Path, traversal: Traversal, res: dict) -> None:
-    metrics.write_trajectory_tum(out / "trajectory_slam.tum", res["mean"], traversal.timestamps)
-    metrics.write_trajectory_tum(
-        out / "trajectory_path_integration.tum", res["path_integration"], traversal.timestamps
-    )
+    """The TUM trajectories: SLAM, path integration and, where the traversal has them, its
+    true / reference poses (for ``evo_ape``); and ``posterior.npz``."""
+    paths = {"slam": res["mean"], "path_integration": res["path_integration"]}
+    if traversal.poses is not None:
+        paths["true"] = traversal.poses
+    for name, poses in paths.items():
+        metrics.write_trajectory_tum(out / f"trajectory_{name}.tum", poses, traversal.timestamps)
     arrays = {k: res[v] for k, v in (("pose_mean", "mean"), ("pose_std", "std"),
               ("map_loc", "map_loc"), ("map_scale", "map_scale"),
               ("path_integration", "path_integration"))}  # fmt: skip

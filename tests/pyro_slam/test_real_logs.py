@@ -149,6 +149,7 @@ def test_cli_slam_on_carmen_log(tmp_path, capsys):
     assert rc == 0
     for name in ("metrics.json", "map.png", "slam.png", "trajectory_slam.tum", "posterior.npz"):
         assert (out / name).is_file(), name
+    assert not (out / "trajectory_true.tum").exists()  # the log has no reference poses
     report = json.loads((out / "metrics.json").read_text())
     config = report["config"]
     assert report["preset"] == "real" and config["beam_stride"] == 8
