@@ -11,12 +11,14 @@ import pytest
 
 from pyro_slam import cli, metrics
 from pyro_slam.data import Traversal
-from pyro_slam.io import read_map, write_carmen
+from pyro_slam.io import read_any, read_map, write_carmen
 from pyro_slam.io.common import relative
 from pyro_slam.slam import (
     SLAM,
+    ConfigError,
     SLAMConfig,
     build_model,
+    from_dict,
     prepare_traversal,
     presets,
     with_overrides,
@@ -171,3 +173,23 @@ def test_scan_points_leave_out_clipped_readings():
     xy, t = metrics.scan_points(clipped, poses)
     n_short = int((tr.obs_mask & (tr.observations < 4.0)).sum())
     assert len(xy) == n_short  # readings clipped to 4 m are not wall points
+
+
+def test_slam_from_python_adapts_a_preset_to_the_log_as_the_cli_does(tmp_path):
+    """``SLAM(tr, "real")`` and ``SLAM(tr, presets.get("real"))`` run with the configuration
+    ``pyro-slam slam LOG`` chooses; the preset's unadapted ``.config`` on a log warns."""
+    tr, _ = room_log(T=6)
+    log = write_carmen(tr, tmp_path / "room.clf")
+    out = tmp_path / "run"
+    assert cli.main(["slam", str(log), "--out", str(out)]) == 0
+    cli_config = from_dict(json.loads((out / "metrics.json").read_text())["config"])
+    tr = read_any(log)
+    assert SLAM(tr, "real").cfg == cli_config
+    assert SLAM(tr, presets.get("real")).cfg == cli_config
+    assert SLAM(tr).cfg == cli_config  # the default for a real log
+    with pytest.warns(UserWarning, match="not adapted to this log"):
+        SLAM(tr, presets.get("real").config)
+    with pytest.raises(ValueError, match="unknown preset 'rael'"):
+        SLAM(tr, "rael")
+    with pytest.raises(ConfigError, match="preset name"):
+        SLAM(tr, {"filter": {"particles": 8}})
