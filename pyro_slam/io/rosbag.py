@@ -1,5 +1,5 @@
 """ROS bags (ROS 1 ``.bag`` files, ROS 2 bag directories) -> :class:`Traversal`, via the
-``rosbags`` package (pure Python, no ROS install needed).
+``rosbags`` package (pure Python, no ROS install needed; the optional extra ``[ros]``).
 
 Reads ``sensor_msgs/msg/LaserScan`` (one traversal step per scan) and, when present,
 ``nav_msgs/msg/Odometry`` (paired to each scan by time). Output conventions match
@@ -16,11 +16,16 @@ import os
 from pathlib import Path
 
 import numpy as np
-from rosbags.highlevel import AnyReader
-from rosbags.typesys import Stores, get_typestore
 
 from pyro_slam.data import Traversal
+from pyro_slam.extras import require
 from pyro_slam.io.common import ParseError, build_traversal, poses_at, sentinel_max_range, wrap
+
+try:  # the [ros] extra
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+except ImportError:
+    AnyReader = Stores = get_typestore = None
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -115,6 +120,7 @@ def read_rosbag(
     Raises:
         ParseError: unreadable bag, missing / ambiguous topics, inconsistent scans, no scans.
     """
+    require(AnyReader, "reading ROS bags", "rosbags", "ros")
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such bag")

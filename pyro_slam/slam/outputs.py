@@ -94,6 +94,8 @@ def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float,
         "metadata": {k: traversal.metadata.get(k) for k in ("source", "seed", "maze")},
     }
     if traversal.poses is not None:
+        if not metrics.HAVE_EVO:
+            log.warning("metrics.json without ATE: it needs evo, pip install 'pyro_slam[eval]'")
         report["slam"] = metrics.summary(res["mean"], traversal.poses)
         report["path_integration"] = metrics.summary(res["path_integration"], traversal.poses)
     if not traversal.walls.shape[0]:  # real log: how well the scans agree under each path
