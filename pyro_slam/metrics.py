@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from .data import Traversal, atomic_write
 from .extras import require
-from .geometry import odometry_delta, rotate_forward
+from .geometry import odometry_delta, rotate_forward, wrap_angle
 
 try:  # the [eval] extra
     from evo.core import metrics as evo_metrics
@@ -39,8 +39,7 @@ def localisation_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
 
 def heading_error(a, b) -> np.ndarray:
     """Absolute angular difference in ``[0, pi]`` (arrays of headings, rad)."""
-    d = np.remainder(np.asarray(a) - np.asarray(b) + np.pi, 2 * np.pi) - np.pi
-    return np.abs(d)
+    return np.abs(wrap_angle(np.asarray(a) - np.asarray(b)))
 
 
 def heading_only_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
@@ -55,7 +54,7 @@ def heading_only_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
     est, true = np.asarray(est, dtype=np.float64), np.asarray(true, dtype=np.float64)
     if est.shape != true.shape or est.ndim != 2 or est.shape[1] != 3:
         raise ValueError(f"need two [T, 3] trajectories, got {est.shape} and {true.shape}")
-    dh = np.angle(np.exp(1j * (est[:-1, 2] - true[:-1, 2])))  # [T-1], wrapped
+    dh = wrap_angle(est[:-1, 2] - true[:-1, 2])  # [T-1]
     step = np.diff(true[:, 0] + 1j * true[:, 1])  # [T-1] as complex numbers
     drift = np.concatenate([[0.0], np.cumsum(step * np.exp(1j * dh))])  # [T]
     start = true[0, 0] + 1j * true[0, 1]

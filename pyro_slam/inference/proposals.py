@@ -64,7 +64,7 @@ def heading_conditioned(model, p, u, obs: HeadingObservation, sigma=None, genera
     The transition's heading is Gaussian about its mean ``m`` (std ``s`` from ``sigma`` or
     the model's) and independent of its position noise, and the observation is Gaussian in
     the wrapped residual (std ``sigma_o``), so the optimal proposal is exact: with
-    ``r = wrap_period(m - value)`` and ``v = s^2 + sigma_o^2``, the heading is drawn from
+    ``r = wrap_angle(m - value, period)`` and ``v = s^2 + sigma_o^2``, the heading is drawn from
     ``N(m - r s^2 / v, s^2 sigma_o^2 / v)`` and the weight gains the predictive
     ``log N(r; 0, sqrt(v))``. With a sharp observation (``sigma_o << s``) every particle
     lands on a heading the observation allows, however narrow the cloud. With
@@ -85,8 +85,7 @@ def heading_conditioned(model, p, u, obs: HeadingObservation, sigma=None, genera
     so = torch.as_tensor(obs.sigma, dtype=mean.dtype)
     so = so.unsqueeze(-1) if so.dim() else so  # [..., 1]
     seen = ~torch.isnan(value)  # [..., 1]
-    half = obs.period / 2
-    r = torch.remainder(mean[..., 2] - value.nan_to_num() + half, obs.period) - half
+    r = wrap_angle(mean[..., 2] - value.nan_to_num(), obs.period)
     v = s**2 + so**2  # r: [..., K]
     h = mean[..., 2] - r * s**2 / v + eps[..., 2] * (s * so / v.sqrt())
     log_in = -0.5 * r**2 / v - 0.5 * torch.log(2 * math.pi * v)  # [..., K]

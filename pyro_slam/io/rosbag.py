@@ -19,7 +19,8 @@ import numpy as np
 
 from pyro_slam.data import Traversal
 from pyro_slam.extras import require
-from pyro_slam.io.common import ParseError, build_traversal, poses_at, sentinel_max_range, wrap
+from pyro_slam.geometry import wrap_angle
+from pyro_slam.io.common import ParseError, build_traversal, poses_at, sentinel_max_range
 
 try:  # the [ros] extra
     from rosbags.highlevel import AnyReader
@@ -152,6 +153,6 @@ def read_rosbag(
         odom = np.zeros((len(times), 3))
         meta.update(odom_topic=None, odometry_source="none (no Odometry topic): zero controls")
     meta["counts"] = {"scans": len(times), "odometry": len(odom_pose)}
-    angles = wrap(first.angle_min + first.angle_increment * np.arange(ranges.shape[1]))
+    angles = wrap_angle(first.angle_min + first.angle_increment * np.arange(ranges.shape[1]))
     return build_traversal(ranges, angles, max_range, odom, odom, times, None, meta,
                            beam_stride=beam_stride, min_range=float(first.range_min))  # fmt: skip
