@@ -12,12 +12,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import torch
 from scipy.spatial import cKDTree
 
 from .data import Traversal, atomic_write
 from .extras import require
-from .geometry import odometry_delta, rotate_forward, wrap_angle
+from .geometry import wrap_angle
 
 try:  # the [eval] extra
     from evo.core import metrics as evo_metrics
@@ -146,24 +145,6 @@ def summary(est: np.ndarray, true: np.ndarray) -> dict:
     if HAVE_EVO:
         out["ate"] = ate(est, true)
     return out
-
-
-def odometry_poses(traversal: Traversal) -> np.ndarray:
-    """Integrate the traversal's controls from its first pose (zeros if unknown): ``[T, 3]``."""
-    z = torch.zeros(3, dtype=torch.float64)
-    if traversal.poses is not None:
-        z = torch.as_tensor(traversal.poses[0], dtype=torch.float64)
-    f = (
-        odometry_delta
-        if traversal.metadata.get("control_model") == "odometry_delta"
-        else rotate_forward
-    )
-    u = torch.as_tensor(traversal.controls, dtype=torch.float64)
-    out = [z]
-    for t in range(u.shape[0]):
-        z = f(z, u[t])
-        out.append(z)
-    return torch.stack(out).numpy()
 
 
 def write_trajectory_tum(path, poses: np.ndarray, stamps: np.ndarray | None = None) -> None:

@@ -98,19 +98,21 @@ def integrate(origin, controls: np.ndarray, control_model: str = "odometry_delta
 
 
 def odometry_poses(traversal: Traversal, origin=None) -> np.ndarray:
-    """Dead-reckoned odometry trajectory ``[T, 3]``: the controls integrated from ``origin``.
+    """Dead-reckoned odometry trajectory ``[T, 3]``: the controls integrated with the
+    traversal's control model from ``origin [3]``. The package's one odometry helper.
 
     Default origin: ``metadata["odometry_origin"]`` (set by the readers: the odometry pose the
     first control starts from, so for mit-csail.clf this reproduces the logged raw odometry);
-    for a traversal sliced from a later step (whose metadata still names the original first
-    step), ``poses[0]`` when present, else zeros.
+    for a traversal without it, or sliced from a later step (whose metadata still names the
+    original first step), :attr:`~pyro_slam.data.Traversal.start_pose`. Pass
+    ``traversal.start_pose`` for the dead reckoning in SLAM's frame.
     """
     meta = traversal.metadata
     if origin is None:
         sliced = meta.get("sliced_from", [0])[0] != 0
         origin = meta.get("odometry_origin") if not sliced else None
     if origin is None:
-        origin = traversal.poses[0] if traversal.poses is not None else np.zeros(3)
+        origin = traversal.start_pose
     return integrate(origin, traversal.controls, meta.get("control_model", "rotate_forward"))
 
 

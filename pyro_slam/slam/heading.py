@@ -38,7 +38,7 @@ from ..geometry import (
     wrap_angle,
 )
 from ..inference import HeadingObservation
-from ..metrics import odometry_poses
+from ..io.common import odometry_poses
 from .config import HeadingConfig
 
 QUARTER = math.pi / 2
@@ -103,7 +103,8 @@ class ManhattanHeading:
         steps = torch.nonzero(self.ok).flatten()[:FRAME_SCANS]
         if not len(steps):
             return float("nan"), float("inf")
-        heading = torch.as_tensor(odometry_poses(traversal)[:, 2], dtype=self.direction.dtype)
+        odometry = odometry_poses(traversal, traversal.start_pose)  # [T, 3] in SLAM's frame
+        heading = torch.as_tensor(odometry[:, 2], dtype=self.direction.dtype)
         y = heading[steps] + self.direction[steps]  # [n] phi + drift, modulo a quarter turn
         y = y[0] + wrap_angle(y - y[0], QUARTER)  # unwrapped about the first
         sigma2 = self.sigma[steps] ** 2

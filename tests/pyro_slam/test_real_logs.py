@@ -11,7 +11,7 @@ import pytest
 
 from pyro_slam import cli, metrics
 from pyro_slam.data import Traversal
-from pyro_slam.io import read_any, read_map, write_carmen
+from pyro_slam.io import odometry_poses, read_any, read_map, write_carmen
 from pyro_slam.io.common import relative
 from pyro_slam.slam import (
     SLAM,
@@ -107,7 +107,7 @@ def test_real_preset_adapts_to_the_log_and_sizes_the_model():
     assert model.emission.max_range == pytest.approx(cfg.range_clip)
     assert model.beam_angles.shape == (46,)
     x0, x1, y0, y1 = model.grid.extent()
-    path = metrics.odometry_poses(prepared)[:, :2]
+    path = odometry_poses(prepared)[:, :2]
     assert x0 == pytest.approx(path[:, 0].min() - cfg.range_clip)
     assert y1 == pytest.approx(path[:, 1].max() + cfg.range_clip)
     assert (x1 - x0) / (model.grid.cells[0] - 1) == pytest.approx(0.1, rel=0.05)
@@ -123,7 +123,7 @@ def test_slam_runs_on_subsampled_metric_log():
     res = slam.run("online", progress=False)
     assert res["mean"].shape == (12, 3) and np.isfinite(res["mean"]).all()
     # 12 short steps from a known start: SLAM stays near the odometry
-    odo = metrics.odometry_poses(tr)
+    odo = odometry_poses(tr)
     assert np.abs(res["mean"][:, :2] - odo[:, :2]).max() < 1.0
 
 
