@@ -148,7 +148,11 @@ def summary(est: np.ndarray, true: np.ndarray) -> dict:
 
 
 def write_trajectory_tum(path, poses: np.ndarray, stamps: np.ndarray | None = None) -> None:
-    """Export ``[T, 3]`` poses in TUM format (``t x y z qx qy qz qw``), readable by evo."""
+    """Export ``[T, 3]`` poses in TUM format (``t x y z qx qy qz qw``), readable by evo.
+
+    Written with numpy rather than evo's ``file_interface``: evo is an optional extra
+    (``[eval]``) and the format is one line per pose; the test suite reads the files back with
+    evo's reader."""
     p = np.asarray(poses, dtype=np.float64)
     stamps = np.arange(len(p), dtype=np.float64) if stamps is None else np.asarray(stamps)
     h = p[:, 2] / 2

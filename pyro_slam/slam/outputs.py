@@ -150,6 +150,7 @@ def run_slam(
     t0 = time.perf_counter()
     res = slam.run(mode, progress=progress)
     wall = time.perf_counter() - t0
+    res["mode"] = mode
     res["path_integration"] = path_integration(traversal, slam.model.transition)
     _write_trajectories(out, traversal, res)
     report = _report(slam, traversal, res, mode, wall, preset)
