@@ -18,6 +18,8 @@ from .build import path_integration
 from .config import SLAMConfig
 from .runner import SLAM
 
+log = logging.getLogger(__name__)
+
 # what a run writes into its folder (an --overwrite run removes these first)
 OUTPUTS = (
     "checkpoint.pt",
@@ -32,7 +34,6 @@ OUTPUTS = (
     "trajectory_path_integration.tum",
     "trajectory_true.tum",
 )
-log = logging.getLogger(__name__)
 MAP_CELL = 0.05  # the finest cell of the exported occupancy grid (metres on real logs)
 
 
