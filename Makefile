@@ -1,16 +1,22 @@
 # Two entry points: `make demo` and `make test`. Both create .venv if missing and install the
-# package with the pinned versions of constraints.txt.
+# package (editable, with every extra) with the pinned versions of constraints.txt.
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+EXTRAS ?= dev,docs,eval,ros,notebooks
+# torch's CPU build: a wheel that pip finds locally (its find-links) where there is one, else
+# PyTorch's CPU wheel index. (From PyPI, torch==2.13.0 is the CUDA build: several GB.)
+TORCH ?= torch==2.13.0
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 
 .PHONY: demo test test-slow lint format docs docs-serve bench clean
 
 $(STAMP): setup.cfg pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q -c constraints.txt torch==2.13.0
-	$(PY) -m pip install -q -c constraints.txt -e '.[dev,docs]'
+	$(PY) -m pip install -q --no-index --no-deps '$(TORCH)' 2>/dev/null \
+	  || $(PY) -m pip install -q --no-deps --index-url $(TORCH_INDEX) '$(TORCH)'
+	$(PY) -m pip install -q -c constraints.txt -e '.[$(EXTRAS)]'
 	touch $(STAMP)
 
 demo: $(STAMP)

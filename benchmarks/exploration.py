@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import sys
 import time
@@ -45,6 +46,7 @@ COLOURS = {"mi": "tab:blue", "pema": "tab:purple", "random": "tab:gray"}
 
 
 def main(argv=None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")  # the library's progress
     ap = argparse.ArgumentParser(
         prog="python -m benchmarks.exploration", description=__doc__.splitlines()[0]
     )

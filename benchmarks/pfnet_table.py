@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 from dataclasses import dataclass
@@ -204,6 +205,7 @@ def markdown(results: dict, K_eval) -> str:
 
 
 def main(argv=None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")  # the library's progress
     ap = argparse.ArgumentParser(
         prog="python -m benchmarks.pfnet_table", description=__doc__.split("\n")[0]
     )

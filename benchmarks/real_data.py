@@ -4,7 +4,7 @@
     python -m benchmarks.real_data --steps 300 --out /tmp/rd        # quick look
     python -m benchmarks.real_data --config '{"filter": {"particles": 256}}' --out out/rd_k256
 
-Logs (``../shared/data``, see its README):
+Logs (``--data``, default ``../shared/data``; sources and checksums in docs/real_data.md):
 
 * ``mit-csail.clf``: raw odometry from the FLASER odometry fields, 361 beams. No ground truth:
   the metric is *scan consistency* (:func:`pyro_slam.metrics.scan_consistency`): every scan,

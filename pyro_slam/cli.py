@@ -34,6 +34,7 @@ from simulators.traversal import integrate_controls
 
 from . import pretrained
 from .data import DatasetError, Traversal, atomic_write_all, one_line
+from .extras import MissingExtra
 from .io import input_kind, read_any
 from .model import pretrain_transition
 from .planning import (
@@ -162,9 +163,10 @@ def _print_report(report: dict, out: Path) -> None:
     if "slam" in report:
         s, p = report["slam"], report["path_integration"]
         line += (
-            f" | final error SLAM {s['final_error']:.4f} vs path integration "
-            f"{p['final_error']:.4f} | ATE rmse {s['ate']['rmse']:.4f} vs {p['ate']['rmse']:.4f}"
+            f" | final error SLAM {s['final_error']:.4f} vs path integration {p['final_error']:.4f}"
         )
+        if "ate" in s:  # (evo, the [eval] extra)
+            line += f" | ATE rmse {s['ate']['rmse']:.4f} vs {p['ate']['rmse']:.4f}"
     if "scan_consistency" in report:
         c = report["scan_consistency"]
         if c["slam"]["mean"] is None:
@@ -782,7 +784,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (DatasetError, FileNotFoundError, ValueError) as e:
+    except (DatasetError, FileNotFoundError, ValueError, MissingExtra) as e:
         print(f"pyro-slam {args.command}: error: {e}", file=sys.stderr)
         return 2
     except (OSError, MemoryError) as e:  # the machine refused: disk, permissions, memory

@@ -81,6 +81,12 @@ class Traversal:
     def num_beams(self) -> int:
         return int(self.observations.shape[1])
 
+    @property
+    def start_pose(self) -> np.ndarray:
+        """``[3]`` the pose SLAM and path integration start from: ``poses[0]`` when the poses
+        are known, else the origin."""
+        return np.zeros(3) if self.poses is None else np.asarray(self.poses[0], dtype=np.float64)
+
     def __len__(self) -> int:
         return self.num_steps
 

@@ -5,12 +5,21 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 
-def wrap_angle(a: torch.Tensor) -> torch.Tensor:
-    """Wrap angles to ``[-pi, pi)``."""
-    return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
+def wrap_angle(a, period: float = 2 * math.pi):
+    """Wrap angles to ``[-period / 2, period / 2)`` (default ``[-pi, pi)``), any shape: a torch
+    tensor stays a tensor; anything else becomes a numpy array (float64 unless it is one
+    already). The one angle-wrapping helper of the package and the simulator."""
+    half = period / 2
+    if isinstance(a, torch.Tensor):
+        return torch.remainder(a + half, period) - half
+    a = np.asarray(a)
+    if a.dtype.kind != "f":
+        a = a.astype(np.float64)
+    return np.remainder(a + half, period) - half
 
 
 def rotate_forward(z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -88,7 +97,7 @@ def wall_direction(
     quarter = math.pi / 2
     a = torch.remainder(torch.atan2(d[..., 1], d[..., 0]), quarter)  # [..., B]
     diff = a.unsqueeze(-1) - a.unsqueeze(-2)  # [..., B, B]
-    diff = torch.remainder(diff + quarter / 2, quarter) - quarter / 2
+    diff = wrap_angle(diff, quarter)
     agree = (diff.abs() < tol) & ok.unsqueeze(-1) & ok.unsqueeze(-2)  # [..., B, B]
     support = torch.where(ok, agree.sum(-1), torch.zeros_like(ok, dtype=torch.long))  # [..., B]
     best = support.argmax(-1, keepdim=True)  # [..., 1]

@@ -3,7 +3,8 @@
 Errors are Euclidean position errors in the traversal's units (the unit-square maze for the
 simulator, metres for real logs). ATE uses the `evo` package (a well-tested reference
 implementation of Sturm et al.'s absolute trajectory error) without alignment, since SLAM is
-anchored at the known start pose.
+anchored at the known start pose; evo is the optional extra ``[eval]``, and without it
+:func:`summary` leaves the ATE out.
 """
 
 from __future__ import annotations
@@ -11,10 +12,20 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import torch
+from scipy.spatial import cKDTree
 
 from .data import Traversal, atomic_write
-from .geometry import odometry_delta, rotate_forward
+from .extras import require
+from .geometry import wrap_angle
+
+try:  # the [eval] extra
+    from evo.core import metrics as evo_metrics
+    from evo.core import sync as evo_sync
+    from evo.core.trajectory import PoseTrajectory3D
+except ImportError:
+    evo_metrics = evo_sync = PoseTrajectory3D = None
+
+HAVE_EVO = evo_metrics is not None
 
 
 def localisation_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
@@ -27,8 +38,7 @@ def localisation_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
 
 def heading_error(a, b) -> np.ndarray:
     """Absolute angular difference in ``[0, pi]`` (arrays of headings, rad)."""
-    d = np.remainder(np.asarray(a) - np.asarray(b) + np.pi, 2 * np.pi) - np.pi
-    return np.abs(d)
+    return np.abs(wrap_angle(np.asarray(a) - np.asarray(b)))
 
 
 def heading_only_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
@@ -43,7 +53,7 @@ def heading_only_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
     est, true = np.asarray(est, dtype=np.float64), np.asarray(true, dtype=np.float64)
     if est.shape != true.shape or est.ndim != 2 or est.shape[1] != 3:
         raise ValueError(f"need two [T, 3] trajectories, got {est.shape} and {true.shape}")
-    dh = np.angle(np.exp(1j * (est[:-1, 2] - true[:-1, 2])))  # [T-1], wrapped
+    dh = wrap_angle(est[:-1, 2] - true[:-1, 2])  # [T-1]
     step = np.diff(true[:, 0] + 1j * true[:, 1])  # [T-1] as complex numbers
     drift = np.concatenate([[0.0], np.cumsum(step * np.exp(1j * dh))])  # [T]
     start = true[0, 0] + 1j * true[0, 1]
@@ -86,9 +96,8 @@ def relative_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
     return np.divide(e, d, out=np.zeros_like(e), where=d > 0)
 
 
-def _to_evo(poses: np.ndarray, stamps: np.ndarray):
-    from evo.core.trajectory import PoseTrajectory3D
-
+def _to_evo(poses: np.ndarray, stamps: np.ndarray, feature: str):
+    require(PoseTrajectory3D, feature, "evo", "eval")
     p = np.asarray(poses, dtype=np.float64)
     xyz = np.column_stack([p[:, 0], p[:, 1], np.zeros(len(p))])
     h = p[:, 2] / 2
@@ -97,15 +106,14 @@ def _to_evo(poses: np.ndarray, stamps: np.ndarray):
 
 
 def ate(est: np.ndarray, true: np.ndarray, align: bool = False) -> dict:
-    """Absolute trajectory error (translation) via ``evo``: rmse / mean / std / max."""
-    from evo.core import metrics, sync
-
+    """Absolute trajectory error (translation) via ``evo``: rmse / mean / std / max
+    (:class:`~pyro_slam.extras.MissingExtra` without the ``[eval]`` extra)."""
     stamps = np.arange(len(true), dtype=np.float64)
-    ref, e = _to_evo(true, stamps), _to_evo(est, stamps)
-    ref, e = sync.associate_trajectories(ref, e)
+    ref, e = _to_evo(true, stamps, "ATE"), _to_evo(est, stamps, "ATE")
+    ref, e = evo_sync.associate_trajectories(ref, e)
     if align:
         e.align(ref, correct_scale=False)
-    m = metrics.APE(metrics.PoseRelation.translation_part)
+    m = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
     m.process_data((ref, e))
     s = m.get_all_statistics()
     return {k: float(s[k]) for k in ("rmse", "mean", "std", "max")}
@@ -118,45 +126,33 @@ def aligned_error(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, float]
     remains after it is the trajectory's shape error; the rest of the plain error is a rigid
     offset of the whole solution (map and poses) from the world frame."""
     stamps = np.arange(len(true), dtype=np.float64)
-    ref, e = _to_evo(true, stamps), _to_evo(est, stamps)
+    ref, e = _to_evo(true, stamps, "aligned_error"), _to_evo(est, stamps, "aligned_error")
     rot, _, _ = e.align(ref, correct_scale=False)
     err = np.linalg.norm(e.positions_xyz[:, :2] - ref.positions_xyz[:, :2], axis=1)
     return err, float(np.arctan2(rot[1, 0], rot[0, 0]))
 
 
 def summary(est: np.ndarray, true: np.ndarray) -> dict:
-    """Final and mean errors, relative error and ATE for one run."""
+    """Final and mean errors, relative error and (with the ``[eval]`` extra) ATE for one run."""
     e = localisation_error(est, true)
     r = relative_error(est, true)
-    return {
+    out = {
         "final_error": float(e[-1]),
         "mean_error": float(e.mean()),
         "final_relative_error": float(r[-1]),
         "distance_travelled": float(distance_travelled(true)[-1]),
-        "ate": ate(est, true),
     }
-
-
-def odometry_poses(traversal: Traversal) -> np.ndarray:
-    """Integrate the traversal's controls from its first pose (zeros if unknown): ``[T, 3]``."""
-    z = torch.zeros(3, dtype=torch.float64)
-    if traversal.poses is not None:
-        z = torch.as_tensor(traversal.poses[0], dtype=torch.float64)
-    f = (
-        odometry_delta
-        if traversal.metadata.get("control_model") == "odometry_delta"
-        else rotate_forward
-    )
-    u = torch.as_tensor(traversal.controls, dtype=torch.float64)
-    out = [z]
-    for t in range(u.shape[0]):
-        z = f(z, u[t])
-        out.append(z)
-    return torch.stack(out).numpy()
+    if HAVE_EVO:
+        out["ate"] = ate(est, true)
+    return out
 
 
 def write_trajectory_tum(path, poses: np.ndarray, stamps: np.ndarray | None = None) -> None:
-    """Export ``[T, 3]`` poses in TUM format (``t x y z qx qy qz qw``), readable by evo."""
+    """Export ``[T, 3]`` poses in TUM format (``t x y z qx qy qz qw``), readable by evo.
+
+    Written with numpy rather than evo's ``file_interface``: evo is an optional extra
+    (``[eval]``) and the format is one line per pose; the test suite reads the files back with
+    evo's reader."""
     p = np.asarray(poses, dtype=np.float64)
     stamps = np.arange(len(p), dtype=np.float64) if stamps is None else np.asarray(stamps)
     h = p[:, 2] / 2
@@ -206,8 +202,6 @@ def scan_consistency(
     endpoint, or a log too short for any scan to have a partner) they are None and ``reason``
     says why.
     """
-    from scipy.spatial import cKDTree
-
     xy, t = scan_points(traversal, poses, max_range)
     blocks = t // exclude
     dist = np.full(len(xy), cap)

@@ -36,8 +36,8 @@ def _walls(ax, walls):
 
 
 def map_image(loc: np.ndarray) -> np.ndarray:
-    """Map mean ``[w, h, D]`` -> RGB ``[h, w, 3]`` in [0, 1] via its 3 principal components
-    (``D = 1``, a ray-cast occupancy map: gray levels, walls dark)."""
+    """Map mean ``[w, h, D]`` -> RGB ``[h, w, 3]`` in [0, 1] via its (up to) 3 principal
+    components (``D = 1``, a ray-cast occupancy map: gray levels, walls dark)."""
     w, h, d = loc.shape
     if d == 1:
         lo, hi = np.percentile(loc, 2), np.percentile(loc, 98)
@@ -52,9 +52,16 @@ def map_image(loc: np.ndarray) -> np.ndarray:
     return rgb.reshape(w, h, 3).transpose(1, 0, 2)
 
 
+def map_kind(loc: np.ndarray) -> str:
+    """What :func:`map_image` shows of a map mean ``[w, h, D]`` (for a title)."""
+    d = loc.shape[-1]
+    return "occupancy, walls dark" if d == 1 else f"{min(3, d)} principal components"
+
+
 def plot_slam(traversal, result: dict, grid, path_png, title: str = "") -> Path:
     """Three panels: trajectories (true / SLAM / path integration) on the walls, the map belief's
-    mean (3 principal components as RGB) and its mean std, and the pose std along the path."""
+    mean (:func:`map_image`) and its mean std. ``result``: ``mean [T, 3]``, ``map_loc [w, h,
+    D]``, ``map_scale [w, h, D]``, optionally ``path_integration [T, 3]`` and ``mode``."""
     est = result["mean"]  # [T, 3]
     pi = result.get("path_integration")
     fig, axes = plt.subplots(1, 3, figsize=(17, 5.5))
@@ -64,7 +71,8 @@ def plot_slam(traversal, result: dict, grid, path_png, title: str = "") -> Path:
         ax.plot(*traversal.poses[:, :2].T, color="k", lw=0.8, alpha=0.6, label="true")
     if pi is not None:
         ax.plot(*pi[:, :2].T, color="tab:red", lw=0.8, label="path integration")
-    ax.plot(*est[:, :2].T, color="tab:blue", lw=0.8, label=f"SLAM ({result.get('mode', '')})")
+    mode = result.get("mode")
+    ax.plot(*est[:, :2].T, color="tab:blue", lw=0.8, label=f"SLAM ({mode})" if mode else "SLAM")
     ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=8)
     ax.set_title(title or "trajectories")
@@ -72,8 +80,7 @@ def plot_slam(traversal, result: dict, grid, path_png, title: str = "") -> Path:
     loc, scale = result["map_loc"], result["map_scale"]
     axes[1].imshow(map_image(loc), origin="lower", extent=ext, interpolation="nearest")
     _walls(axes[1], traversal.walls)
-    kind = "occupancy, walls dark" if loc.shape[-1] == 1 else "3 principal components"
-    axes[1].set_title(f"map belief: mean ({kind})")
+    axes[1].set_title(f"map belief: mean ({map_kind(loc)})")
     im = axes[2].imshow(scale.mean(-1).T, origin="lower", extent=ext, cmap="magma", vmin=0, vmax=1)
     _walls(axes[2], traversal.walls)
     fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.04)
@@ -86,7 +93,7 @@ def plot_slam(traversal, result: dict, grid, path_png, title: str = "") -> Path:
 def plot_errors(traversal, result: dict, path_png) -> Path:
     """Localisation error and error relative to distance travelled vs time, SLAM vs PI."""
     true = traversal.poses
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4), layout="constrained")
     curves = {"SLAM": result["mean"]}
     if result.get("path_integration") is not None:
         curves["path integration"] = result["path_integration"]
@@ -110,7 +117,7 @@ def plot_error_bands(curves: dict[str, np.ndarray], path_png, distance=None, tit
     """
     colors = ["tab:blue", "tab:green", "tab:red", "tab:purple", "tab:orange"]
     n = 1 if distance is None else 2
-    fig, axes = plt.subplots(1, n, figsize=(6.5 * n, 4), squeeze=False)
+    fig, axes = plt.subplots(1, n, figsize=(6.5 * n, 4), squeeze=False, layout="constrained")
     for (name, e), c in zip(curves.items(), colors):
         if distance is None:
             panels = [e]
@@ -140,7 +147,7 @@ def plot_error_bands(curves: dict[str, np.ndarray], path_png, distance=None, tit
 
 def plot_scan_map(traversal, poses, path_png, grid=None, map_loc=None, title="", others=None):
     """Map image of a real log: scan endpoints reprojected with the estimated ``poses`` and the
-    trajectory (left), and the map belief's mean (3 principal components as RGB, right, when
+    trajectory (left), and the map belief's mean (:func:`map_image`, right, when
     ``grid`` and ``map_loc`` are given). ``others``: ``{name: [T, 3] poses}`` drawn as extra
     trajectories (e.g. odometry)."""
     xy, _ = metrics.scan_points(traversal, poses)
@@ -159,7 +166,7 @@ def plot_scan_map(traversal, poses, path_png, grid=None, map_loc=None, title="",
         ax.imshow(map_image(map_loc), origin="lower", extent=grid.extent(), interpolation="nearest")
         ax.plot(*np.asarray(poses)[:, :2].T, color="w", lw=0.5)
         ax.set_aspect("equal")
-        ax.set_title("map belief: mean (3 principal components)")
+        ax.set_title(f"map belief: mean ({map_kind(map_loc)})")
     return _save(fig, path_png)
 
 

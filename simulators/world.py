@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import pymunk
 
+from pyro_slam.geometry import wrap_angle  # noqa: F401 (the simulator's, re-exported)
 from simulators.camera import Camera, CameraConfig
 from simulators.maze import Maze
 from simulators.raycast import raycast
@@ -25,11 +26,6 @@ from simulators.raycast import raycast
 AGENT_RADIUS = 1e-5
 _AGENT_CATEGORY = 0b10
 _SENSE_FILTER = pymunk.ShapeFilter(mask=pymunk.ShapeFilter.ALL_MASKS() ^ _AGENT_CATEGORY)
-
-
-def wrap_angle(a):
-    """Wrap angles (scalar or array) to ``[-pi, pi)``."""
-    return np.remainder(np.asarray(a) + np.pi, 2 * np.pi) - np.pi
 
 
 @dataclass(frozen=True)

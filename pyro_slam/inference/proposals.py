@@ -26,8 +26,8 @@ import pyro.distributions as dist
 import torch
 from pyro.distributions import TorchDistribution, constraints
 
+from ..geometry import wrap_angle
 from ..model.model import HeadingEvidence, MapBelief
-from ..model.noise import wrap_period
 from .particles import Particles
 
 
@@ -152,7 +152,7 @@ class HeadingProposal(Proposal):
         m, s = loc[..., 2], scale[..., 2]
         so = heading.std().to(m.dtype)
         value = torch.as_tensor(heading.frame, dtype=m.dtype) - heading.direction.nan_to_num()
-        r = wrap_period(m - value, period)
+        r = wrap_angle(m - value, period)
         v = s**2 + so**2
         cond_loc, cond_scale = m - r * s**2 / v, s * so / v.sqrt()
         log_in = -0.5 * r**2 / v - 0.5 * torch.log(2 * math.pi * v)
@@ -215,7 +215,7 @@ def _cloud_centre(loc: torch.Tensor) -> torch.Tensor:
     """The mean ``[..., 3]`` of poses ``loc [..., K, 3]``, the heading's circular mean kept on
     the branch of the first particle's (headings are not wrapped in the model)."""
     ref = loc[..., :1, 2]
-    d = wrap_period(loc[..., 2] - ref, 2 * math.pi)
+    d = wrap_angle(loc[..., 2] - ref, 2 * math.pi)
     h = ref[..., 0] + torch.atan2(torch.sin(d).mean(-1), torch.cos(d).mean(-1))
     return torch.cat([loc[..., :2].mean(-2), h.unsqueeze(-1)], -1)
 
@@ -330,7 +330,7 @@ def _heading_terms(model, heading: HeadingEvidence, z):
     f = model.heading
     so = heading.std().to(z.dtype)
     value = torch.as_tensor(heading.frame, dtype=z.dtype) - heading.direction.nan_to_num()
-    e = wrap_period(value - z[..., 2], f.period)
+    e = wrap_angle(value - z[..., 2], f.period)
     g = torch.exp(-0.5 * (e / so) ** 2) / (so * math.sqrt(2 * math.pi))
     resp = (1 - f.outlier_prob) * g / ((1 - f.outlier_prob) * g + f.outlier_prob / f.period)
     w = torch.where(heading.seen(), resp / so**2, 0.0)

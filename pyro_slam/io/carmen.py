@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from pyro_slam.data import Traversal, atomic_write
+from pyro_slam.geometry import wrap_angle
 from pyro_slam.io.common import (
     ParseError,
     build_traversal,
@@ -47,7 +48,6 @@ from pyro_slam.io.common import (
     parse_floats,
     poses_at,
     sentinel_max_range,
-    wrap,
 )
 
 SCAN_MESSAGES = ("FLASER", "ROBOTLASER1")
@@ -151,7 +151,7 @@ def parse_robotlaser1(tokens: list[str], line: int) -> Scan:
     rest = _fields(tokens, 10 + n + k, 11, "poses / velocities", MAX_COORD)  # laser, robot, 5 more
     time = _fields(tokens, 21 + n + k, 1, "ipc_timestamp")[0]
     laser, robot = rest[:3], rest[3:6]
-    config = (head[0], head[2], head[3], float(wrap(laser[2] - robot[2])))
+    config = (head[0], head[2], head[3], float(wrap_angle(laser[2] - robot[2])))
     return Scan("ROBOTLASER1", line, ranges, robot, robot.copy(), float(time), config)
 
 
@@ -276,7 +276,7 @@ def _is_anchor(scan: Scan | None, pose: np.ndarray, time: float) -> bool:
     if scan is None or time >= scan.time:
         return False
     d = np.abs(pose - scan.pose)
-    d[2] = abs(float(wrap(d[2])))
+    d[2] = abs(float(wrap_angle(d[2])))
     return bool(np.all(d < 1e-6))
 
 
@@ -370,7 +370,7 @@ def carmen_to_traversal(
         logged_how = "PARAM"
     else:
         start, res, logged_max, yaw = scans[0].config
-        angles = wrap(start + np.arange(n) * res + yaw)
+        angles = wrap_angle(start + np.arange(n) * res + yaw)
         sensor.update(fov_deg=math.degrees(res * (n - 1)), laser_yaw_offset=yaw)
         logged_how = "ROBOTLASER1 max_range"
     if max_range is not None:
@@ -391,7 +391,7 @@ def carmen_to_traversal(
 
     logged = np.array([s.pose for s in scans])  # [T, 3]
     diff = np.abs(logged - end)
-    diff[:, 2] = np.abs(wrap(logged[:, 2] - end[:, 2]))
+    diff[:, 2] = np.abs(wrap_angle(logged[:, 2] - end[:, 2]))
     differs = float(diff.max()) > 1e-9
     meta = {
         "source": "carmen",

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from pyro_slam.data import DatasetError, Traversal
+from pyro_slam.geometry import wrap_angle
 
 
 class ParseError(ValueError):
@@ -59,17 +60,12 @@ def parse_floats(tokens: list[str]) -> np.ndarray:
 # --- SE(2) in numpy -------------------------------------------------------------------------
 
 
-def wrap(a):
-    """Wrap angles to ``[-pi, pi)`` (same formula as :func:`pyro_slam.geometry.wrap_angle`)."""
-    return np.remainder(np.asarray(a, dtype=np.float64) + math.pi, 2 * math.pi) - math.pi
-
-
 def compose(z: np.ndarray, u: np.ndarray) -> np.ndarray:
     """Apply robot-frame increments ``u`` ``[..., 3]`` to poses ``z`` ``[..., 3]``."""
     c, s = np.cos(z[..., 2]), np.sin(z[..., 2])
     x = z[..., 0] + c * u[..., 0] - s * u[..., 1]
     y = z[..., 1] + s * u[..., 0] + c * u[..., 1]
-    return np.stack([x, y, wrap(z[..., 2] + u[..., 2])], axis=-1)
+    return np.stack([x, y, wrap_angle(z[..., 2] + u[..., 2])], axis=-1)
 
 
 def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -77,14 +73,14 @@ def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     d = b[..., :2] - a[..., :2]
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     dx, dy = c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]
-    return np.stack([dx, dy, wrap(b[..., 2] - a[..., 2])], axis=-1)
+    return np.stack([dx, dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1)
 
 
 def integrate(origin, controls: np.ndarray, control_model: str = "odometry_delta") -> np.ndarray:
     """Dead-reckon ``[T, 3]`` poses from ``origin`` ``[3]`` and ``controls`` ``[T-1, D_u]``."""
     poses = np.empty((len(controls) + 1, 3))
     poses[0] = np.asarray(origin, dtype=np.float64)
-    poses[0, 2] = wrap(poses[0, 2])
+    poses[0, 2] = wrap_angle(poses[0, 2])
     u = np.asarray(controls, dtype=np.float64)
     for t in range(len(u)):
         if control_model == "odometry_delta":
@@ -94,7 +90,7 @@ def integrate(origin, controls: np.ndarray, control_model: str = "odometry_delta
             poses[t + 1] = [
                 poses[t, 0] + u[t, 1] * math.cos(h),
                 poses[t, 1] + u[t, 1] * math.sin(h),
-                wrap(h),
+                wrap_angle(h),
             ]
         else:
             raise ValueError(f"unknown control_model {control_model!r}")
@@ -102,19 +98,21 @@ def integrate(origin, controls: np.ndarray, control_model: str = "odometry_delta
 
 
 def odometry_poses(traversal: Traversal, origin=None) -> np.ndarray:
-    """Dead-reckoned odometry trajectory ``[T, 3]``: the controls integrated from ``origin``.
+    """Dead-reckoned odometry trajectory ``[T, 3]``: the controls integrated with the
+    traversal's control model from ``origin [3]``. The package's one odometry helper.
 
     Default origin: ``metadata["odometry_origin"]`` (set by the readers: the odometry pose the
     first control starts from, so for mit-csail.clf this reproduces the logged raw odometry);
-    for a traversal sliced from a later step (whose metadata still names the original first
-    step), ``poses[0]`` when present, else zeros.
+    for a traversal without it, or sliced from a later step (whose metadata still names the
+    original first step), :attr:`~pyro_slam.data.Traversal.start_pose`. Pass
+    ``traversal.start_pose`` for the dead reckoning in SLAM's frame.
     """
     meta = traversal.metadata
     if origin is None:
         sliced = meta.get("sliced_from", [0])[0] != 0
         origin = meta.get("odometry_origin") if not sliced else None
     if origin is None:
-        origin = traversal.poses[0] if traversal.poses is not None else np.zeros(3)
+        origin = traversal.start_pose
     return integrate(origin, traversal.controls, meta.get("control_model", "rotate_forward"))
 
 
@@ -144,9 +142,9 @@ def poses_at(times: np.ndarray, stamps: np.ndarray, poses: np.ndarray, method: s
     span = s[hi] - s[lo]
     w = np.where(span > 0, (times - s[lo]) / np.where(span > 0, span, 1.0), 0.0)
     w = np.clip(w, 0.0, 1.0)[:, None]
-    dtheta = wrap(p[hi, 2] - p[lo, 2])
+    dtheta = wrap_angle(p[hi, 2] - p[lo, 2])
     out = p[lo] + w * (p[hi] - p[lo])
-    out[:, 2] = wrap(p[lo, 2] + w[:, 0] * dtheta)
+    out[:, 2] = wrap_angle(p[lo, 2] + w[:, 0] * dtheta)
     out[exact] = p[lo[exact]]
     return out, gap
 
@@ -240,7 +238,7 @@ def _traversal(obs, controls, beam_angles, beam_stride, max_range, poses, mask, 
         walls=np.zeros((0, 4)),
         beam_angles=np.asarray(beam_angles, dtype=np.float64)[::beam_stride],
         max_range=float(max_range),
-        poses=None if poses is None else np.column_stack([poses[:, :2], wrap(poses[:, 2])]),
+        poses=None if poses is None else np.column_stack([poses[:, :2], wrap_angle(poses[:, 2])]),
         obs_mask=mask,
         timestamps=ts,
         metadata=meta,

@@ -5,7 +5,7 @@ A relation file has one relation per line, ``t1 t2 x y z roll pitch yaw``: the p
 ``t2`` seen from the pose at time ``t1`` (``#`` comments and blank lines allowed). Relations
 are kept as a float64 array ``[R, 8]`` with exactly these columns; only ``x, y, yaw`` matter in
 2D. The error of an estimated trajectory is, per relation, the translational ``|t_est - t_rel|``
-(m) and rotational ``|wrap(yaw_est - yaw_rel)|`` (deg) difference of the relative poses.
+(m) and rotational ``|wrap_angle(yaw_est - yaw_rel)|`` (deg) difference of the relative poses.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from pyro_slam.data import atomic_write
-from pyro_slam.io.common import ParseError, parse_float, relative, wrap
+from pyro_slam.geometry import wrap_angle
+from pyro_slam.io.common import ParseError, parse_float, relative
 
 COLUMNS = ("t1", "t2", "x", "y", "z", "roll", "pitch", "yaw")
 
@@ -87,7 +88,7 @@ def relation_error(
     ok = ok_i & ok_j
     est = relative(poses[i[ok]], poses[j[ok]])  # [R_used, 3]
     trans = np.linalg.norm(est[:, :2] - rel[ok][:, 2:4], axis=1)
-    rot = np.degrees(np.abs(wrap(est[:, 2] - rel[ok][:, 7])))
+    rot = np.degrees(np.abs(wrap_angle(est[:, 2] - rel[ok][:, 7])))
     stat = lambda f, a: float(f(a)) if a.size else math.nan
     return {
         "trans_mean": stat(np.mean, trans),

@@ -1,5 +1,5 @@
 """ROS bags (ROS 1 ``.bag`` files, ROS 2 bag directories) -> :class:`Traversal`, via the
-``rosbags`` package (pure Python, no ROS install needed).
+``rosbags`` package (pure Python, no ROS install needed; the optional extra ``[ros]``).
 
 Reads ``sensor_msgs/msg/LaserScan`` (one traversal step per scan) and, when present,
 ``nav_msgs/msg/Odometry`` (paired to each scan by time), else the odometry in ``/tf``
@@ -20,18 +20,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from rosbags.highlevel import AnyReader
-from rosbags.typesys import Stores, get_typestore
 
 from pyro_slam.data import Traversal
+from pyro_slam.extras import require
+from pyro_slam.geometry import wrap_angle
 from pyro_slam.io.common import (
     ParseError,
     build_traversal,
     compose,
     poses_at,
     sentinel_max_range,
-    wrap,
 )
+
+try:  # the [ros] extra
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+except ImportError:
+    AnyReader = Stores = get_typestore = None
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -218,6 +223,7 @@ def read_rosbag(
     Raises:
         ParseError: unreadable bag, missing / ambiguous topics, inconsistent scans, no scans.
     """
+    require(AnyReader, "reading ROS bags", "rosbags", "ros")
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such bag")
@@ -243,7 +249,7 @@ def read_rosbag(
     odom, odom_meta = _odometry(bag, times, pairing, odoms[0].topic if odoms else None)
     meta.update(odom_topic=odoms[0].topic if odoms else None, **odom_meta)
     meta["counts"] = {"scans": len(times), "odometry": len(bag.odom_pose)}
-    angles = wrap(first.angle_min + first.angle_increment * np.arange(ranges.shape[1]))
+    angles = wrap_angle(first.angle_min + first.angle_increment * np.arange(ranges.shape[1]))
     return build_traversal(
         ranges,
         angles,

@@ -19,10 +19,7 @@ import torch
 from pyro.distributions import TorchDistribution, constraints
 from torch.distributions.utils import broadcast_all
 
-
-def wrap_period(a: torch.Tensor, period: float) -> torch.Tensor:
-    """``a`` wrapped into ``[-period / 2, period / 2)``."""
-    return torch.remainder(a + period / 2, period) - period / 2
+from ..geometry import wrap_angle
 
 
 class BeamMixture(TorchDistribution):
@@ -135,7 +132,7 @@ class WrappedMixture(TorchDistribution):
 
     def residual(self, value: torch.Tensor) -> torch.Tensor:
         """``value - loc`` wrapped into ``[-period / 2, period / 2)``."""
-        return wrap_period(value - self.loc, self.period)
+        return wrap_angle(value - self.loc, self.period)
 
     def log_prob(self, value: torch.Tensor) -> torch.Tensor:
         r = self.residual(value)

@@ -20,6 +20,7 @@ All take the batch dict of :mod:`pyro_slam.pfnet` and return ``{"estimates": [B,
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 
 import numpy as np
@@ -40,6 +41,8 @@ from .model import (
     evaluate,
     local_map_crops,
 )
+
+log = logging.getLogger(__name__)
 
 # --------------------------------------------------------------------------------------------
 # Propagated uncertainty and the beam-model particle filter
@@ -113,7 +116,7 @@ def tune_beam_model(dataset, K=100, n_traj=40, progress=False):
         prm = dict(sigma_hit=sigma, z_hit=z_hit, z_short=rest / 4, z_max=rest / 4, z_rand=rest / 2)
         tried.append((evaluate(BeamModelPF(**prm), sub, K=K), prm))
         if progress:
-            print(f"beam model {prm}: {tried[-1][0]:.1f} cm")
+            log.info("beam model %s: %.1f cm", prm, tried[-1][0])
     return min(tried, key=lambda x: x[0])[1], tried
 
 

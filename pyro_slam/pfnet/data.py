@@ -33,6 +33,7 @@ from tqdm.auto import tqdm
 import simulators
 from simulators.world import point_segment_distance
 
+from ..geometry import wrap_angle
 from .model import INIT_STD, METRE, ObsModelConfig, rasterize_floor_map
 
 T_STEPS = 24
@@ -41,16 +42,12 @@ ROTATE_RANGE = (math.radians(15), math.radians(60))
 P_FORWARD = 0.8
 
 
-def wrap(a):
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
-
-
 def relative_pose(z0: np.ndarray, z1: np.ndarray) -> np.ndarray:
     """Robot-frame increment ``(dx, dy, dtheta)`` from ``z0`` to ``z1`` (inverse of
     :func:`pyro_slam.geometry.odometry_delta`)."""
     c, s = np.cos(z0[..., 2]), np.sin(z0[..., 2])
     dx, dy = z1[..., 0] - z0[..., 0], z1[..., 1] - z0[..., 1]
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap(z1[..., 2] - z0[..., 2])], -1)
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(z1[..., 2] - z0[..., 2])], -1)
 
 
 @dataclass
@@ -124,7 +121,7 @@ class PFNetDataset:
         if self.fresh_init:
             eps = torch.randn(len(idx), 3, generator=generator) * torch.tensor(INIT_STD)
             init = poses[:, 0] + eps
-            init[:, 2] = torch.remainder(init[:, 2] + math.pi, 2 * math.pi) - math.pi
+            init[:, 2] = wrap_angle(init[:, 2])
         else:
             init = torch.as_tensor(self.init_mean[idx], dtype=torch.float32)
         return {
@@ -254,7 +251,7 @@ def sample_trajectory(world, start, rng: np.random.Generator, T=T_STEPS, depth=T
         poses.append(world.pose)
         scans.append(world.lidar())
     poses = np.stack(poses)
-    poses[:, 2] = wrap(poses[:, 2])
+    poses[:, 2] = wrap_angle(poses[:, 2])
     img = world.depth_images(poses) if depth else None
     return poses, np.asarray(odom), np.stack(scans), img
 
@@ -290,7 +287,7 @@ def generate(
             D.append(d)
             idx.append(m)
             c = p[0] + rng.normal(size=3) * np.array(INIT_STD)
-            c[2] = wrap(c[2])
+            c[2] = wrap_angle(c[2])
             init.append(c)
             bar.update(1)
     bar.close()

@@ -13,6 +13,7 @@ import pyro
 import torch
 from pyro import poutine
 from scipy.optimize import minimize
+from scipy.spatial import cKDTree
 
 from simulators import LidarConfig, World, raycast, simulate_traversal
 from simulators.world import point_segment_distance
@@ -328,8 +329,6 @@ class ScanHits:
     """
 
     def __init__(self, traversal, poses=None):
-        from scipy.spatial import cKDTree
-
         z = np.asarray(traversal.poses if poses is None else poses, dtype=np.float64)  # [T, 3]
         x = np.asarray(traversal.observations, dtype=np.float64)  # [T, B]
         hit = x < traversal.max_range * (1 - 1e-3)  # [T, B]: readings at the range are misses

@@ -27,6 +27,7 @@ transition with the same ``sigma_T``.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import asdict, dataclass, replace
 
@@ -44,6 +45,8 @@ from simulators import SCALES, World, make_maze
 from ..model import DVBFLM, EmissionMLP, KinematicTransition, MapGrid, MapGuide, map_marginals
 from ..model.guide import ParamScope, map_kl, sample_maps
 from ..pretrained import EMISSION_FILE, PRETRAINED
+
+log = logging.getLogger(__name__)
 
 # ----------------------------------------------------------------------------- entropy
 
@@ -560,7 +563,7 @@ def run_agent(
         if hasattr(progress, "update"):  # a tqdm bar
             progress.update(n)
         elif progress:
-            print(f"{policy} {scale_name} step {done}: {curve['ratio'][-1]:.3f}", flush=True)
+            log.info("%s %s step %d: %.3f", policy, scale_name, done, curve["ratio"][-1])
     curve["mi"] = ep.mis
     curve["collisions"] = int(world.collisions)
     curve["path"] = np.array(path).tolist()

@@ -55,6 +55,7 @@ from pyro.optim import Adam
 from torch import nn
 from tqdm import tqdm
 
+from ..geometry import wrap_angle
 from ..metrics import heading_error  # noqa: F401 (re-exported)
 from ..model import DVBFLM, mlp, rotate_scan
 
@@ -116,8 +117,7 @@ class PoseEncoder(nn.Module):
         canon = rotate_scan(x, -psi, self.beam_angles)  # [..., B]
         o = self.net(canon / self.max_range)  # [..., 7]
         xy = self.lo + self.span * torch.sigmoid(o[..., :2])  # [..., 2]
-        heading = torch.atan2(o[..., 3], o[..., 2]) + psi + math.pi  # [...]
-        heading = torch.remainder(heading, 2 * math.pi) - math.pi
+        heading = wrap_angle(torch.atan2(o[..., 3], o[..., 2]) + psi)  # [...]
         scale = self.min_scale + (self.max_scale - self.min_scale) * torch.sigmoid(o[..., 4:])
         return torch.cat([xy, heading.unsqueeze(-1)], -1), scale
 
@@ -220,8 +220,7 @@ class InversePose:
         ``x [..., B]`` -> ``[...]``."""
         loc, scale = self.encoder(x)
         r = z - loc
-        wrapped = torch.remainder(r[..., 2:] + math.pi, 2 * math.pi) - math.pi
-        r = torch.cat([r[..., :2], wrapped], -1)
+        r = torch.cat([r[..., :2], wrap_angle(r[..., 2:])], -1)
         return dist.Normal(0.0, scale).log_prob(r).sum(-1)
 
     def fit(
@@ -372,7 +371,7 @@ class InversePose:
         x0, x1, y0, y1 = self.bounds
         pose[:, 0] = pose[:, 0].clamp(x0, x1)
         pose[:, 1] = pose[:, 1].clamp(y0, y1)
-        pose[:, 2] = torch.remainder(pose[:, 2] + math.pi, 2 * math.pi) - math.pi
+        pose[:, 2] = wrap_angle(pose[:, 2])
         return (pose[0], ll[0]) if single else (pose, ll)
 
 

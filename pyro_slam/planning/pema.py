@@ -13,6 +13,7 @@ Augmented Random Search (Mania et al. 2018) to maximise the number of visited ti
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import asdict, dataclass
 
@@ -21,6 +22,8 @@ import torch
 
 from simulators import SCALES, World, make_maze
 from simulators.raycast import raycast
+
+log = logging.getLogger(__name__)
 
 
 class PEMAPolicy:
@@ -166,7 +169,7 @@ def train_pema(
 
     def cb(it, r0, _th):
         if progress:
-            print(f"ARS iteration {it}: reward {r0:.3f}", flush=True)
+            log.info("ARS iteration %d: reward %.3f", it, r0)
 
     policy.theta, history = ars(objective, policy.theta, cfg, cb)
     return history

@@ -13,7 +13,7 @@ import torch
 
 from ..data import DatasetError, Traversal
 from ..geometry import wrap_angle
-from ..metrics import odometry_poses
+from ..io.common import odometry_poses
 from ..model import (
     DVBFLM,
     Emission,
@@ -96,7 +96,7 @@ def _extent(traversal: Traversal, config: SLAMConfig):
         pts = traversal.walls.reshape(-1, 2)
         return (*pts.min(0), *pts.max(0))
     reach = float(config.range_clip or traversal.max_range)
-    path = odometry_poses(traversal)[:, :2]
+    path = odometry_poses(traversal, traversal.start_pose)[:, :2]
     return (*(path.min(0) - reach), *(path.max(0) + reach))
 
 
@@ -230,10 +230,7 @@ def traversal_tensors(tr: Traversal):
     obs = torch.as_tensor(tr.observations, dtype=dtype)
     ctl = torch.as_tensor(tr.controls, dtype=dtype)
     mask = None if tr.obs_mask is None else torch.as_tensor(tr.obs_mask)
-    init = torch.zeros(3, dtype=dtype)
-    if tr.poses is not None:
-        init = torch.as_tensor(tr.poses[0], dtype=dtype)
-    return obs, ctl, mask, init
+    return obs, ctl, mask, torch.as_tensor(tr.start_pose, dtype=dtype)
 
 
 def path_integration(traversal: Traversal, transition: Transition):

@@ -33,18 +33,20 @@ import math
 import torch
 
 from ..data import Traversal
-from ..geometry import image_background, image_wall_direction, range_noise, wall_direction
-from ..metrics import odometry_poses
+from ..geometry import (
+    image_background,
+    image_wall_direction,
+    range_noise,
+    wall_direction,
+    wrap_angle,
+)
+from ..io.common import odometry_poses
 from ..model import FrameGuide, HeadingEvidence, WallHeading
 from .config import HeadingConfig
 
 QUARTER = math.pi / 2
 FRAME_SCANS = 50  # at most this many early scans estimate the frame
 NOISY = 1e-4  # range noise above this fraction of the median reading: outliers are possible
-
-
-def _wrap_quarter(a: torch.Tensor) -> torch.Tensor:
-    return torch.remainder(a + QUARTER / 2, QUARTER) - QUARTER / 2
 
 
 class ManhattanHeading:
@@ -114,9 +116,10 @@ class ManhattanHeading:
         steps = torch.nonzero(self.ok).flatten()[:FRAME_SCANS]
         if not len(steps):
             return float("nan"), float("inf")
-        heading = torch.as_tensor(odometry_poses(traversal)[:, 2], dtype=self.direction.dtype)
+        odometry = odometry_poses(traversal, traversal.start_pose)  # [T, 3] in SLAM's frame
+        heading = torch.as_tensor(odometry[:, 2], dtype=self.direction.dtype)
         y = heading[steps] + self.direction[steps]  # [n] phi + drift, modulo a quarter turn
-        y = y[0] + _wrap_quarter(y - y[0])  # unwrapped about the first
+        y = y[0] + wrap_angle(y - y[0], QUARTER)  # unwrapped about the first
         sigma2 = self.sigma[steps] ** 2
         mean, var, t = float(y[-1]), float(sigma2[-1]), int(steps[-1])
         for k in range(len(steps) - 2, -1, -1):
@@ -144,7 +147,7 @@ class ManhattanHeading:
         if not bool(self.ok[t]) or math.isnan(f.mean):
             return
         v = float(self.sigma[t]) ** 2 + heading_std**2
-        r = float(_wrap_quarter(torch.tensor(heading + float(self.direction[t]) - f.mean)))
+        r = float(wrap_angle(heading + float(self.direction[t]) - f.mean, QUARTER))
         gain = f.var / (f.var + v)
         f.mean = float(torch.remainder(torch.tensor(f.mean + gain * r), QUARTER))
         f.var *= 1 - gain

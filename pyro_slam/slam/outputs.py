@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import math
 import os
 import shutil
@@ -23,10 +24,22 @@ from .build import MAX_BYTES, path_integration
 from .config import SLAMConfig
 from .runner import SLAM
 
+log = logging.getLogger(__name__)
+
 # what a run writes into its folder (an --overwrite run removes these first)
-OUTPUTS = ("checkpoint.pt", "metrics.json", "posterior.npz", "slam.png", "error.png", "map.png",
-           "map.pgm", "map.yaml", "trajectory_slam.tum",
-           "trajectory_path_integration.tum")  # fmt: skip
+OUTPUTS = (
+    "checkpoint.pt",
+    "metrics.json",
+    "posterior.npz",
+    "slam.png",
+    "error.png",
+    "map.png",
+    "map.pgm",
+    "map.yaml",
+    "trajectory_slam.tum",
+    "trajectory_path_integration.tum",
+    "trajectory_true.tum",
+)
 MAP_CELL = 0.05  # the finest cell of the exported occupancy grid (metres on real logs)
 MAP_BYTES_PER_CELL = 32  # the export's working set per cell (log odds, probabilities, image)
 
@@ -88,10 +101,13 @@ def replacing(out: Path, names: Iterable[str], overwrite: bool = True):
 
 
 def _write_trajectories(out: Path, traversal: Traversal, res: dict) -> None:
-    metrics.write_trajectory_tum(out / "trajectory_slam.tum", res["mean"], traversal.timestamps)
-    metrics.write_trajectory_tum(
-        out / "trajectory_path_integration.tum", res["path_integration"], traversal.timestamps
-    )
+    """The TUM trajectories: SLAM, path integration and, where the traversal has them, its
+    true / reference poses (for ``evo_ape``); and ``posterior.npz``."""
+    paths = {"slam": res["mean"], "path_integration": res["path_integration"]}
+    if traversal.poses is not None:
+        paths["true"] = traversal.poses
+    for name, poses in paths.items():
+        metrics.write_trajectory_tum(out / f"trajectory_{name}.tum", poses, traversal.timestamps)
     arrays = {k: res[v] for k, v in (("pose_mean", "mean"), ("pose_std", "std"),
               ("map_loc", "map_loc"), ("map_scale", "map_scale"),
               ("path_integration", "path_integration"))}  # fmt: skip
@@ -125,6 +141,8 @@ def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float,
         report["skipped_lines"] = traversal.metadata["skipped_lines"]
         report["skip_reasons"] = traversal.metadata.get("skip_reasons", [])
     if traversal.poses is not None:
+        if not metrics.HAVE_EVO:
+            log.warning("metrics.json without ATE: it needs evo, pip install 'pyro_slam[eval]'")
         report["slam"] = metrics.summary(res["mean"], traversal.poses)
         report["path_integration"] = metrics.summary(res["path_integration"], traversal.poses)
     if not traversal.walls.shape[0]:  # real log: how well the scans agree under each path
@@ -135,11 +153,15 @@ def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float,
     return report
 
 
-def _occupancy(out: Path, slam: SLAM, res: dict) -> None:
-    """``map.pgm`` + ``map.yaml`` (ROS ``map_server``): the scans placed at the SLAM poses."""
+def _occupancy(out: Path, slam: SLAM, res: dict, progress: bool) -> None:
+    """``map.pgm`` + ``map.yaml`` (ROS ``map_server``): the scans SLAM read (strided, clipped at
+    the range clip) placed at the SLAM poses."""
     cell = min(slam.cfg.emission.resolution, MAP_CELL)
-    grid = occupancy_grid(slam.tr, res["mean"], cell, margin=2 * cell)
+    t0 = time.perf_counter()
+    grid = occupancy_grid(slam.tr, res["mean"], cell, margin=2 * cell, progress=progress)
     write_map(grid, out / "map.yaml")
+    h, w = grid.image.shape
+    log.info("map.pgm: %d x %d cells of %g in %.1f s", w, h, cell, time.perf_counter() - t0)
 
 
 def _plots(out: Path, slam: SLAM, traversal: Traversal, res: dict) -> None:
@@ -244,6 +266,7 @@ def run_slam(
         t0 = time.perf_counter()
         res = slam.run(mode, progress=progress)
         wall = time.perf_counter() - t0
+        res["mode"] = mode
         res["path_integration"] = dead_reckoning
         _write_trajectories(out, traversal, res)
         run = {"preset": preset, "seed": seed, "input": source}
@@ -252,5 +275,5 @@ def run_slam(
         atomic_write(out / "metrics.json", lambda f: f.write(text.encode()))
         _plots(out, slam, traversal, res)
         if slam.cfg.emission.observation == "lidar":
-            _occupancy(out, slam, res)
+            _occupancy(out, slam, res, progress)
     return report

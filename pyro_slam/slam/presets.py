@@ -21,6 +21,7 @@ The figures of each are on the results page (``docs/results.md``).
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -28,6 +29,7 @@ import numpy as np
 
 from ..data import Traversal
 from .config import (
+    ConfigError,
     EmissionConfig,
     HeadingConfig,
     OfflineConfig,
@@ -181,6 +183,35 @@ def is_real_log(traversal: Traversal) -> bool:
     )
 
 
+def resolve(config: SLAMConfig | Preset | str | None, traversal: Traversal) -> SLAMConfig:
+    """The configuration a SLAM run on ``traversal`` uses for ``config``, as the CLI chooses it:
+    None -> :func:`default_for`; a preset name or a :class:`Preset` -> its configuration for
+    this traversal (a data-dependent preset such as ``real`` adapted to the log);
+    a :class:`SLAMConfig` as it is. A data-dependent preset's unadapted ``.config`` on a real
+    log (all beams, no range clip, the simulator's odometry noise) warns and suggests the name.
+    """
+    if config is None:
+        return default_for(traversal)
+    if isinstance(config, str):
+        config = get(config)
+    if isinstance(config, Preset):
+        return config.for_traversal(traversal)
+    if not isinstance(config, SLAMConfig):
+        raise ConfigError(
+            f"config must be a preset name, a Preset or a SLAMConfig, got {type(config).__name__}"
+        )
+    unadapted = [p.name for p in PRESETS.values() if p.adapt is not None and p.config == config]
+    if unadapted and is_real_log(traversal):
+        warnings.warn(
+            f"the {unadapted[0]!r} preset's .config is not adapted to this log (beam stride, "
+            f"range clip, odometry noise); pass {unadapted[0]!r} or "
+            f"presets.get({unadapted[0]!r}) to adapt it as pyro-slam slam does",
+            UserWarning,
+            stacklevel=3,
+        )
+    return config
+
+
 def default_for(traversal: Traversal | None = None) -> SLAMConfig:
     """The default configuration for ``traversal``: the ``real`` preset for a real log, the
     default preset otherwise."""
@@ -199,4 +230,5 @@ __all__ = [
     "get",
     "is_real_log",
     "odometry_sigma",
+    "resolve",
 ]

@@ -85,8 +85,11 @@ class SLAM:
 
     Args:
         traversal: the data (:class:`~pyro_slam.data.Traversal`).
-        config: a :class:`~pyro_slam.slam.config.SLAMConfig` (default: the default preset for
-            the traversal, :func:`pyro_slam.slam.presets.default_for`).
+        config: a preset name (``"raycast"``, ``"real"``, ...), a
+            :class:`~pyro_slam.slam.presets.Preset` or a
+            :class:`~pyro_slam.slam.config.SLAMConfig` (default: the default preset for the
+            traversal, :func:`pyro_slam.slam.presets.default_for`). A preset is adapted to the
+            traversal as ``pyro-slam slam`` does (:func:`pyro_slam.slam.presets.resolve`).
         transition: a transition to use instead of the configured one (``transition.kind``
             ``"learned"``: the shipped network).
         emission: an emission instead of the configured kind's default (the shipped LiDAR MLP
@@ -117,14 +120,14 @@ class SLAM:
     Example::
 
         tr = pyro_slam.data.load("traversal.npz")
-        slam = SLAM(tr, presets.get("raycast").config, checkpoint="run/ckpt.pt")
+        slam = SLAM(tr, "raycast", checkpoint="run/ckpt.pt")  # or "real" for a laser log
         result = slam.run("online")          # dict: mean [T, 3], std [T, 3], losses, map
     """
 
     def __init__(
         self,
         traversal: Traversal,
-        config: SLAMConfig | None = None,
+        config: SLAMConfig | presets.Preset | str | None = None,
         transition: Transition | None = None,
         emission: Emission | EmissionMLP | None = None,
         checkpoint: str | Path | None = None,
@@ -137,7 +140,7 @@ class SLAM:
         smc: bool = False,
         threads: int | None = None,
     ):
-        self.cfg = presets.default_for(traversal) if config is None else config
+        self.cfg = presets.resolve(config, traversal)
         if not (isinstance(checkpoint_every, int) and checkpoint_every > 0):
             raise ValueError(
                 f"checkpoint_every must be a positive integer, got {checkpoint_every!r}"

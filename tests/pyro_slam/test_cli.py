@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from pyro_slam import cli, pretrained
+from pyro_slam.data import load
 from pyro_slam.runtime import package_version
 from pyro_slam.slam import SLAM
 
@@ -64,6 +65,11 @@ def test_slam_writes_outputs_and_metrics(traversal, tmp_path, capsys):
     assert post["pose_mean"].shape == (30, 3) and np.isfinite(post["pose_mean"]).all()
     tum = np.loadtxt(out / "trajectory_slam.tum")
     assert tum.shape == (30, 8)
+    # the traversal's true poses, for evo_ape against trajectory_slam.tum
+    true = np.loadtxt(out / "trajectory_true.tum")
+    poses = load(traversal).poses
+    np.testing.assert_allclose(true[:, 1:3], poses[:, :2], atol=1e-8)
+    np.testing.assert_allclose(2 * np.arctan2(true[:, 6], true[:, 7]), poses[:, 2], atol=1e-8)
     assert "final error SLAM" in capsys.readouterr().out
 
 

@@ -1,9 +1,11 @@
-"""Wall directions from LiDAR scans and camera frames (the Manhattan heading observation)."""
+"""Angle wrapping; wall directions from LiDAR scans and camera frames (the Manhattan heading
+observation)."""
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -12,10 +14,25 @@ from pyro_slam.geometry import (
     image_wall_direction,
     image_wall_extents,
     wall_direction,
+    wrap_angle,
 )
 from simulators import simulate_traversal
 from simulators.camera import CEILING_ALBEDO, FLOOR_ALBEDO, Camera, CameraConfig
 from simulators.maze import make_maze
+
+
+def test_wrap_angle_takes_tensors_arrays_and_numbers_and_any_period():
+    a = [-3 * math.pi, -math.pi, -0.5, 0.0, math.pi, 7.0]
+    want = [-math.pi, -math.pi, -0.5, 0.0, -math.pi, 7.0 - 2 * math.pi]
+    t = wrap_angle(torch.tensor(a, dtype=torch.float64))
+    assert isinstance(t, torch.Tensor) and torch.allclose(t, torch.tensor(want, dtype=t.dtype))
+    n = wrap_angle(a)
+    assert isinstance(n, np.ndarray) and n.dtype == np.float64
+    np.testing.assert_allclose(n, want, atol=1e-12)
+    assert wrap_angle(np.float32(4.0)).dtype == np.float32  # a float array keeps its dtype
+    assert float(wrap_angle(4)) == pytest.approx(4 - 2 * math.pi)  # an int: float64
+    quarter = wrap_angle(np.array([0.9, -0.9, math.pi / 4]), math.pi / 2)
+    np.testing.assert_allclose(quarter, [0.9 - math.pi / 2, math.pi / 2 - 0.9, -math.pi / 4])
 
 
 def test_wall_direction_gives_the_heading_modulo_a_quarter_turn():

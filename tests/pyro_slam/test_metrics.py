@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from pyro_slam.data import Traversal
+from pyro_slam.io import odometry_poses
 from pyro_slam.metrics import (
     aligned_error,
     along_track_error,
@@ -15,7 +16,6 @@ from pyro_slam.metrics import (
     distance_travelled,
     heading_only_error,
     localisation_error,
-    odometry_poses,
     relative_error,
     summary,
     write_trajectory_tum,
@@ -113,6 +113,12 @@ def test_odometry_poses_odometry_delta():
     odo = odometry_poses(tr)
     np.testing.assert_allclose(odo[:, :2], [[0, 0], [1, 0], [1, 1], [0, 1], [0, 0]], atol=1e-12)
     np.testing.assert_allclose(np.cos(odo[:, 2]), [1, 0, -1, 0, 1], atol=1e-12)
+    # a log's raw odometry starts where its odometry did; SLAM's frame starts at start_pose
+    tr.metadata["odometry_origin"] = [5.0, 5.0, math.pi / 2]
+    tr.poses = np.tile([1.0, 2.0, 0.0], (5, 1))
+    np.testing.assert_allclose(odometry_poses(tr)[1], [5, 6, -math.pi], atol=1e-12)
+    np.testing.assert_allclose(tr.start_pose, [1, 2, 0])
+    np.testing.assert_allclose(odometry_poses(tr, tr.start_pose)[1], [2, 2, math.pi / 2])
 
 
 def test_tum_export_roundtrips_through_evo(tmp_path):

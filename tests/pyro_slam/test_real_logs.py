@@ -9,11 +9,13 @@ import numpy as np
 import pytest
 
 from pyro_slam import cli, metrics
-from pyro_slam.io import write_carmen
+from pyro_slam.io import odometry_poses, read_any, read_map, write_carmen
 from pyro_slam.slam import (
     SLAM,
+    ConfigError,
     SLAMConfig,
     build_model,
+    from_dict,
     prepare_traversal,
     presets,
     with_overrides,
@@ -71,7 +73,7 @@ def test_real_preset_adapts_to_the_log_and_sizes_the_model():
     assert model.emission.max_range == pytest.approx(cfg.range_clip)
     assert model.beam_angles.shape == (46,)
     x0, x1, y0, y1 = model.grid.extent()
-    path = metrics.odometry_poses(prepared)[:, :2]
+    path = odometry_poses(prepared)[:, :2]
     assert x0 == pytest.approx(path[:, 0].min() - cfg.range_clip)
     assert y1 == pytest.approx(path[:, 1].max() + cfg.range_clip)
     assert (x1 - x0) / (model.grid.cells[0] - 1) == pytest.approx(0.1, rel=0.05)
@@ -87,7 +89,7 @@ def test_slam_runs_on_subsampled_metric_log():
     res = slam.run("online", progress=False)
     assert res["mean"].shape == (12, 3) and np.isfinite(res["mean"]).all()
     # 12 short steps from a known start: SLAM stays near the odometry
-    odo = metrics.odometry_poses(tr)
+    odo = odometry_poses(tr)
     assert np.abs(res["mean"][:, :2] - odo[:, :2]).max() < 1.0
 
 
@@ -115,6 +117,7 @@ def test_cli_slam_on_carmen_log(tmp_path, capsys):
     assert rc == 0
     for name in ("metrics.json", "map.png", "slam.png", "trajectory_slam.tum", "posterior.npz"):
         assert (out / name).is_file(), name
+    assert not (out / "trajectory_true.tum").exists()  # the log has no reference poses
     report = json.loads((out / "metrics.json").read_text())
     config = report["config"]
     assert report["preset"] == "real" and config["beam_stride"] == 8
@@ -123,6 +126,11 @@ def test_cli_slam_on_carmen_log(tmp_path, capsys):
     np.testing.assert_allclose(config["transition"]["sigma"], sigma, rtol=1e-4)
     assert report["scan_consistency"]["slam"]["mean"] >= 0
     assert "scan consistency" in capsys.readouterr().out
+    # the exported map spans the room the beams saw (10 x 6 m plus its margin), not the
+    # sensor's 81.91 m "no return" range around the path
+    grid = read_map(out / "map.yaml")
+    h, w = grid.image.shape
+    assert w * grid.resolution <= 10.5 and h * grid.resolution <= 6.5
 
 
 def test_scan_points_leave_out_clipped_readings():
@@ -131,3 +139,23 @@ def test_scan_points_leave_out_clipped_readings():
     xy, t = metrics.scan_points(clipped, poses)
     n_short = int((tr.obs_mask & (tr.observations < 4.0)).sum())
     assert len(xy) == n_short  # readings clipped to 4 m are not wall points
+
+
+def test_slam_from_python_adapts_a_preset_to_the_log_as_the_cli_does(tmp_path):
+    """``SLAM(tr, "real")`` and ``SLAM(tr, presets.get("real"))`` run with the configuration
+    ``pyro-slam slam LOG`` chooses; the preset's unadapted ``.config`` on a log warns."""
+    tr, _ = room_log(T=6)
+    log = write_carmen(tr, tmp_path / "room.clf")
+    out = tmp_path / "run"
+    assert cli.main(["slam", str(log), "--out", str(out)]) == 0
+    cli_config = from_dict(json.loads((out / "metrics.json").read_text())["config"])
+    tr = read_any(log)
+    assert SLAM(tr, "real").cfg == cli_config
+    assert SLAM(tr, presets.get("real")).cfg == cli_config
+    assert SLAM(tr).cfg == cli_config  # the default for a real log
+    with pytest.warns(UserWarning, match="not adapted to this log"):
+        SLAM(tr, presets.get("real").config)
+    with pytest.raises(ValueError, match="unknown preset 'rael'"):
+        SLAM(tr, "rael")
+    with pytest.raises(ConfigError, match="preset name"):
+        SLAM(tr, {"filter": {"particles": 8}})

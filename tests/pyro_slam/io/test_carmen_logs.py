@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from io_helpers import raw_flaser_fields
 
+from pyro_slam.geometry import wrap_angle
 from pyro_slam.io import odometry_poses, read_carmen, relation_error, relations_from_reference
-from pyro_slam.io.common import compose, relative, wrap
+from pyro_slam.io.common import compose, relative
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +30,7 @@ def assert_all_finite(tr):
 
 def assert_close_poses(a, b, tol):
     assert np.abs(a[:, :2] - b[:, :2]).max() < tol
-    assert np.abs(wrap(a[:, 2] - b[:, 2])).max() < tol
+    assert np.abs(wrap_angle(a[:, 2] - b[:, 2])).max() < tol
 
 
 def test_mit_counts_masks_and_odometry(mit, mit_path):
