@@ -17,6 +17,7 @@ from .proposals import (
 )
 from .resampling import ParticleFilterFailed
 from .smc import ProposalGuide, PyroSMCFilter
+from .smoothing import ParticleHistory
 
 __all__ = [
     "PROPOSALS",
@@ -26,6 +27,7 @@ __all__ = [
     "ParticleChunkELBO",
     "ParticleFilter",
     "ParticleFilterFailed",
+    "ParticleHistory",
     "Particles",
     "Proposal",
     "ProposalGuide",

@@ -121,12 +121,15 @@ class ParticleFilter:
         return TransitionProposal().propose(self.model, p, u, self.generator)[0]
 
     def resample_if_needed(self, p: Particles) -> Particles:
-        """Resample the batch elements whose ESS is below ``ess_threshold * K``."""
+        """Resample the batch elements whose ESS is below ``ess_threshold * K``; the result's
+        ``ancestors`` index ``p``'s particles."""
         need = resampling.ess(p.logw) < self.ess_threshold * p.num_particles  # [...]
         if not bool(need.any()):
-            return p
+            return Particles(p.z, p.logw, p.scan, p.identity())
         r = p.resample(self.generator, self.scheme)
-        return r if bool(need.all()) else r.where(need, p)
+        if bool(need.all()):
+            return r
+        return r.where(need, Particles(p.z, p.logw, p.scan, p.identity()))
 
     def step(self, p: Particles, M, x, u, mask=None, step=None, heading=None):
         """One filtering step: resample if needed, propose with ``u [..., D_u]`` (the proposal
@@ -138,7 +141,9 @@ class ParticleFilter:
         z, correction = self.proposal.propose(
             self.model, p, u, self.generator, x=x, mask=mask, M=M, heading=heading
         )
-        return self._weigh(z, M, x, mask, p.logw, step, correction, heading)
+        new, inc = self._weigh(z, M, x, mask, p.logw, step, correction, heading)
+        new.ancestors = p.ancestors
+        return new, inc
 
     @torch.no_grad()
     def run(self, M, observations, controls, init_pose, num_particles, mask=None, init_scale=None):

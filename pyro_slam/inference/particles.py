@@ -14,11 +14,14 @@ from . import resampling
 @dataclass
 class Particles:
     """A weighted particle set. ``z [..., K, 3]``, ``logw [..., K]`` (normalised),
-    ``scan [..., K, B]`` the predicted scan at ``z`` (the transition's input), detached."""
+    ``scan [..., K, B]`` the predicted scan at ``z`` (the transition's input), detached;
+    ``ancestors [..., K]`` each particle's index in the set it descends from (None: unknown),
+    for smoothing over the particles' history (:class:`~.smoothing.ParticleHistory`)."""
 
     z: torch.Tensor
     logw: torch.Tensor
     scan: torch.Tensor | None = None
+    ancestors: torch.Tensor | None = None
 
     @property
     def num_particles(self) -> int:
@@ -34,29 +37,38 @@ class Particles:
         return pose_moments(self.z, self.logw)[1]
 
     def resample(self, generator=None, scheme="systematic") -> Particles:
-        """Equally weighted particles drawn by ``scheme`` (:data:`resampling.SCHEMES`)."""
+        """Equally weighted particles drawn by ``scheme`` (:data:`resampling.SCHEMES`); their
+        ``ancestors`` are the drawn indices."""
         idx = resampling.SCHEMES[scheme](self.logw, generator)
         scan = None if self.scan is None else resampling.gather_particles(self.scan, idx)
         return Particles(
             resampling.gather_particles(self.z, idx),
             torch.full_like(self.logw, -math.log(self.num_particles)),
             scan,
+            idx,
         )
 
     def where(self, mask: torch.Tensor, other: Particles) -> Particles:
-        """These particles where ``mask [...]`` holds, ``other``'s elsewhere."""
+        """These particles where ``mask [...]`` holds, ``other``'s elsewhere (both with
+        ``ancestors``)."""
         m = mask.unsqueeze(-1)
         return Particles(
             torch.where(m.unsqueeze(-1), self.z, other.z),
             torch.where(m, self.logw, other.logw),
             None if self.scan is None else torch.where(m.unsqueeze(-1), self.scan, other.scan),
+            torch.where(m, self.ancestors, other.ancestors),
         )
+
+    def identity(self) -> torch.Tensor:
+        """``[..., K]`` each particle its own ancestor (no resampling)."""
+        return torch.arange(self.num_particles).expand(self.logw.shape)
 
     def detach(self) -> Particles:
         return Particles(
             self.z.detach(),
             self.logw.detach(),
             None if self.scan is None else self.scan.detach(),
+            self.ancestors,
         )
 
     def batched(self) -> Particles:

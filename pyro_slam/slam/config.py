@@ -142,17 +142,22 @@ class FilterConfig:
     (:mod:`pyro_slam.inference.proposals`; with the heading factor, the transition is
     conditioned on it). The weights are the model's likelihood, under the map belief its
     stated marginalisation (:meth:`~pyro_slam.model.DVBFLM.marginal_emission`); ``shared``:
-    one variance per reading for the whole cloud."""
+    one variance per reading for the whole cloud. The reported online poses are smoothed with
+    the particles ``lag`` steps later traced back along their ancestry (0: the filtered
+    means); offline, along the ancestral path of the final pass."""
 
     particles: int = 128
     proposal: str = "transition"
     shared: bool = False
+    lag: int = 20
 
     def __post_init__(self):
         _positive("filter.particles", self.particles, integer=True)
         _choice("filter.proposal", self.proposal, PROPOSALS)
         if not isinstance(self.shared, bool):
             raise ConfigError(f"filter.shared must be true or false, got {self.shared!r}")
+        if not (isinstance(self.lag, int) and not isinstance(self.lag, bool) and self.lag >= 0):
+            raise ConfigError(f"filter.lag must be an integer >= 0, got {self.lag!r}")
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,7 @@ from tqdm.auto import tqdm
 
 from .. import pretrained
 from ..data import Traversal
+from ..geometry import wrap_angle
 from ..inference import (
     PROPOSALS,
     ChunkBatch,
@@ -41,6 +42,7 @@ from ..inference import (
     ParticleCache,
     ParticleChunkELBO,
     ParticleFilter,
+    ParticleHistory,
     Particles,
     PyroSMCFilter,
     sequence_guide,
@@ -198,6 +200,7 @@ class SLAM:
         if smc:
             self.pf = PyroSMCFilter(self.model, self.proposal, shared=self.cfg.filter.shared)
         self.cache = ParticleCache(self.T, CACHE_PARTICLES)
+        self.history = ParticleHistory(self.T, self.cfg.filter.particles)
         self.elbo = ParticleChunkELBO(
             ParticleFilter(self.model, self.proposal, self.gen),
             self.cache,
@@ -294,6 +297,7 @@ class SLAM:
                 self.particles, M, x, self.ctl[t - 1], m, step=t, heading=self._heading(t)
             )
         self.cache.store(torch.tensor([t]), self.particles.batched(), self.gen)
+        self.history.record(t, self.particles, fresh=t == 0)
 
     def _heading(self, t: int):
         """Step ``t``'s heading evidence under the frame's guide (None: no heading factor)."""
@@ -366,6 +370,7 @@ class SLAM:
                             step=t,
                             heading=self._heading(t),
                         )
+                        self.history.record(t, self.particles, fresh=True)
                     else:
                         self.particles, _ = self.pf.step(
                             self.particles,
@@ -376,6 +381,7 @@ class SLAM:
                             step=t,
                             heading=self._heading(t),
                         )
+                        self.history.record(t, self.particles)
                     means.append(self.particles.mean().tolist())
                     stds.append(self.particles.std().tolist())
         return means, stds
@@ -441,14 +447,28 @@ class SLAM:
         return self.result()
 
     def result(self) -> dict:
-        """``mean``, ``std`` ``[T, 3]`` (pose posterior), ``losses``, ``map_loc``, ``map_scale``
-        ``[w, h, D_m]`` (``q(M)``) and, offline, the initial sweep's ``sweep_mean [T, 3]``."""
+        """``mean``, ``std`` ``[T, 3]``: the pose posterior smoothed over the particles'
+        history (:class:`~pyro_slam.inference.ParticleHistory`: online with a lag of
+        ``filter.lag`` steps, offline along the ancestral path of the final pass);
+        ``filtered_mean``, ``filtered_std`` ``[T, 3]``: the filter's own; ``losses``,
+        ``map_loc``, ``map_scale`` ``[w, h, D_m]`` (``q(M)``) and, offline, the initial sweep's
+        ``sweep_mean [T, 3]``."""
         st = self.state
         belief = self.map_belief()
         loc, scale = belief.loc, belief.scale
+        filtered = np.asarray(st.estimates, dtype=np.float64).reshape(-1, 3)
+        filtered_std = np.asarray(st.stds, dtype=np.float64).reshape(-1, 3)
+        mean, std = filtered, filtered_std
+        if st.phase == "done" and self.history.filled.any():
+            lag = self.T if st.mode == "offline" else self.cfg.filter.lag
+            m, sd = self.history.smoothed(lag)
+            mean, std = m.double().numpy(), sd.double().numpy()
+            mean[:, 2] = wrap_angle(mean[:, 2])
         return {
-            "mean": np.asarray(st.estimates, dtype=np.float64).reshape(-1, 3),
-            "std": np.asarray(st.stds, dtype=np.float64).reshape(-1, 3),
+            "mean": mean,
+            "std": std,
+            "filtered_mean": filtered,
+            "filtered_std": filtered_std,
             "losses": np.asarray(st.losses),
             "map_loc": loc.detach().numpy(),
             "map_scale": scale.detach().numpy(),
@@ -480,6 +500,7 @@ class SLAM:
             "torch_rng": torch.get_rng_state(),
             "elbo_seen": self.elbo.num_steps_seen,
             "inserter": None if self.inserter is None else self.inserter.state_dict(),
+            "history": self.history.state_dict(),
             "heading": None if self.heading is None else self.heading.state_dict(),
         }
 
@@ -523,4 +544,5 @@ class SLAM:
             self.inserter.load_state_dict(d["inserter"])
         if self.heading is not None:
             self.heading.load_state_dict(d["heading"])
+        self.history.load_state_dict(d["history"])
         self.state = SLAMState(**d["state"])
