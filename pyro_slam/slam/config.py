@@ -62,15 +62,22 @@ class ScanInsertionConfig:
     """Occupancy-grid scan insertion (ray-cast LiDAR only): each online scan's hits, placed from
     the cloud's mean pose and joined into a polyline (neighbouring hits closer than ``gap``
     form one wall), set ``q(M)``'s mean to ``occupancy`` and its scale to ``scale`` at grid
-    points no earlier scan hit; SVI then refines the map (:mod:`pyro_slam.slam.insertion`)."""
+    points no earlier scan hit; with ``free`` (not None), the grid points its beams cross short
+    of their returns, where nothing was written yet, get the mean ``free`` and the same scale
+    (known free space); SVI then refines the map (:mod:`pyro_slam.slam.insertion`)."""
 
     occupancy: float = 2.0
     scale: float = 0.3
     gap: float = 0.05
+    free: float | None = -1.0
 
     def __post_init__(self):
-        if not isinstance(self.occupancy, (int, float)) or not math.isfinite(self.occupancy):
-            raise ConfigError(f"emission.insert.occupancy must be a number, got {self.occupancy!r}")
+        for name in ("occupancy", "free"):
+            v = getattr(self, name)
+            if v is None and name == "free":
+                continue
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+                raise ConfigError(f"emission.insert.{name} must be a number, got {v!r}")
         _positive("emission.insert.scale", self.scale)
         _positive("emission.insert.gap", self.gap)
 
