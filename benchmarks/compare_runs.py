@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pyro_slam import metrics
+
 
 def _load(parser, out: Path, pattern: str) -> dict[str, dict]:
     files = sorted((out / "runs").glob(pattern))
@@ -32,6 +34,10 @@ def _load(parser, out: Path, pattern: str) -> dict[str, dict]:
             if missing:
                 parser.error(f"{f}: no {sorted(missing)} error curve")
             runs[f.name] = {"slam": z["slam"].astype(float), "pi": z["pi"].astype(float)}
+            if {"std", "estimate", "truth"} <= set(z.files):  # the posterior's calibration
+                runs[f.name]["calibration"] = metrics.calibration(
+                    z["std"].astype(float), z["estimate"].astype(float), z["truth"].astype(float)
+                )
     return runs
 
 
@@ -46,7 +52,16 @@ def _side(runs: list[dict]) -> dict:
         "runs_beating_pi": int((final < pi).sum()),
         "time_avg_mean": float(np.mean([r["slam"].mean() for r in runs])),
         "pi_final_mean": float(pi.mean()),
+        **_calibration(runs),
     }
+
+
+def _calibration(runs: list[dict]) -> dict:
+    """The medians over runs of :func:`pyro_slam.metrics.calibration` (where runs have it)."""
+    cal = [r["calibration"] for r in runs if "calibration" in r]
+    if len(cal) < len(runs) or not cal:
+        return {}
+    return {f"{k}_median": float(np.median([c[k] for c in cal])) for k in cal[0]}
 
 
 def _paired(d: np.ndarray) -> dict:  # d [R] = A - B

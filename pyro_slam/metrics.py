@@ -132,6 +132,20 @@ def aligned_error(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, float]
     return err, float(np.arctan2(rot[1, 0], rot[0, 0]))
 
 
+def calibration(std: np.ndarray, est: np.ndarray, true: np.ndarray) -> dict:
+    """How the posterior's spread compares with its error over one run: the time-averaged
+    position std (``std [T, 3]``, the filter's) over the time-averaged position error of ``est
+    [T, 3]``, raw and after the rigid alignment of :func:`aligned_error` (1: calibrated; below
+    1: overconfident)."""
+    spread = float(np.hypot(std[:, 0], std[:, 1]).mean())
+    raw = float(localisation_error(est, true).mean())
+    aligned = float(aligned_error(est, true)[0].mean())
+    return {
+        "std_over_error": spread / max(raw, 1e-12),
+        "std_over_aligned_error": spread / max(aligned, 1e-12),
+    }
+
+
 def summary(est: np.ndarray, true: np.ndarray) -> dict:
     """Final and mean errors, relative error and (with the ``[eval]`` extra) ATE for one run."""
     e = localisation_error(est, true)
