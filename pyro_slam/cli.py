@@ -51,6 +51,7 @@ from .plotting import plot_navigation
 from .runtime import package_version
 from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets, with_overrides
 from .slam.build import check_hits, prepare_traversal
+from .slam.components import emission_kind
 from .slam.outputs import prepare_out_dir, read_run, run_slam
 from .slam.training import pretrain_emission
 
@@ -236,12 +237,13 @@ def cmd_slam(args) -> int:
     check_hits(prepare_traversal(tr, config), config, source)
     emission = None
     if args.emission is not None:
-        if config.emission.kind != "mlp":
+        kind = emission_kind(config.emission.kind)
+        if kind.load is None:
             raise DatasetError(
-                f"--emission loads a LiDAR emission MLP; emission.kind {config.emission.kind!r} "
+                f"--emission loads a pretrained emission network; emission.kind {kind.name!r} "
                 "has none"
             )
-        emission = pretrained.load_emission(args.emission, tr)
+        emission = kind.load(args.emission, tr)
     transition = pretrained.load_transition(args.transition) if args.transition else None
     report = run_slam(
         tr,

@@ -35,6 +35,13 @@ def mlp(n_in: int, n_out: int, hidden: int, layers: int, activation: type[nn.Mod
     return nn.Sequential(*mods)
 
 
+# the paper's LiDAR emission network (Appendix B-A): D_m = 10 map features, 4 x 256 softsign
+# layers, a world-frame profile of at least 20 directions (one per beam where there are more)
+LIDAR_MAP_DIM, LIDAR_HIDDEN, LIDAR_LAYERS, MIN_WORLD_DIRECTIONS = 10, 256, 4, 20
+# the visual row MLPs, reduced from the paper's 4 x 256 to 4 x 64 for CPU; 32 angular bins
+IMAGE_HIDDEN, IMAGE_LAYERS, IMAGE_BINS = 64, 4, 32
+
+
 class EmissionMLP(nn.Module):
     """``mu_E``: map chart -> world-frame range profile at ``n_world`` equally spaced angles.
 
@@ -46,7 +53,12 @@ class EmissionMLP(nn.Module):
     """
 
     def __init__(
-        self, map_dim: int, n_world: int, hidden: int = 256, layers: int = 4, scale: float = 1.0
+        self,
+        map_dim: int,
+        n_world: int,
+        hidden: int = LIDAR_HIDDEN,
+        layers: int = LIDAR_LAYERS,
+        scale: float = 1.0,
     ):
         super().__init__()
         self.map_dim, self.n_world, self.scale = map_dim, n_world, float(scale)

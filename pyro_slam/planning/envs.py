@@ -19,7 +19,8 @@ from simulators import LidarConfig, World, raycast, simulate_traversal
 from simulators.world import point_segment_distance
 
 from ..model import DVBFLM, EmissionMLP, KinematicTransition
-from ..pretrained import EMISSION_FILE, PRETRAINED, emission_for, load_emission
+from ..model.networks import LIDAR_MAP_DIM
+from ..pretrained import EMISSION_FILE, PRETRAINED, load_emission
 from ..slam import (
     EmissionConfig,
     SLAMConfig,
@@ -28,7 +29,7 @@ from ..slam import (
     prepare_traversal,
     pretrain_emission,
 )
-from ..slam.build import LAYERS, LIDAR_HIDDEN, MAP_DIM
+from ..slam.components import emission_kind
 from .planner import SAFETY_DELTA, inside_scan
 
 
@@ -428,7 +429,7 @@ def _mapping_model(traversal, poses, emission_steps, n_world, seed, progress, pr
     one pretrained on ``traversal`` (see there), the map ``prior`` and the emission ``noise``."""
     if emission_steps > 0:
         fit_on = traversal if poses is None else replace(traversal, poses=np.asarray(poses))
-        em = EmissionMLP(MAP_DIM, n_world, LIDAR_HIDDEN, LAYERS, scale=traversal.max_range)
+        em = EmissionMLP(LIDAR_MAP_DIM, n_world, scale=traversal.max_range)
         em, _ = pretrain_emission([fit_on], MAPPING, emission=em, steps=emission_steps,
                                   seed=seed, progress=progress)  # fmt: skip
     else:
@@ -445,12 +446,12 @@ def run_env(
     keeping ``hit_margin`` from the scans placed at the run's pose means ``poses [T, 3]``.
     ``ValueError`` for a map this model cannot read."""
     tr = prepare_traversal(traversal, config)
-    kind = config.emission.kind
-    emission = emission_for(tr, kind)
-    if kind not in ("raycast", "mlp") or (kind == "mlp" and emission is None):
+    kind = emission_kind(config.emission.kind)
+    emission = kind.shipped(tr) if kind.shipped is not None else None
+    if kind.observation != "lidar" or (kind.learned and emission is None):
         raise ValueError(
-            f"the run's emission.kind {kind!r} cannot be rebuilt for planning (the ray-cast "
-            "LiDAR emission or the shipped emission MLP can)"
+            f"the run's emission.kind {kind.name!r} cannot be rebuilt for planning (a LiDAR "
+            "emission without learned parameters, or with shipped ones, can)"
         )
     model, _ = build_model(tr, config, emission=emission)
     loc, scale = (torch.as_tensor(np.asarray(a), dtype=torch.float32) for a in (map_loc, map_scale))

@@ -15,12 +15,12 @@ from pathlib import Path
 
 from ..data import DatasetError, Traversal, load_tensors, one_line
 from ..model import EmissionMLP, LearnedTransition
+from ..model.networks import LIDAR_HIDDEN, LIDAR_LAYERS, LIDAR_MAP_DIM, MIN_WORLD_DIRECTIONS
 
 PRETRAINED = Path(__file__).parent
 EMISSION_FILE = "emission_lidar20.pt"
 TRANSITION_FILE = "transition_moderate_medium.pt"
 SHIPPED_BEAMS, SHIPPED_RANGE = 20, 0.53  # the sensor the shipped networks were trained on
-MIN_WORLD_DIRECTIONS = 20
 
 
 def _load(path) -> dict:
@@ -37,15 +37,15 @@ def load_emission(path, traversal: Traversal) -> EmissionMLP:
     if "state_dict" not in blob:
         raise DatasetError(f"{path}: not an emission network file (no 'state_dict')")
     meta = blob.get("meta", {})
-    n_world, map_dim = meta.get("n_world", 20), meta.get("map_dim", 10)
+    n_world, map_dim = meta.get("n_world", MIN_WORLD_DIRECTIONS), meta.get("map_dim", LIDAR_MAP_DIM)
     wanted = max(traversal.num_beams, MIN_WORLD_DIRECTIONS)
     if n_world != wanted:
         raise DatasetError(
             f"{path}: emission pretrained for {n_world} world directions, but the traversal "
             f"has {traversal.num_beams} beams (needs {wanted})"
         )
-    em = EmissionMLP(map_dim, n_world, meta.get("hidden", 256), meta.get("layers", 4),
-                     scale=meta.get("scale", traversal.max_range))  # fmt: skip
+    hidden, layers = meta.get("hidden", LIDAR_HIDDEN), meta.get("layers", LIDAR_LAYERS)
+    em = EmissionMLP(map_dim, n_world, hidden, layers, scale=meta.get("scale", traversal.max_range))
     try:
         em.load_state_dict(blob["state_dict"])
     except (RuntimeError, KeyError, TypeError) as e:
@@ -73,10 +73,10 @@ def shipped_sensor(traversal: Traversal) -> bool:
     )
 
 
-def emission_for(traversal: Traversal, kind: str) -> EmissionMLP | None:
-    """The shipped emission for an ``"mlp"`` emission on the shipped sensor; None otherwise
-    (the emission is then learned from scratch)."""
-    if kind == "mlp" and shipped_sensor(traversal) and (PRETRAINED / EMISSION_FILE).is_file():
+def shipped_emission(traversal: Traversal) -> EmissionMLP | None:
+    """The shipped LiDAR emission MLP on the shipped sensor; None otherwise (an emission MLP is
+    then learned from scratch)."""
+    if shipped_sensor(traversal) and (PRETRAINED / EMISSION_FILE).is_file():
         return load_emission(PRETRAINED / EMISSION_FILE, traversal)
     return None
 

@@ -18,22 +18,14 @@ from ..model import (
     DVBFLM,
     Emission,
     EmissionMLP,
-    ImageEmission,
     KinematicTransition,
     LidarEmission,
     MapGrid,
     MapGuide,
-    RayEmission,
-    RayImageEmission,
     Transition,
 )
+from .components import RAY_SAMPLES, emission_kind, ray_settings
 from .config import ConfigError, SLAMConfig
-
-# the paper's emission networks: D_m = 10 features, 4 x 256 softsign layers (LiDAR); the
-# visual row MLPs are reduced from the paper's 4 x 256 to 4 x 64 for CPU
-MAP_DIM, LIDAR_HIDDEN, IMAGE_HIDDEN, LAYERS = 10, 256, 64, 4
-IMAGE_BINS = 32  # k, angular bins of the visual map (D_m = k x image rows)
-MIN_WORLD_DIRECTIONS = 20  # of the LiDAR emission's world-frame profile (at least the beams)
 
 
 def prepare_traversal(traversal: Traversal, config: SLAMConfig) -> Traversal:
@@ -71,22 +63,10 @@ def image_traversal(traversal: Traversal) -> Traversal:
 
 
 def make_emission(traversal: Traversal, config: SLAMConfig) -> Emission | EmissionMLP:
-    """A new (untrained) emission of ``config.emission.kind`` for a prepared traversal."""
-    kind = config.emission.kind
+    """A new (untrained) emission of ``config.emission.kind`` for a prepared traversal
+    (:func:`~pyro_slam.slam.components.register_emission`)."""
     reach = float(config.range_clip or traversal.max_range)
-    ray = ray_settings(config, reach)
-    if kind == "raycast":
-        return RayEmission(traversal.beam_angles, reach, **ray)
-    if kind == "mlp":
-        n_world = max(traversal.num_beams, MIN_WORLD_DIRECTIONS)
-        return EmissionMLP(MAP_DIM, n_world, LIDAR_HIDDEN, LAYERS, scale=reach)
-    rows, cols = traversal.metadata["image_shape"]
-    angles = traversal.beam_angles[:cols]
-    if kind == "ray_camera":
-        return RayImageEmission(angles, rows, reach, **ray)
-    return ImageEmission(
-        IMAGE_BINS, rows, cols, hidden=IMAGE_HIDDEN, layers=LAYERS, column_angles=angles
-    )
+    return emission_kind(config.emission.kind).make(traversal, config, reach)
 
 
 def _extent(traversal: Traversal, config: SLAMConfig):
@@ -101,20 +81,6 @@ def _extent(traversal: Traversal, config: SLAMConfig):
 
 
 MAX_BYTES = 8 << 30  # the largest working set a configuration may ask for (8 GiB)
-RAY_SAMPLES = 48  # points per ray of the ray-cast emissions (their constructors' default)
-# the occupancy's density per grid spacing of the ray-cast emissions (their constructors' 100
-# per unit length on the mazes' 1/63 grid)
-DENSITY_PER_SPACING = 100 / 63
-
-
-def ray_settings(config: SLAMConfig, reach: float) -> dict:
-    """The ray-cast emissions' ``samples`` and ``density`` for a configuration (see
-    :class:`~pyro_slam.slam.config.EmissionConfig`'s ``ray_spacing``); empty: their defaults."""
-    e = config.emission
-    if e.ray_spacing is None:
-        return {}
-    samples = max(2, math.ceil(reach / (e.ray_spacing * e.resolution)))
-    return {"samples": samples, "density": DENSITY_PER_SPACING / e.resolution}
 
 
 def _gib(n: float) -> str:
@@ -150,7 +116,8 @@ def check_size(traversal: Traversal, config: SLAMConfig) -> None:
     x0, y0, x1, y1 = _extent(traversal, config)
     e = config.emission
     cells = [(hi - lo + 2 * e.margin) / e.resolution + 1 for lo, hi in ((x0, x1), (y0, y1))]
-    dim = {"mlp": MAP_DIM, "raycast": 1, "ray_camera": 9}.get(e.kind, IMAGE_BINS * 24)
+    kind = emission_kind(e.kind)
+    dim = kind.features(traversal)
     grid = cells[0] * cells[1] * dim * 4 * 8  # q(M) loc, scale, their gradients and Adam moments
     if grid > MAX_BYTES:
         raise ConfigError(
@@ -160,7 +127,7 @@ def check_size(traversal: Traversal, config: SLAMConfig) -> None:
         )
     reach = float(config.range_clip or traversal.max_range)
     samples = ray_settings(config, reach).get("samples", RAY_SAMPLES)
-    per_point = traversal.num_beams * (samples if e.kind in ("raycast", "ray_camera") else 1)
+    per_point = traversal.num_beams * (samples if kind.rays else 1)
     per_point *= 4 * 8  # float32 points, stops, weights and their gradients
     t = config.training
     for name, n in (

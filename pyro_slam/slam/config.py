@@ -14,7 +14,8 @@ import dataclasses
 import math
 from dataclasses import dataclass, field, fields
 
-EMISSIONS = ("mlp", "raycast", "image_mlp", "ray_camera")
+from .components import EMISSIONS
+
 TRANSITIONS = ("kinematic", "learned")
 PROPOSALS = ("transition", "scan-match")
 ESTIMATES = ("forward", "cache")
@@ -107,22 +108,23 @@ class EmissionConfig:
 
     def __post_init__(self):
         _choice("emission.kind", self.kind, EMISSIONS)
+        kind = EMISSIONS[self.kind]
         _positive("emission.resolution", self.resolution)
         if not (isinstance(self.margin, (int, float)) and 0 <= self.margin < math.inf):
             raise ConfigError(f"emission.margin must be a number >= 0, got {self.margin!r}")
         _positive("emission.sigma", self.sigma)
         _probability("emission.outlier_prob", self.outlier_prob)
         _positive("emission.ray_spacing", self.ray_spacing, optional=True)
-        if self.insert is not None and self.kind != "raycast":
+        if self.insert is not None and not (kind.rays and kind.observation == "lidar"):
             raise ConfigError(
-                "emission.insert writes LiDAR hits into an occupancy map: it needs "
-                f"emission.kind 'raycast', got {self.kind!r}"
+                "emission.insert writes LiDAR hits into an occupancy map: it needs a ray-cast "
+                f"LiDAR emission.kind such as 'raycast', got {self.kind!r}"
             )
 
     @property
     def observation(self) -> str:
         """``"image"`` for the camera emissions, ``"lidar"`` otherwise."""
-        return "image" if self.kind in ("image_mlp", "ray_camera") else "lidar"
+        return EMISSIONS[self.kind].observation
 
 
 @dataclass(frozen=True)

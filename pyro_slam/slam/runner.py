@@ -59,6 +59,7 @@ from ..model.guide import ParamScope, map_param_leaves
 from ..runtime import torch_threads
 from . import checkpoint, presets
 from .build import build_model, check_size, prepare_traversal, traversal_tensors
+from .components import emission_kind
 from .config import SLAMConfig
 from .heading import ManhattanHeading
 from .insertion import ScanInserter
@@ -154,10 +155,11 @@ class SLAM:
         self.T = self.obs.shape[0]
         if transition is None and self.cfg.transition.kind == "learned":
             transition = pretrained.transition_for(self.tr)
-        if emission is None:
-            emission = pretrained.emission_for(self.tr, self.cfg.emission.kind)
+        kind = emission_kind(self.cfg.emission.kind)
+        if emission is None and kind.shipped is not None:
+            emission = kind.shipped(self.tr)
         if learn_emission is None:
-            learn_emission = emission is None and self.cfg.emission.kind != "raycast"
+            learn_emission = emission is None and kind.learned
         self.scope = ParamScope()  # this run's parameters (``with slam.scope():``)
         with self.scope():
             self._build(transition, emission, bool(learn_emission), guide, prior, noise, smc)
