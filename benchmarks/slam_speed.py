@@ -44,8 +44,8 @@ from simulators.maze import make_maze
 REPO = Path(__file__).resolve().parents[1]
 MAZE, DRIVER_SEED = 991, 1  # a held-out tuning maze, never a test maze
 PARTS = {  # profile rows of the online loop -> breakdown
-    "filter": ("runner.py", "_filter_step"),
-    "svi": ("runner.py", "_svi_step"),
+    "filter": ("loop.py", "filter_step"),
+    "svi": ("loop.py", "svi_step"),
     "insertion": ("insertion.py", "insert"),
 }
 

@@ -18,7 +18,8 @@ from .config import (
     from_dict,
     with_overrides,
 )
-from .runner import SLAM, SLAMState
+from .loop import Phase, SLAMState
+from .runner import SLAM
 from .training import fit_map, pretrain_emission
 
 __all__ = [
@@ -28,6 +29,7 @@ __all__ = [
     "FilterConfig",
     "HeadingConfig",
     "OfflineConfig",
+    "Phase",
     "SLAMConfig",
     "SLAMState",
     "ScanInsertionConfig",

@@ -19,9 +19,7 @@ continues with the same random stream.
 from __future__ import annotations
 
 import copy
-import math
 import warnings
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -30,14 +28,12 @@ import torch
 from pyro import poutine
 from pyro.infer import SVI
 from pyro.optim import Adam
-from tqdm.auto import tqdm
 
 from .. import pretrained
 from ..data import Traversal
 from ..geometry import wrap_angle
 from ..inference import (
     PROPOSALS,
-    ChunkBatch,
     HeadingProposal,
     ParticleCache,
     ParticleChunkELBO,
@@ -57,30 +53,16 @@ from ..model import (
 )
 from ..model.guide import ParamScope, map_param_leaves
 from ..runtime import torch_threads
-from . import checkpoint, presets
+from . import checkpoint, loop, presets
 from .build import build_model, check_size, prepare_traversal, traversal_tensors
 from .components import emission_kind
 from .config import SLAMConfig
 from .heading import ManhattanHeading
 from .insertion import ScanInserter
+from .loop import Phase, SLAMState
 
 CACHE_PARTICLES = 50  # N, cached particles per step (paper III-D2)
 LR_EMISSION = 1e-3  # Adam's learning rate of an emission learned from scratch
-
-
-@dataclass
-class SLAMState:
-    """Everything a run needs to continue: written to and read from checkpoints."""
-
-    mode: str
-    phase: str = "online"  # online(-init) | offline-svi | offline-filter | offline-final | done
-    t: int = 0  # next time step (online) / next SVI step (offline)
-    round: int = 0
-    estimates: list = field(default_factory=list)  # per step [3]
-    stds: list = field(default_factory=list)
-    losses: list = field(default_factory=list)
-    # offline SLAM: the initial online sweep's pose means, per step [3]
-    sweep_estimates: list = field(default_factory=list)
 
 
 class SLAM:
@@ -269,158 +251,11 @@ class SLAM:
             loc, scale = map_marginals(self.map_guide)
         return MapBelief(loc.detach(), scale.detach())
 
-    def _svi_step(self, lo: int, hi: int, newest: int | None) -> float:
-        """One SVI step on chunks starting in ``[lo, hi]`` (plus the chunk at ``newest``)."""
-        n_rand = self.cfg.training.chunks - (newest is not None)
-        starts = torch.randint(lo, hi + 1, (n_rand,), generator=self.gen)
-        if newest is not None:
-            starts = torch.cat([torch.tensor([newest]), starts])
-        loss = self.svi.step(ChunkBatch(starts, self.cfg.training.chunk_length))
-        if not math.isfinite(loss):
-            raise FloatingPointError(f"SVI loss became {loss} (step t={self.state.t})")
-        return loss
-
-    def _valid(self, t: int) -> torch.Tensor:
+    def valid(self, t: int) -> torch.Tensor:
         """``[B]`` bool: the valid readings of step ``t``."""
         if self.mask is None:
             return torch.ones_like(self.obs[t], dtype=torch.bool)
         return self.mask[t].bool()
-
-    def _filter_step(self, t: int, M: MapBelief) -> None:
-        x = self.obs[t]
-        m = None if self.mask is None else self.mask[t]
-        if t == 0:
-            z0 = self.init_pose + self.model.init_scale * torch.randn(
-                self.cfg.filter.particles, 3, generator=self.gen, dtype=self.obs.dtype
-            )
-            self.particles, _ = self.pf.init(z0, M, x, m, step=0, heading=self._heading(0))
-        else:
-            self.particles, _ = self.pf.step(
-                self.particles, M, x, self.ctl[t - 1], m, step=t, heading=self._heading(t)
-            )
-        self.cache.store(torch.tensor([t]), self.particles.batched(), self.gen)
-        self.history.record(t, self.particles, fresh=t == 0)
-
-    def _heading(self, t: int):
-        """Step ``t``'s heading evidence under the frame's guide (None: no heading factor)."""
-        return None if self.heading is None else self.heading.evidence().at(t)
-
-    def _refine_frame(self, t: int) -> None:
-        """Refine the frame's guide with step ``t``'s posterior heading."""
-        if self.heading is not None:
-            mean, std = self.particles.mean()[2], self.particles.std()[2]
-            self.heading.refine(t, float(mean), float(std))
-
-    # --------------------------------------------------------------------------- phases
-    def _online(self, progress: bool):
-        st, L = self.state, self.cfg.training.chunk_length
-        bar = tqdm(total=self.T, initial=st.t, desc="online SLAM", disable=not progress)
-        while st.t < self.T:
-            t = st.t
-            with torch.no_grad():
-                self._filter_step(t, self.map_belief())
-            mean = self.particles.mean()
-            if st.phase == "online":
-                st.estimates.append(mean.tolist())
-                st.stds.append(self.particles.std().tolist())
-            else:  # offline SLAM's initial sweep: kept for diagnostics (result's "sweep_mean")
-                st.sweep_estimates.append(mean.tolist())
-            if self.inserter is not None:
-                self.inserter.insert(self.obs[t], self._valid(t), mean)
-            self._refine_frame(t)
-            if t >= L - 1 and t % self.cfg.training.every == 0:
-                self.elbo.num_steps_seen = t + 1
-                st.losses.append(self._svi_step(0, t - L + 1, t - L + 1))
-            st.t += 1
-            bar.update(1)
-            if self.checkpoint and st.t % self.checkpoint_every == 0:
-                self.save(self.checkpoint)
-        bar.close()
-        self.elbo.num_steps_seen = self.T
-
-    def _filter_pass(self, progress: bool, desc: str):
-        """Filter the whole traversal under the map belief (refreshes the cache)."""
-        M = self.map_belief()
-        means, stds = [], []
-        with torch.no_grad():
-            for t in tqdm(range(self.T), desc=desc, disable=not progress, leave=False):
-                self._filter_step(t, M)
-                means.append(self.particles.mean().tolist())
-                stds.append(self.particles.std().tolist())
-        return means, stds
-
-    def _cache_pass(self, progress: bool, desc: str):
-        """Offline poses as the paper's Appendix B-I filters them: the traversal in consecutive
-        chunks of ``chunk_length`` steps, each started from its first step's cached particles
-        (categorical over the cache, plus 1e-3 noise) and filtered under the map belief; no
-        particles cross a chunk boundary and the cache is left as it is."""
-        M, L, K = self.map_belief(), self.cfg.training.chunk_length, self.cfg.filter.particles
-        means, stds = [], []
-        with torch.no_grad():
-            for s in tqdm(range(0, self.T, L), desc=desc, disable=not progress, leave=False):
-                for t in range(s, min(s + L, self.T)):
-                    m = None if self.mask is None else self.mask[t]
-                    if t == s:  # [K, 3] from the cache
-                        z0 = self.cache.propose(
-                            torch.tensor([s]), K, "categorical", generator=self.gen
-                        )[0]
-                        self.particles, _ = self.pf.init(
-                            z0.to(self.obs.dtype),
-                            M,
-                            self.obs[t],
-                            m,
-                            step=t,
-                            heading=self._heading(t),
-                        )
-                        self.history.record(t, self.particles, fresh=True)
-                    else:
-                        self.particles, _ = self.pf.step(
-                            self.particles,
-                            M,
-                            self.obs[t],
-                            self.ctl[t - 1],
-                            m,
-                            step=t,
-                            heading=self._heading(t),
-                        )
-                        self.history.record(t, self.particles)
-                    means.append(self.particles.mean().tolist())
-                    stds.append(self.particles.std().tolist())
-        return means, stds
-
-    def _offline_round(self, progress: bool):
-        """One offline round: (a forward filter pass, then) ``offline.svi_steps`` SVI steps."""
-        st, L = self.state, self.cfg.training.chunk_length
-        if st.phase == "offline-filter":
-            if self.cfg.offline.estimate == "forward":  # "cache": only the SVI chunks refresh it
-                self._filter_pass(progress, f"filter pass {st.round + 1}")
-            st.phase, st.t = "offline-svi", 0
-        n = self.cfg.offline.svi_steps
-        bar = tqdm(total=n, initial=st.t, desc=f"offline SVI {st.round + 1}", disable=not progress)
-        while st.t < n:
-            st.losses.append(self._svi_step(0, self.T - L, None))
-            st.t += 1
-            bar.update(1)
-            if self.checkpoint and st.t % self.checkpoint_every == 0:
-                self.save(self.checkpoint)
-        bar.close()
-        st.round += 1
-        st.phase, st.t = "offline-filter", 0
-        if self.checkpoint:
-            self.save(self.checkpoint)
-
-    def _offline(self, progress: bool):
-        st = self.state
-        if st.phase == "online-init":
-            self._online(progress)
-            st.phase, st.t = "offline-svi", 0
-            if self.checkpoint:
-                self.save(self.checkpoint)
-        while st.round < self.cfg.offline.rounds:
-            self._offline_round(progress)
-        st.phase = "offline-final"
-        final = self._cache_pass if self.cfg.offline.estimate == "cache" else self._filter_pass
-        st.estimates, st.stds = final(progress, "final filter pass")
 
     def run(self, mode: str = "online", progress: bool = True) -> dict:
         """Run (or, after :meth:`resume`, continue) SLAM. Returns :meth:`result`."""
@@ -431,19 +266,19 @@ class SLAM:
         if mode not in ("online", "offline"):
             raise ValueError(f"mode must be 'online' or 'offline', got {mode!r}")
         if self.state is None:
-            self.state = SLAMState(mode, phase="online" if mode == "online" else "online-init")
+            self.state = SLAMState(mode, Phase.ONLINE if mode == "online" else Phase.SWEEP)
         elif self.state.mode != mode:
             raise checkpoint.CheckpointError(
                 f"the resumed run is an {self.state.mode} run, not {mode}: resume it with mode "
                 f"{self.state.mode!r} or start a new run"
             )
-        elif self.state.phase == "done":  # resumed from the final checkpoint: nothing to redo
+        elif self.state.phase == Phase.DONE:  # resumed from the final checkpoint: nothing to redo
             return self.result()
         if mode == "online":
-            self._online(progress)
+            loop.online_sweep(self, progress)
         else:
-            self._offline(progress)
-        self.state.phase = "done"
+            loop.offline(self, progress)
+        self.state.phase = Phase.DONE
         if self.checkpoint:
             self.save(self.checkpoint)
         return self.result()
@@ -461,7 +296,7 @@ class SLAM:
         filtered = np.asarray(st.estimates, dtype=np.float64).reshape(-1, 3)
         filtered_std = np.asarray(st.stds, dtype=np.float64).reshape(-1, 3)
         mean, std = filtered, filtered_std
-        if st.phase == "done" and self.history.filled.any():
+        if st.phase == Phase.DONE and self.history.filled.any():
             lag = self.T if st.mode == "offline" else self.cfg.filter.lag
             m, sd = self.history.smoothed(lag)
             mean, std = m.double().numpy(), sd.double().numpy()
@@ -491,7 +326,7 @@ class SLAM:
         return {
             "format": checkpoint.FORMAT,
             "fingerprint": {**self.fingerprint(), "mode": self.state.mode},
-            "state": copy.deepcopy(self.state.__dict__),
+            "state": {**copy.deepcopy(self.state.__dict__), "phase": self.state.phase.value},
             "params": self._param_state(),
             "optim": self.optim.get_state(),
             "model": self.model.state_dict(),

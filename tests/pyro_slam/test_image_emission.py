@@ -16,6 +16,7 @@ from pyro_slam.slam import (
     OfflineConfig,
     SLAMConfig,
     TrainingConfig,
+    loop,
     prepare_traversal,
 )
 from pyro_slam.slam import (
@@ -128,7 +129,7 @@ def test_prepared_image_traversal():
 def test_gradients_reach_map_and_emission_through_particle_elbo():
     slam = small_slam(image_traversal())
     assert isinstance(slam.model.emission, ImageEmission)
-    slam._filter_pass(False, "fill cache")
+    loop.filter_pass(slam, False, "fill cache")
     with slam.scope():
         loss = slam.elbo.differentiable_loss(
             slam.model.global_model, slam.guide, ChunkBatch(torch.tensor([0, 20]), 4)

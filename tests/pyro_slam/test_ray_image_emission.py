@@ -23,6 +23,7 @@ from pyro_slam.slam import (
     SLAMConfig,
     TrainingConfig,
     build_model,
+    loop,
     prepare_traversal,
 )
 from pyro_slam.slam import (
@@ -142,7 +143,7 @@ def test_albedo_is_read_at_the_ray_direction():
 def test_gradients_reach_occupancy_albedo_and_camera_constants(image_traversal):
     torch.manual_seed(0)
     slam = SLAM(image_traversal, SMALL)
-    slam._filter_pass(False, "fill cache")
+    loop.filter_pass(slam, False, "fill cache")
     with slam.scope():
         loss = slam.elbo.differentiable_loss(
             slam.model.global_model, slam.guide, ChunkBatch(torch.tensor([0, 20]), 4)

@@ -30,6 +30,7 @@ from pyro_slam.slam import (
     TrainingConfig,
     TransitionConfig,
     checkpoint,
+    loop,
     path_integration,
     with_overrides,
 )
@@ -154,22 +155,22 @@ def test_offline_run_refines_the_online_sweep(traversal):
     assert make_slam(traversal).run("online", False)["sweep_mean"].shape == (0, 3)
 
 
-def test_offline_estimate_cache_filters_chunks_from_the_cached_particles(traversal):
+def test_offline_estimate_cache_filters_chunks_from_the_cached_particles(traversal, monkeypatch):
     """``offline.estimate="cache"`` (paper B-I): each chunk restarts from the cache, so a pose
     the cache holds far from the truth shows up at that chunk's steps and nowhere else."""
     L = CHUNK_LENGTH
     slam = make_slam(traversal, {"offline": {"rounds": 0, "estimate": "cache"}})
-    run_ = slam._cache_pass
+    run_ = loop.cache_pass
     shift = torch.tensor([0.03, 0.0, 0.0])
 
-    def shifted_cache_pass(progress, desc):  # the cache at step 2L moved by 0.03 in x
-        slam.cache.z[2 * L] += shift
-        before.append(slam.cache.z.clone())
-        return run_(progress, desc)
+    def shifted_cache_pass(run, progress, desc):  # the cache at step 2L moved by 0.03 in x
+        run.cache.z[2 * L] += shift
+        before.append(run.cache.z.clone())
+        return run_(run, progress, desc)
 
     before = []
 
-    slam._cache_pass = shifted_cache_pass
+    monkeypatch.setattr(loop, "cache_pass", shifted_cache_pass)
     res = slam.run("offline", progress=False)
     T = traversal.num_steps
     assert res["mean"].shape == res["std"].shape == (T, 3)
@@ -182,7 +183,8 @@ def test_offline_estimate_cache_filters_chunks_from_the_cached_particles(travers
     assert torch.equal(slam.cache.z, before[0])
     # with SVI rounds, only their chunks refresh the cache: no whole-traversal filter pass
     slam = make_slam(traversal, {"offline": {"estimate": "cache"}})
-    slam._filter_pass = None  # would raise if called
+    monkeypatch.setattr(loop, "cache_pass", run_)
+    monkeypatch.setattr(loop, "filter_pass", None)  # would raise if called
     res = slam.run("offline", progress=False)
     assert slam.state.round == 2 and localisation_error(res["mean"], traversal.poses).max() < 0.03
     msg = r"offline.estimate must be one of \['forward', 'cache'\], got 'smooth'"
