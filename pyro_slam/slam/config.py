@@ -173,18 +173,23 @@ class FilterConfig:
 class TrainingConfig:
     """SVI on the particle-chunk ELBO of the model (paper eq. 3): ``chunks`` chunks of
     ``chunk_length`` steps with ``particles`` particles each per SVI step, map learning rate
-    ``lr`` (Adam); the online sweep takes one SVI step every ``every`` steps."""
+    ``lr`` (Adam; ``lr_emission`` for an emission learned from scratch); the online sweep takes
+    one SVI step every ``every`` steps; the particle cache keeps ``cache_particles`` per step
+    (paper III-D2)."""
 
     particles: int = 16
     chunk_length: int = 4
     chunks: int = 4
     lr: float = 0.02
     every: int = 1
+    lr_emission: float = 1e-3
+    cache_particles: int = 50
 
     def __post_init__(self):
-        for name in ("particles", "chunk_length", "chunks", "every"):
+        for name in ("particles", "chunk_length", "chunks", "every", "cache_particles"):
             _positive(f"training.{name}", getattr(self, name), integer=True)
         _positive("training.lr", self.lr)
+        _positive("training.lr_emission", self.lr_emission)
 
 
 @dataclass(frozen=True)

@@ -20,9 +20,11 @@ import math
 from dataclasses import dataclass, field
 from enum import StrEnum
 
+import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from ..geometry import wrap_angle
 from ..inference import ChunkBatch
 from ..model import MapBelief
 
@@ -189,3 +191,26 @@ def offline(run, progress: bool) -> None:
     st.phase = Phase.FINAL
     final = cache_pass if run.cfg.offline.estimate == "cache" else filter_pass
     st.estimates, st.stds = final(run, progress, "final filter pass")
+
+
+def estimates(run) -> dict:
+    """The run's pose estimates (see :meth:`~pyro_slam.slam.runner.SLAM.result`): the filtered
+    means and stds ``[T, 3]``, smoothed over the particles' history once the run is done, the
+    SVI losses and the offline sweep's means."""
+    st = run.state
+    filtered = np.asarray(st.estimates, dtype=np.float64).reshape(-1, 3)
+    filtered_std = np.asarray(st.stds, dtype=np.float64).reshape(-1, 3)
+    mean, std = filtered, filtered_std
+    if st.phase == Phase.DONE and run.history.filled.any():
+        lag = run.T if st.mode == "offline" else run.cfg.filter.lag
+        m, sd = run.history.smoothed(lag)
+        mean, std = m.double().numpy(), sd.double().numpy()
+        mean[:, 2] = wrap_angle(mean[:, 2])
+    return {
+        "mean": mean,
+        "std": std,
+        "filtered_mean": filtered,
+        "filtered_std": filtered_std,
+        "losses": np.asarray(st.losses),
+        "sweep_mean": np.asarray(st.sweep_estimates, dtype=np.float64).reshape(-1, 3),
+    }

@@ -1,68 +1,33 @@
-"""SLAM with DVBF-LM: online (sweep t = 1..T) and offline (all steps), with checkpoints.
-
-The estimator is the paper's: SVI (Adam) on the particle-chunk ELBO (eq. 3) for the map belief
-``q(M)`` (and, without a pretrained one, the emission network), with the particle filter as the
-pose guide and the asynchronous particle cache.
-
-* **online**: at every step the particle filter advances under the current map belief, its
-  particles enter the cache, and one SVI step (every ``training.every`` steps) runs on the newest
-  chunk plus random older chunks (replay), with the ELBO scaled to the steps seen so far.
-* **offline**: an online sweep, then ``offline.rounds`` rounds of SVI on random chunks from
-  anywhere in the traversal; the pose posterior is a filter pass over the whole traversal
-  (``offline.estimate="forward"``, also after each round) or, as in the paper's Appendix B-I
-  (``"cache"``), filtered in consecutive chunks each started from the cache.
-
-Every long loop shows a tqdm bar and writes atomic checkpoints from which :meth:`SLAM.resume`
-continues with the same random stream.
-"""
+"""SLAM with DVBF-LM, the public entry point: :class:`SLAM` wires a run together
+(:mod:`.assemble`), runs the algorithms of :mod:`.loop` online or offline, and writes and reads
+the checkpoints of :mod:`.checkpoint`, from which :meth:`SLAM.resume` continues with the same
+random stream."""
 
 from __future__ import annotations
 
-import copy
-import warnings
 from pathlib import Path
 
-import numpy as np
-import pyro
 import torch
-from pyro import poutine
-from pyro.infer import SVI
-from pyro.optim import Adam
 
-from .. import pretrained
 from ..data import Traversal
-from ..geometry import wrap_angle
 from ..inference import (
-    PROPOSALS,
-    HeadingProposal,
-    ParticleCache,
-    ParticleChunkELBO,
-    ParticleFilter,
-    ParticleHistory,
     Particles,
-    PyroSMCFilter,
     sequence_guide,
 )
 from ..model import (
     Emission,
     EmissionMLP,
-    GlobalGuide,
     MapBelief,
     Transition,
     map_marginals,
 )
-from ..model.guide import ParamScope, map_param_leaves
+from ..model.guide import ParamScope
 from ..runtime import torch_threads
 from . import checkpoint, loop, presets
-from .build import build_model, check_size, prepare_traversal, traversal_tensors
-from .components import emission_kind
+from .assemble import assemble
+from .build import check_size, prepare_traversal, traversal_tensors
 from .config import SLAMConfig
-from .heading import ManhattanHeading
-from .insertion import ScanInserter
 from .loop import Phase, SLAMState
-
-CACHE_PARTICLES = 50  # N, cached particles per step (paper III-D2)
-LR_EMISSION = 1e-3  # Adam's learning rate of an emission learned from scratch
 
 
 class SLAM:
@@ -81,14 +46,11 @@ class SLAM:
             where the sensor matches it; otherwise a new one).
         learn_emission: whether SVI also learns the emission (default: only a new one; a given
             or shipped emission is pretrained and stays frozen).
-        guide: a factory ``model -> guide`` of the map guide (default: the mean-field
-            :class:`~pyro_slam.model.MapGuide`); the guide samples the site ``"map"`` and gives
-            its marginal mean and std through ``params()`` or Pyro's ``quantiles``
-            (:func:`~pyro_slam.model.map_marginals`); :func:`~pyro_slam.model.autoguide` makes
-            one from a Pyro autoguide.
+        guide: a factory ``model -> guide`` of the map guide over the site ``"map"`` (default:
+            the mean-field :class:`~pyro_slam.model.MapGuide`; Pyro's autoguides through
+            :func:`~pyro_slam.model.autoguide`).
         prior, noise: the map prior and the emission noise of the model
-            (:class:`~pyro_slam.model.DVBFLM`): they reach the filter's weights and trust, the
-            training objective and everything else that reads the model.
+            (:class:`~pyro_slam.model.DVBFLM`), for everything that reads the model.
         smc: filter with Pyro's :class:`pyro.infer.SMCFilter` on the same model and proposal
             (:class:`~pyro_slam.inference.PyroSMCFilter`; slower) instead of our batched filter;
             training keeps ours.
@@ -135,98 +97,12 @@ class SLAM:
         check_size(self.tr, self.cfg)
         self.obs, self.ctl, self.mask, self.init_pose = traversal_tensors(self.tr)
         self.T = self.obs.shape[0]
-        if transition is None and self.cfg.transition.kind == "learned":
-            transition = pretrained.transition_for(self.tr)
-        kind = emission_kind(self.cfg.emission.kind)
-        if emission is None and kind.shipped is not None:
-            emission = kind.shipped(self.tr)
-        if learn_emission is None:
-            learn_emission = emission is None and kind.learned
         self.scope = ParamScope()  # this run's parameters (``with slam.scope():``)
         with self.scope():
-            self._build(transition, emission, bool(learn_emission), guide, prior, noise, smc)
+            assemble(self, transition, emission, learn_emission, guide, prior, noise, smc)
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
         self.particles: Particles | None = None
         self.state: SLAMState | None = None
-
-    def _build(self, transition, emission, learn_emission, guide, prior, noise, smc) -> None:
-        """The model, its guides, the filter, the ELBO and SVI (inside this run's scope)."""
-        pyro.set_rng_seed(self.seed)  # (after loading: building a network draws its weights)
-        self.gen = torch.Generator().manual_seed(self.seed)
-        self.model, self.map_guide = build_model(
-            self.tr, self.cfg, transition, emission, prior, noise
-        )
-        self.model.learn_emission = learn_emission
-        if guide is not None:
-            self.map_guide = guide(self.model)
-        self.heading = None  # ManhattanHeading: the wall directions and the frame's guide
-        if self.cfg.heading is not None:
-            image = self.cfg.emission.observation == "image"
-            drift = float(self.model.transition.sigma[2])
-            self.heading = ManhattanHeading(
-                self.tr,
-                self.obs,
-                self.mask,
-                self.cfg.heading,
-                image,
-                drift,
-                self.cfg.emission.outlier_prob,
-            )
-            self.model.heading = self.heading.factor()
-        self.guide = GlobalGuide(
-            self.map_guide, None if self.heading is None else self.heading.frame
-        )
-        name = self.cfg.filter.proposal
-        self.proposal = (
-            HeadingProposal() if self.heading and name == "transition" else PROPOSALS[name]()
-        )
-        self.pf = ParticleFilter(self.model, self.proposal, self.gen, shared=self.cfg.filter.shared)
-        if smc:
-            self.pf = PyroSMCFilter(self.model, self.proposal, shared=self.cfg.filter.shared)
-        self.cache = ParticleCache(self.T, CACHE_PARTICLES)
-        self.history = ParticleHistory(self.T, self.cfg.filter.particles)
-        self.elbo = ParticleChunkELBO(
-            ParticleFilter(self.model, self.proposal, self.gen),
-            self.cache,
-            self.obs,
-            self.ctl,
-            self.mask,
-            num_particles=self.cfg.training.particles,
-            headings=None if self.heading is None else self.heading.evidence(),
-        )
-        lr = self.cfg.training.lr
-        self.optim = Adam(
-            lambda name, _p: {"lr": LR_EMISSION if name.startswith("emission") else lr}
-        )
-        self.svi = SVI(self.model.global_model, self.guide, self.optim, loss=self.elbo)
-        self._create_guide_params()
-        self.inserter = None
-        if self.cfg.emission.insert is not None:
-            self.inserter = self._inserter()
-
-    def _inserter(self) -> ScanInserter | None:
-        """Scan insertion into the map guide's parameters, where the guide keeps a marginal
-        mean and scale (:func:`~pyro_slam.model.guide.map_param_leaves`); otherwise insertion is
-        switched off with a warning."""
-        leaves = map_param_leaves(self.map_guide, self.model.grid.shape)
-        if leaves is None:
-            warnings.warn(
-                f"scan insertion is off: the map guide {type(self.map_guide).__name__} keeps no "
-                "marginal mean and scale to write scans into (map_param_leaves)",
-                stacklevel=3,
-            )
-            return None
-        return ScanInserter(self.cfg.emission.insert, self.model, leaves)
-
-    def _create_guide_params(self) -> None:
-        """Create the map guide's parameters now (checkpoints need them): a
-        :class:`~pyro_slam.model.MapGuide` through ``params()``; another guide by one draw
-        (outside any inference)."""
-        if hasattr(self.map_guide, "params"):
-            self.map_guide.params()
-            return
-        with torch.no_grad(), poutine.block():
-            self.map_guide()
 
     # --------------------------------------------------------------------------- helpers
     def model_inputs(self) -> tuple:
@@ -285,32 +161,13 @@ class SLAM:
 
     def result(self) -> dict:
         """``mean``, ``std`` ``[T, 3]``: the pose posterior smoothed over the particles'
-        history (:class:`~pyro_slam.inference.ParticleHistory`: online with a lag of
-        ``filter.lag`` steps, offline along the ancestral path of the final pass);
-        ``filtered_mean``, ``filtered_std`` ``[T, 3]``: the filter's own; ``losses``,
-        ``map_loc``, ``map_scale`` ``[w, h, D_m]`` (``q(M)``) and, offline, the initial sweep's
-        ``sweep_mean [T, 3]``."""
-        st = self.state
+        history (online with a lag of ``filter.lag`` steps, offline along the ancestral path
+        of the final pass); ``filtered_mean``, ``filtered_std`` ``[T, 3]``: the filter's own;
+        ``losses``, ``map_loc``, ``map_scale`` ``[w, h, D_m]`` (``q(M)``) and, offline, the
+        initial sweep's ``sweep_mean [T, 3]`` (:func:`~pyro_slam.slam.loop.estimates`)."""
         belief = self.map_belief()
-        loc, scale = belief.loc, belief.scale
-        filtered = np.asarray(st.estimates, dtype=np.float64).reshape(-1, 3)
-        filtered_std = np.asarray(st.stds, dtype=np.float64).reshape(-1, 3)
-        mean, std = filtered, filtered_std
-        if st.phase == Phase.DONE and self.history.filled.any():
-            lag = self.T if st.mode == "offline" else self.cfg.filter.lag
-            m, sd = self.history.smoothed(lag)
-            mean, std = m.double().numpy(), sd.double().numpy()
-            mean[:, 2] = wrap_angle(mean[:, 2])
-        return {
-            "mean": mean,
-            "std": std,
-            "filtered_mean": filtered,
-            "filtered_std": filtered_std,
-            "losses": np.asarray(st.losses),
-            "map_loc": loc.detach().numpy(),
-            "map_scale": scale.detach().numpy(),
-            "sweep_mean": np.asarray(st.sweep_estimates, dtype=np.float64).reshape(-1, 3),
-        }
+        out = loop.estimates(self)
+        return {**out, "map_loc": belief.loc.numpy(), "map_scale": belief.scale.numpy()}
 
     # --------------------------------------------------------------------------- checkpoints
     def fingerprint(self) -> dict:
@@ -321,29 +178,9 @@ class SLAM:
         return {"data": data, "config": self.cfg.to_dict(), "seed": self.seed}
 
     def state_dict(self) -> dict:
-        """Everything :meth:`resume` needs: tensors and plain data only."""
-        p = self.particles
-        return {
-            "format": checkpoint.FORMAT,
-            "fingerprint": {**self.fingerprint(), "mode": self.state.mode},
-            "state": {**copy.deepcopy(self.state.__dict__), "phase": self.state.phase.value},
-            "params": self._param_state(),
-            "optim": self.optim.get_state(),
-            "model": self.model.state_dict(),
-            "cache": self.cache.state_dict(),
-            "particles": None if p is None else {"z": p.z, "logw": p.logw, "scan": p.scan},
-            "filter": self.pf.state_dict(),
-            "gen": self.gen.get_state(),
-            "torch_rng": torch.get_rng_state(),
-            "elbo_seen": self.elbo.num_steps_seen,
-            "inserter": None if self.inserter is None else self.inserter.state_dict(),
-            "history": self.history.state_dict(),
-            "heading": None if self.heading is None else self.heading.state_dict(),
-        }
-
-    def _param_state(self) -> dict:
-        with self.scope():
-            return checkpoint.param_store_state()
+        """Everything :meth:`resume` needs: tensors and plain data only
+        (:func:`~pyro_slam.slam.checkpoint.snapshot`)."""
+        return checkpoint.snapshot(self)
 
     def save(self, path) -> None:
         """Atomic checkpoint (temp file + rename)."""
@@ -356,30 +193,7 @@ class SLAM:
         d = checkpoint.read(path)
         checkpoint.check(path, d["fingerprint"], self.fingerprint())
         try:
-            with self.scope():
-                self._load(d)
+            checkpoint.restore(self, d)
         except (KeyError, TypeError, ValueError, RuntimeError) as e:
             raise checkpoint.CheckpointError(f"{path}: damaged checkpoint ({e})") from None
         return self
-
-    def _load(self, d: dict) -> None:
-        checkpoint.load_param_store(d["params"])
-        self.model.load_state_dict(d["model"])
-        if self.model.learn_emission:
-            # the store now holds *loaded* tensors: make the emission network use (and SVI
-            # update) those, as it did before the checkpoint, not its own parameter copies
-            pyro.module("emission", self.model.emission, update_module_params=True)
-        self.optim.set_state(d["optim"])
-        self.cache.load_state_dict(d["cache"])
-        self.particles = None if d["particles"] is None else Particles(**d["particles"])
-        self.pf.load_state_dict(d["filter"])
-        self.gen.set_state(d["gen"])
-        torch.set_rng_state(d["torch_rng"])
-        self.elbo.num_steps_seen = int(d["elbo_seen"])
-        if self.inserter is not None:  # (the loaded parameters are new tensors)
-            self.inserter = self._inserter()
-            self.inserter.load_state_dict(d["inserter"])
-        if self.heading is not None:
-            self.heading.load_state_dict(d["heading"])
-        self.history.load_state_dict(d["history"])
-        self.state = SLAMState(**d["state"])

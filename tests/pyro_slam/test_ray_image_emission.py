@@ -180,14 +180,14 @@ def test_unknownness_reads_the_occupancy_where_rays_stop_not_the_wall_albedo(ima
     torch.testing.assert_close(v, torch.ones(5, rows * cols))
 
 
-def test_heading_observation_from_images(image_traversal, monkeypatch):
+def test_heading_observation_from_images(image_traversal):
     """The heading observation on camera frames: the walls' edges give each frame's heading modulo
     pi / 2 (``geometry.image_wall_direction``), and the online filter's heading stays at the
     truth where the same run without it drifts."""
     tr = image_traversal
     # the run the measured numbers below come from keeps 4 particles per step in the cache
-    monkeypatch.setattr("pyro_slam.slam.runner.CACHE_PARTICLES", 4)
-    base = replace(CFG, filter=FilterConfig(particles=32), training=TrainingConfig(particles=4))
+    training = TrainingConfig(particles=4, cache_particles=4)
+    base = replace(CFG, filter=FilterConfig(particles=32), training=training)
     on = replace(base, heading=HeadingConfig(sigma=1e-3))
     slam = SLAM(tr, on, emission=ray_camera(tr, samples=24), learn_emission=True)
     e = slam.heading.evidence()  # wall directions [T], nan: no walls agree
