@@ -5,21 +5,9 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import numpy as np
 import torch
 
-
-def wrap_angle(a, period: float = 2 * math.pi):
-    """Wrap angles to ``[-period / 2, period / 2)`` (default ``[-pi, pi)``), any shape: a torch
-    tensor stays a tensor; anything else becomes a numpy array (float64 unless it is one
-    already). The one angle-wrapping helper of the package and the simulator."""
-    half = period / 2
-    if isinstance(a, torch.Tensor):
-        return torch.remainder(a + half, period) - half
-    a = np.asarray(a)
-    if a.dtype.kind != "f":
-        a = a.astype(np.float64)
-    return np.remainder(a + half, period) - half
+from slamdata.angles import wrap_angle  # noqa: F401 (the one angle helper, re-exported)
 
 
 def rotate_forward(z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:

@@ -6,7 +6,7 @@ Public API::
     World(maze, lidar=LidarConfig(), odometry_noise=None, distractors=0, seed=0, noise_seed=None)
     raycast(walls, origins, angles, max_range) -> ranges
     simulate_traversal(maze="moderate-medium", steps=3000, seed=1, images=False,
-                       distractors=0, noise=None, noise_seed=None) -> pyro_slam.data.Traversal
+                       distractors=0, noise=None, noise_seed=None) -> slamdata.Traversal
 """
 
 from simulators.camera import Camera, CameraConfig

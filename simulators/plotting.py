@@ -12,7 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
-from pyro_slam.data import Traversal, atomic_write  # noqa: E402
+from slamdata import Traversal, atomic_write  # noqa: E402
 
 
 def plot_traversal(traversal: Traversal, path_png, scan_step: int | None = None) -> Path:

@@ -6,11 +6,11 @@ import warnings
 
 import numpy as np
 
-from pyro_slam.data import Traversal
 from simulators.camera import Camera, CameraConfig
 from simulators.driver import DriverConfig, ExploringDriver, TourDriver
 from simulators.maze import Maze, make_maze
 from simulators.world import AGENT_RADIUS, LidarConfig, OdometryNoise, World, wrap_angle
+from slamdata import Traversal
 
 SIMULATOR_VERSION = "0.1.0"
 

@@ -18,10 +18,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import pymunk
 
-from pyro_slam.geometry import wrap_angle  # noqa: F401 (the simulator's, re-exported)
 from simulators.camera import Camera, CameraConfig
 from simulators.maze import Maze
 from simulators.raycast import raycast
+from slamdata import wrap_angle  # noqa: F401 (the simulator's, re-exported)
 
 AGENT_RADIUS = 1e-5
 _AGENT_CATEGORY = 0b10

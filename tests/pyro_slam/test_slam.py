@@ -384,12 +384,12 @@ def test_checkpoint_writes_are_atomic(traversal, tmp_path, monkeypatch):
             slam.save(ckpt)
     # 2) the temporary file is half written when the disk fills up
     with monkeypatch.context() as m:
-        m.setattr(pyro_slam.data.os, "fsync", boom)
+        m.setattr(os, "fsync", boom)
         with pytest.raises(OSError, match="disk full"):
             slam.save(ckpt)
     # 3) the rename fails
     with monkeypatch.context() as m:
-        m.setattr(pyro_slam.data.os, "replace", boom)
+        m.setattr(os, "replace", boom)
         with pytest.raises(OSError, match="disk full"):
             slam.save(ckpt)
     assert ckpt.read_bytes() == good
