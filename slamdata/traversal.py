@@ -329,6 +329,31 @@ def _far_from_the_rest(src, walls, poses, controls, metadata, max_range) -> None
         )
 
 
+def _optional_fields(tr: Traversal, src: str, T: int) -> None:
+    """Check (and convert in place) the optional ``poses``, ``images`` and ``timestamps`` of a
+    traversal of ``T`` steps."""
+    if tr.poses is not None:
+        poses = _float_array(src, "poses", tr.poses, 2)
+        if poses.shape != (T, 3):
+            raise DatasetError(f"{src}: field 'poses' must have shape {(T, 3)}, got {poses.shape}")
+        tr.poses = poses.astype(np.float32) if poses.dtype != np.float64 else poses
+    if tr.images is not None:
+        img = _float_array(src, "images", tr.images, 3)
+        if img.shape[0] != T:
+            raise DatasetError(f"{src}: field 'images' must have {T} frames, got {img.shape[0]}")
+        if img.size and (img.min() < 0 or img.max() > 1):
+            raise DatasetError(f"{src}: field 'images' must lie in [0, 1]")
+        tr.images = img.astype(np.float32)
+    if tr.timestamps is not None:
+        ts = _float_array(src, "timestamps", tr.timestamps, 1, limit=1e13)
+        if ts.shape != (T,):
+            raise DatasetError(f"{src}: field 'timestamps' must have shape ({T},), got {ts.shape}")
+        if T > 1 and np.any(np.diff(ts) < 0):
+            i = int(np.argmax(np.diff(ts) < 0))
+            raise DatasetError(f"{src}: field 'timestamps' decreases at step {i + 1}")
+        tr.timestamps = ts.astype(np.float64)
+
+
 def validate(tr: Traversal, src: str = "traversal") -> Traversal:
     """Check shapes, dtypes, lengths and values; raise :class:`DatasetError` on the first problem.
 
@@ -351,26 +376,7 @@ def validate(tr: Traversal, src: str = "traversal") -> Traversal:
             f"{src}: field 'beam_angles' must have shape ({B},) to match {B} observation beams, "
             f"got {angles.shape}"
         )
-    if tr.poses is not None:
-        poses = _float_array(src, "poses", tr.poses, 2)
-        if poses.shape != (T, 3):
-            raise DatasetError(f"{src}: field 'poses' must have shape {(T, 3)}, got {poses.shape}")
-        tr.poses = poses.astype(np.float32) if poses.dtype != np.float64 else poses
-    if tr.images is not None:
-        img = _float_array(src, "images", tr.images, 3)
-        if img.shape[0] != T:
-            raise DatasetError(f"{src}: field 'images' must have {T} frames, got {img.shape[0]}")
-        if img.size and (img.min() < 0 or img.max() > 1):
-            raise DatasetError(f"{src}: field 'images' must lie in [0, 1]")
-        tr.images = img.astype(np.float32)
-    if tr.timestamps is not None:
-        ts = _float_array(src, "timestamps", tr.timestamps, 1, limit=1e13)
-        if ts.shape != (T,):
-            raise DatasetError(f"{src}: field 'timestamps' must have shape ({T},), got {ts.shape}")
-        if T > 1 and np.any(np.diff(ts) < 0):
-            i = int(np.argmax(np.diff(ts) < 0))
-            raise DatasetError(f"{src}: field 'timestamps' decreases at step {i + 1}")
-        tr.timestamps = ts.astype(np.float64)
+    _optional_fields(tr, src, T)
     if not isinstance(tr.metadata, dict):
         raise DatasetError(f"{src}: field 'metadata' must be a dict, got {type(tr.metadata)}")
     _control_model(src, tr.metadata, ctl.shape[1])

@@ -191,66 +191,88 @@ def parse_carmen(source, *, lenient: bool = False, name: str | None = None) -> C
     """
     src, lines, opened = _open_lines(source)
     src = name or src
-    log = CarmenLog(src)
-    first: dict[str, Scan] = {}
-    last_scan: Scan | None = None  # the scan still waiting for its first ODOM
+    parser = _Parser(CarmenLog(src))
     try:
         for lineno, raw in enumerate(lines, start=1):
             tokens = (raw.lstrip("\ufeff") if lineno == 1 else raw).split()
-            if not tokens:
-                log.ignored["blank"] += 1
-                continue
-            kind = tokens[0]
-            if kind.startswith("#"):
-                log.ignored["#"] += 1
-                continue
             try:
-                if kind in SCAN_MESSAGES:
-                    scan = (parse_flaser if kind == "FLASER" else parse_robotlaser1)(tokens, lineno)
-                    ref = first.setdefault(kind, scan)
-                    if len(scan.ranges) != len(ref.ranges):
-                        raise ValueError(
-                            f"n readings {len(scan.ranges)} does not match the first {kind}'s "
-                            f"{len(ref.ranges)} (line {ref.line})"
-                        )
-                    if scan.config[:2] != ref.config[:2]:
-                        raise ValueError(f"{kind} angle config differs from line {ref.line}")
-                    log.scans.append(scan)
-                    last_scan = scan
-                elif kind == "ODOM":
-                    pose, time = parse_odom(tokens)
-                    if _is_anchor(last_scan, pose, time):
-                        last_scan.anchor = pose
-                    else:
-                        log.odom_pose.append(pose)
-                        log.odom_time.append(time)
-                        log.odom_line.append(lineno)
-                    last_scan = None
-                elif kind == "PARAM":
-                    if len(tokens) < 3:
-                        raise ValueError("PARAM needs a name and a value")
-                    _check_param(tokens[1], tokens[2])
-                    log.params[tokens[1]] = tokens[2]
-                    if tokens[1] not in SENSOR_PARAMS:  # (the sensor's are applied)
-                        log.ignored[kind] += 1
-                        continue
-                else:
-                    log.ignored[kind[:32]] += 1
-                    continue
+                parser.line(tokens, lineno)
             except ValueError as e:
                 if not lenient:
                     raise ParseError(src, lineno, str(e)) from None
-                log.skipped += 1
-                if len(log.skip_reasons) < MAX_REASONS:
-                    log.skip_reasons.append(f"{src}:{lineno}: {e}")
-                continue
-            log.counts[kind] += 1
+                parser.skip(f"{src}:{lineno}: {e}")
     except (OSError, EOFError) as e:  # e.g. a truncated or corrupt .gz
         raise ParseError(src, None, f"cannot read ({type(e).__name__}: {e})") from e
     finally:
         if opened:
             lines.close()
-    return log
+    return parser.log
+
+
+class _Parser:
+    """The state of :func:`parse_carmen` over a log's lines: the first scan of each type (the
+    reference for the rest) and the scan still waiting for its first ``ODOM``."""
+
+    def __init__(self, log: CarmenLog):
+        self.log = log
+        self.first: dict[str, Scan] = {}
+        self.last_scan: Scan | None = None
+
+    def skip(self, reason: str) -> None:
+        self.log.skipped += 1
+        if len(self.log.skip_reasons) < MAX_REASONS:
+            self.log.skip_reasons.append(reason)
+
+    def line(self, tokens: list[str], lineno: int) -> None:
+        """Parse one line's ``tokens``; ``ValueError`` for a malformed line."""
+        log = self.log
+        kind = tokens[0] if tokens else ""
+        if not tokens or kind.startswith("#"):
+            log.ignored["#" if tokens else "blank"] += 1
+            return
+        if kind in SCAN_MESSAGES:
+            self._scan(kind, tokens, lineno)
+        elif kind == "ODOM":
+            self._odom(tokens, lineno)
+        elif kind == "PARAM":
+            if not self._param(tokens):
+                log.ignored[kind] += 1
+                return
+        else:
+            log.ignored[kind[:32]] += 1
+            return
+        log.counts[kind] += 1
+
+    def _scan(self, kind: str, tokens: list[str], lineno: int) -> None:
+        scan = (parse_flaser if kind == "FLASER" else parse_robotlaser1)(tokens, lineno)
+        ref = self.first.setdefault(kind, scan)
+        if len(scan.ranges) != len(ref.ranges):
+            raise ValueError(
+                f"n readings {len(scan.ranges)} does not match the first {kind}'s "
+                f"{len(ref.ranges)} (line {ref.line})"
+            )
+        if scan.config[:2] != ref.config[:2]:
+            raise ValueError(f"{kind} angle config differs from line {ref.line}")
+        self.log.scans.append(scan)
+        self.last_scan = scan
+
+    def _odom(self, tokens: list[str], lineno: int) -> None:
+        pose, time = parse_odom(tokens)
+        if _is_anchor(self.last_scan, pose, time):
+            self.last_scan.anchor = pose
+        else:
+            self.log.odom_pose.append(pose)
+            self.log.odom_time.append(time)
+            self.log.odom_line.append(lineno)
+        self.last_scan = None
+
+    def _param(self, tokens: list[str]) -> bool:
+        """Record a ``PARAM``; whether the reader applies it (the sensor's)."""
+        if len(tokens) < 3:
+            raise ValueError("PARAM needs a name and a value")
+        _check_param(tokens[1], tokens[2])
+        self.log.params[tokens[1]] = tokens[2]
+        return tokens[1] in SENSOR_PARAMS
 
 
 def _check_param(name: str, value: str) -> None:

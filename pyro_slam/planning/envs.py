@@ -231,11 +231,6 @@ class GroundTruthEnv(_Rollouts):
         inverse model reading this one scan can resolve.
         """
 
-        def diff(z, x):  # float64, no torch round trip
-            r = raycast(self.maze.walls, z[None, :2], z[2] + self.lidar.beam_angles[None],
-                        self.lidar.max_range)  # fmt: skip
-            return np.abs(r[0] - x).mean()
-
         B = self.lidar.n_beams
         if n_headings % B:
             raise ValueError(f"n_headings={n_headings} must be a multiple of the {B} beams")
@@ -247,31 +242,32 @@ class GroundTruthEnv(_Rollouts):
         out = []
         for x in scans:
             best, h = self._coarse(x, rays, ranked, coarse_tol)  # [P], [P]
-            reps: list[int] = []
-            for p in torch.argsort(best).tolist():
-                if best[p] > coarse_tol:
-                    break
-                if all(np.hypot(*(xy[p] - xy[q])) > separation for q in reps):
-                    reps.append(p)
-            poses, diffs = [], []
-            for p in reps:
-                z0 = np.array([*xy[p], angles[h[p]]])
-                simplex = z0 + np.array([[0, 0, 0], [spacing / 2, 0, 0], [0, spacing / 2, 0],
-                                         [0, 0, np.pi / n_headings]])  # fmt: skip
-                r = minimize(
-                    diff, z0, args=(x,), method="Nelder-Mead",
-                    options={"initial_simplex": simplex, "xatol": 1e-8, "fatol": 1e-10},
-                )  # fmt: skip
-                z = r.x.copy()
-                z[2] = (z[2] + np.pi) % (2 * np.pi) - np.pi
-                poses.append(z)
-                diffs.append(float(r.fun))
-            keep: list[int] = []  # refinements that converged to one place count once
-            for j in np.argsort(diffs, kind="stable"):
-                if all(np.hypot(*(poses[j][:2] - poses[q][:2])) > separation for q in keep):
-                    keep.append(j)
+            reps = _thin(xy, best.tolist(), coarse_tol, separation)
+            refined = [
+                self._refine(x, np.array([*xy[p], angles[h[p]]]), spacing, n_headings)
+                for p in reps
+            ]
+            poses = [z for z, _ in refined]
+            diffs = [d for _, d in refined]
+            keep = _thin([z[:2] for z in poses], diffs, np.inf, separation)  # one per place
             out.append((np.array(poses).reshape(-1, 3)[keep], np.array(diffs)[keep]))
         return out
+
+    def _refine(self, x, z0, spacing: float, n_headings: int) -> tuple[np.ndarray, float]:
+        """Nelder-Mead from ``z0 [3]`` on the mean absolute difference between the true scan
+        and ``x [B]``: the refined pose (heading wrapped) and its difference."""
+
+        def diff(z):  # float64, no torch round trip
+            ang = z[2] + self.lidar.beam_angles[None]
+            r = raycast(self.maze.walls, z[None, :2], ang, self.lidar.max_range)
+            return np.abs(r[0] - x).mean()
+
+        step = [[0, 0, 0], [spacing / 2, 0, 0], [0, spacing / 2, 0], [0, 0, np.pi / n_headings]]
+        options = {"initial_simplex": z0 + np.array(step), "xatol": 1e-8, "fatol": 1e-10}
+        r = minimize(diff, z0, method="Nelder-Mead", options=options)
+        z = r.x.copy()
+        z[2] = (z[2] + np.pi) % (2 * np.pi) - np.pi
+        return z, float(r.fun)
 
     @staticmethod
     def _coarse(x: np.ndarray, rays: torch.Tensor, ranked: torch.Tensor, tol: float):
@@ -343,6 +339,18 @@ class ScanHits:
         none is within ``upto``)."""
         d, _ = self.tree.query(np.asarray(xy, dtype=np.float64), k=1, distance_upper_bound=upto)
         return d
+
+
+def _thin(xy, scores, tol: float, separation: float) -> list[int]:
+    """Greedily, best score first: the indices of ``xy [n, 2]`` with ``scores [n]`` within
+    ``tol`` that lie more than ``separation`` from every one kept before."""
+    keep: list[int] = []
+    for p in np.argsort(scores, kind="stable").tolist():
+        if scores[p] > tol:
+            break
+        if all(np.hypot(*(np.asarray(xy[p]) - np.asarray(xy[q]))) > separation for q in keep):
+            keep.append(p)
+    return keep
 
 
 def lookalikes(poses, diffs, target, tol: float = 1e-6, radius: float = 0.05) -> tuple[int, float]:
