@@ -49,7 +49,7 @@ from .planning import (
 from .planning.inverse import fit_inverse
 from .plotting import plot_navigation
 from .runtime import package_version
-from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets, with_overrides
+from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets
 from .slam.build import check_hits, prepare_traversal
 from .slam.components import emission_kind
 from .slam.outputs import prepare_out_dir, read_run, run_slam
@@ -128,34 +128,17 @@ def _read(args) -> Traversal:
 
 def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
     """The preset named by ``--preset`` (default: ``real`` for a real log, else the default
-    preset) for this traversal, with the ``--config`` JSON overrides (a string or a file)."""
-    name = args.preset or ("real" if presets.is_real_log(traversal) else presets.DEFAULT)
-    preset = presets.get(name)
-    if getattr(args, "odometry_noise", None) is not None and preset.adapt is presets.adapt_real_log:
-        config = presets.adapt_real_log(
-            traversal, preset.config, odometry_noise=args.odometry_noise
+    preset) for this traversal, with the ``--config`` JSON overrides (a string or a file):
+    :func:`pyro_slam.slam.presets.configure`, as the benchmarks choose theirs."""
+    try:
+        return presets.configure(
+            args.preset,
+            traversal,
+            args.config or None,
+            getattr(args, "odometry_noise", None),
         )
-    else:
-        config = preset.for_traversal(traversal)
-    if args.config:
-        text = args.config
-        if not text.lstrip().startswith("{"):  # a file of JSON
-            try:
-                text = Path(text).read_text()
-            except (OSError, UnicodeDecodeError) as e:
-                raise DatasetError(
-                    f"--config {text[:60]!r}: not a JSON object, nor a readable "
-                    f"file ({one_line(e)})"
-                ) from None
-        try:
-            over = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise DatasetError(f"--config: not a JSON object or file: {e}") from e
-        try:
-            config = with_overrides(config, over)
-        except ConfigError as e:
-            raise DatasetError(f"--config: {e}") from e
-    return name, config
+    except ConfigError as e:
+        raise DatasetError(f"--config: {e}") from None
 
 
 def _print_report(report: dict, out: Path) -> None:

@@ -244,8 +244,7 @@ class GroundTruthEnv(_Rollouts):
             best, h = self._coarse(x, rays, ranked, coarse_tol)  # [P], [P]
             reps = _thin(xy, best.tolist(), coarse_tol, separation)
             refined = [
-                self._refine(x, np.array([*xy[p], angles[h[p]]]), spacing, n_headings)
-                for p in reps
+                self._refine(x, np.array([*xy[p], angles[h[p]]]), spacing, n_headings) for p in reps
             ]
             poses = [z for z, _ in refined]
             diffs = [d for _, d in refined]

@@ -11,8 +11,10 @@ cannot be written down. Named configurations live in :mod:`pyro_slam.slam.preset
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from dataclasses import dataclass, field, fields
+from pathlib import Path
 
 from .components import EMISSIONS
 
@@ -305,6 +307,24 @@ def with_overrides(config: SLAMConfig, changes: dict) -> SLAMConfig:
     ``{"heading": None}`` switches it off). Unknown fields and bad values raise
     :class:`ConfigError` naming the field."""
     return _merge(config, changes, SLAMConfig, "")
+
+
+def parse_overrides(text: str) -> dict:
+    """Nested configuration changes from a JSON object's text, or from the JSON file at the path
+    ``text``; :class:`ConfigError` naming the problem otherwise."""
+    if not text.lstrip().startswith("{"):  # a file of JSON
+        try:
+            text = Path(text).read_text()
+        except (OSError, UnicodeDecodeError) as e:
+            shown = f"{text[:60]!r}"
+            raise ConfigError(f"{shown}: not a JSON object, nor a readable file ({e})") from None
+    try:
+        changes = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"not a JSON object or file: {e}") from e
+    if not isinstance(changes, dict):
+        raise ConfigError(f"the configuration must be a JSON object, got {changes!r}")
+    return changes
 
 
 def from_dict(d: dict) -> SLAMConfig:

@@ -37,6 +37,8 @@ from .config import (
     SLAMConfig,
     TrainingConfig,
     TransitionConfig,
+    parse_overrides,
+    with_overrides,
 )
 
 DEFAULT = "raycast"
@@ -212,6 +214,34 @@ def resolve(config: SLAMConfig | Preset | str | None, traversal: Traversal) -> S
     return config
 
 
+def configure(
+    name: str | None = None,
+    traversal: Traversal | None = None,
+    overrides=None,
+    odometry_noise: float | None = None,
+) -> tuple[str, SLAMConfig]:
+    """The one way the command line and the benchmarks choose a configuration: the preset
+    ``name`` (default: ``real`` for a real log, else the default preset) adapted to
+    ``traversal`` (``odometry_noise``: the real-log adaptation's odometry noise fraction), then
+    the nested ``overrides`` (a dict, a JSON object's text, or the path of a JSON file; see
+    :func:`~pyro_slam.slam.config.with_overrides`). Returns ``(name, config)``; a bad name or
+    override raises :class:`~pyro_slam.slam.config.ConfigError` naming it."""
+    if name is None:
+        name = "real" if traversal is not None and is_real_log(traversal) else DEFAULT
+    try:
+        preset = get(name)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    if odometry_noise is not None and preset.adapt is adapt_real_log and traversal is not None:
+        config = adapt_real_log(traversal, preset.config, odometry_noise=odometry_noise)
+    else:
+        config = preset.for_traversal(traversal)
+    if overrides is not None:
+        changes = parse_overrides(overrides) if isinstance(overrides, str) else overrides
+        config = with_overrides(config, changes)
+    return name, config
+
+
 def default_for(traversal: Traversal | None = None) -> SLAMConfig:
     """The default configuration for ``traversal``: the ``real`` preset for a real log, the
     default preset otherwise."""
@@ -225,6 +255,7 @@ __all__ = [
     "PRESETS",
     "Preset",
     "adapt_real_log",
+    "configure",
     "default_for",
     "describe",
     "get",
