@@ -287,7 +287,8 @@ def cmd_pretrain(args) -> int:
     the end (a failure leaves the previous ones as they were)."""
     out = _pretrain_out(args)
     tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
-    em, stats = pretrain_emission([tr], SLAMConfig(), steps=args.emission_steps, seed=args.seed)
+    paper = presets.get("paper").config  # the paper's emission MLP and its grid
+    em, stats = pretrain_emission([tr], paper, steps=args.emission_steps, seed=args.seed)
     blob = {
         "state_dict": em.state_dict(),
         "meta": {

@@ -36,8 +36,6 @@ class ParticleFilter:
         generator: ``torch.Generator`` for reproducible noise and resampling.
         ess_threshold: resample when ``ESS < ess_threshold * K``.
         scheme: ``"systematic"`` or ``"multinomial"`` (:mod:`.resampling`).
-        shared: under a map belief, one variance per reading for the whole cloud (its
-            weighted mean), :meth:`~pyro_slam.model.DVBFLM.marginal_emission`.
         autocast_dtype: e.g. ``torch.bfloat16``: run the emission in reduced precision when no
             gradient is needed (filtering under a fixed map); ~2-3x faster on CPU.
     """
@@ -49,7 +47,6 @@ class ParticleFilter:
         generator: torch.Generator | None = None,
         ess_threshold: float = 0.5,
         scheme: str = "systematic",
-        shared: bool = False,
         autocast_dtype: torch.dtype | None = None,
     ):
         if scheme not in resampling.SCHEMES:
@@ -58,19 +55,18 @@ class ParticleFilter:
         self.proposal = TransitionProposal() if proposal is None else proposal
         self.generator = generator
         self.ess_threshold, self.scheme = ess_threshold, scheme
-        self.shared, self.autocast_dtype = shared, autocast_dtype
+        self.autocast_dtype = autocast_dtype
 
-    def log_likelihood(self, z, M, x, mask=None, logw=None, heading=None):
+    def log_likelihood(self, z, M, x, mask=None, heading=None):
         """The model's log-likelihood of the step's observations at poses ``z [..., K, 3]``:
         the scan ``x [..., B]`` (``mask [..., B]``) under the map ``M [w, h, D]`` or marginalised
-        over a :class:`~pyro_slam.model.MapBelief` (``logw [..., K]``: the cloud's weights, read
-        where one variance serves the cloud), plus the heading factor's log-density of
+        over a :class:`~pyro_slam.model.MapBelief`, plus the heading factor's log-density of
         ``heading`` (:class:`~pyro_slam.model.HeadingEvidence`, batch ``[...]``). Returns
         ``(loglik [..., K], scan [..., K, B])``, the scans predicted at the map (mean)."""
         m = self.model
         eps = None
         if isinstance(M, MapBelief):
-            scan, eps = m.marginal_emission(M, z, logw if self.shared else None)
+            scan, eps = m.marginal_emission(M, z)
         elif self.autocast_dtype is not None and not torch.is_grad_enabled():
             with torch.autocast(z.device.type, dtype=self.autocast_dtype):
                 scan = m.emission_mean(M, z).to(z.dtype)  # [..., K, B]
@@ -97,7 +93,7 @@ class ParticleFilter:
         """Weigh poses ``z [..., K, 3]`` (plus ``correction [..., K]``, the proposal's log
         transition-over-proposal density ratio). Returns new particles and the log-evidence
         increment ``[...]``."""
-        loglik, scan = self.log_likelihood(z, M, x, mask, logw, heading)
+        loglik, scan = self.log_likelihood(z, M, x, mask, heading)
         if correction is not None:
             loglik = loglik + correction
         joint = logw + loglik

@@ -44,7 +44,6 @@ class PyroSMCFilter:
         model: the :class:`~pyro_slam.model.DVBFLM`.
         proposal: the pose proposal (default: the transition).
         ess_threshold: resample when ``ESS < ess_threshold * K``.
-        shared: one variance per reading for the cloud under a map belief (as our filter's).
     """
 
     def __init__(
@@ -52,11 +51,10 @@ class PyroSMCFilter:
         model,
         proposal: Proposal | None = None,
         ess_threshold: float = 0.5,
-        shared: bool = False,
     ):
         self.model = model
         self.proposal = TransitionProposal() if proposal is None else proposal
-        self.ess_threshold, self.shared = ess_threshold, shared
+        self.ess_threshold = ess_threshold
         self.smc: SMCFilter | None = None
         self._fm: FilterModel | None = None
         self._guide: ProposalGuide | None = None
@@ -84,7 +82,7 @@ class PyroSMCFilter:
     def init(self, z0, M, x, mask=None, step=0, heading=None):
         """Start from the initial pose prior around the mean of ``z0 [K, 3]`` and weigh ``x``.
         Returns ``(particles, nan)`` (SMCFilter tracks no evidence)."""
-        self._fm = FilterModel(self.model, M, self._logw if self.shared else None)
+        self._fm = FilterModel(self.model, M)
         self._guide = ProposalGuide(self.model, self.proposal, M)
         self.smc = SMCFilter(
             self._fm,
@@ -93,9 +91,7 @@ class PyroSMCFilter:
             max_plate_nesting=0,
             ess_threshold=self.ess_threshold,
         )
-        shared, self._fm.cloud_logw = self._fm.cloud_logw, None  # no weights before the first
         self.smc.init(init_pose=z0.mean(-2), x=x, mask=mask, heading=heading)
-        self._fm.cloud_logw = shared
         return self._particles(), torch.tensor(float("nan"))
 
     @torch.no_grad()

@@ -323,7 +323,7 @@ class DVBFLM(nn.Module):
             d = BeamMixture(d, eps, self.outlier_range, validate_args=False)
         return d
 
-    def marginal_emission(self, belief: MapBelief, z: torch.Tensor, cloud_logw=None):
+    def marginal_emission(self, belief: MapBelief, z: torch.Tensor):
         """The emission marginalised over a Gaussian map belief ``q(M)``, a stated
         approximation: along each reading ``q(M)`` is either known, at its mean, or unknown,
         with the probability ``v`` in ``[0, 1]`` that the map's variance relative to the
@@ -334,13 +334,10 @@ class DVBFLM(nn.Module):
             p(x_t | z_t, q) ~ (1 - v) p(x_t | z_t, E_q[M]) + v U(0, R),
 
         the model's own emission at the map mean with the outlier probability ``1 - (1 - eps)
-        (1 - v)``. ``cloud_logw [..., K]`` (poses ``z [..., K, 3]``): ``v`` is the cloud's
-        weighted mean per entry, the same for every particle. Returns the predicted reading
-        ``mean [..., N]`` and that outlier probability ``[..., N]`` (or broadcastable)."""
+        (1 - v)``. Returns the predicted reading ``mean [..., N]`` and that outlier probability
+        ``[..., N]`` (or broadcastable)."""
         rel = belief.scale / self.prior_std()
         mean, v = self.emission.read_moments(self.grid, belief.loc, rel, z)
-        if cloud_logw is not None:
-            v = (cloud_logw.exp()[..., None] * v).sum(-2, keepdim=True)
         return mean, 1 - (1 - self.outlier_prob) * (1 - v.clamp(0, 1))
 
     def emission_dist(self, mean: torch.Tensor, mask=None, sigma=None, outlier_prob=None):
@@ -498,19 +495,17 @@ class FilterModel:
     the poses, ``state["scan"]`` the predicted scan at them (the transition's input at the next
     step) and ``state["log_lik"]`` each particle's log-likelihood of the step's scan (for the
     log-evidence). With the model's heading factor, a step's :class:`HeadingEvidence` is the
-    observed site ``"h"``. ``cloud_logw``: a callable giving the cloud's normalised log weights
-    ``[K]`` (:meth:`DVBFLM.marginal_emission` with one variance for the cloud).
+    observed site ``"h"``.
     """
 
-    def __init__(self, dvbflm: DVBFLM, M, cloud_logw=None):
-        self.m, self.M, self.cloud_logw = dvbflm, M, cloud_logw
+    def __init__(self, dvbflm: DVBFLM, M):
+        self.m, self.M = dvbflm, M
 
     def _observe(self, state, z, x, mask, heading):
         m = self.m
         eps = None
         if isinstance(self.M, MapBelief):
-            logw = None if self.cloud_logw is None else self.cloud_logw()
-            scan, eps = m.marginal_emission(self.M, z, logw)
+            scan, eps = m.marginal_emission(self.M, z)
         else:
             scan = m.emission_mean(self.M, z)
         if x is not None:

@@ -24,6 +24,7 @@ from ..pretrained import EMISSION_FILE, PRETRAINED, load_emission
 from ..slam import (
     EmissionConfig,
     SLAMConfig,
+    TransitionConfig,
     build_model,
     fit_map,
     prepare_traversal,
@@ -365,8 +366,13 @@ def lookalikes(poses, diffs, target, tol: float = 1e-6, radius: float = 0.05) ->
 
 
 # --------------------------------------------------------------------------- learned map
-# the model the planner maps with: the paper's LiDAR emission MLP on its grid
-MAPPING = SLAMConfig(emission=EmissionConfig("mlp"))
+# the model the planner maps with: the paper's LiDAR emission MLP on its 32 x 32 grid, with the
+# paper's Gaussian noise of 0.1 (the transition is the planner's own)
+MAPPING = SLAMConfig(
+    emission=EmissionConfig("mlp", resolution=1 / 31, sigma=0.1, outlier_prob=0.0),
+    transition=TransitionConfig("kinematic", scale=(1.0, 1.0, 1.0)),
+    heading=None,
+)
 
 
 def learned_env(

@@ -55,9 +55,9 @@ def assemble(run, transition, emission, learn_emission, guide, prior, noise, smc
     name = cfg.filter.proposal
     proposal = HeadingProposal() if run.heading and name == "transition" else PROPOSALS[name]()
     run.proposal = proposal
-    run.pf = ParticleFilter(run.model, proposal, run.gen, shared=cfg.filter.shared)
+    run.pf = ParticleFilter(run.model, proposal, run.gen)
     if smc:
-        run.pf = PyroSMCFilter(run.model, proposal, shared=cfg.filter.shared)
+        run.pf = PyroSMCFilter(run.model, proposal)
     run.cache = ParticleCache(run.T, cfg.training.cache_particles)
     run.history = ParticleHistory(run.T, cfg.filter.particles)
     run.elbo = ParticleChunkELBO(

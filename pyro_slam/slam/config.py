@@ -1,10 +1,14 @@
 """The SLAM configuration, made of component choices.
 
 A :class:`SLAMConfig` holds one object per component: the emission (and with it the map grid
-and, for the ray-cast LiDAR, scan insertion), the transition, the filter's weights, the
-training objective and its SVI schedule, the offline passes and the optional heading
-observation. Each component validates itself on construction, so an impossible combination
-cannot be written down. Named configurations live in :mod:`pyro_slam.slam.presets`;
+and, for the ray-cast LiDAR, scan insertion), the transition, the pose filter, the SVI schedule
+of the training objective, the offline passes and the optional heading factor. Each component
+validates itself on construction, so an impossible combination cannot be written down.
+
+Every default is written once, here: a component's field defaults are the default preset's
+values, and ``SLAMConfig()`` *is* the default preset (its scan insertion and heading factor,
+which not every component choice allows, are added by ``SLAMConfig``'s own defaults). The other
+named configurations (:mod:`pyro_slam.slam.presets`) state how they differ from it;
 :func:`with_overrides` applies a nested dict of changes (the CLI's ``--config`` JSON).
 """
 
@@ -100,11 +104,11 @@ class EmissionConfig:
     unit length scaled to the grid (the same per grid spacing at every resolution).
     """
 
-    kind: str = "mlp"
-    resolution: float = 1 / 31
+    kind: str = "raycast"
+    resolution: float = 1 / 63
     margin: float = 0.05
-    sigma: float = 0.1
-    outlier_prob: float = 0.0
+    sigma: float = 0.05
+    outlier_prob: float = 0.1
     insert: ScanInsertionConfig | None = None
     ray_spacing: float | None = None
 
@@ -135,9 +139,9 @@ class TransitionConfig:
     kinematics with std ``sigma``) or ``"learned"`` (the shipped ``mu_T`` network and its own
     ``sigma_T``). The model's ``sigma_T`` is that std times ``scale``."""
 
-    kind: str = "kinematic"
+    kind: str = "learned"
     sigma: tuple[float, float, float] = (5e-4, 5e-4, 8e-3)
-    scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    scale: tuple[float, float, float] = (3.0, 3.0, 1.0)
 
     def __post_init__(self):
         _choice("transition.kind", self.kind, TRANSITIONS)
@@ -152,21 +156,17 @@ class FilterConfig:
     """The SLAM particle filter: ``particles`` per step and the pose ``proposal``
     (:mod:`pyro_slam.inference.proposals`; with the heading factor, the transition is
     conditioned on it). The weights are the model's likelihood, under the map belief its
-    stated marginalisation (:meth:`~pyro_slam.model.DVBFLM.marginal_emission`); ``shared``:
-    one variance per reading for the whole cloud. The reported online poses are smoothed with
-    the particles ``lag`` steps later traced back along their ancestry (0: the filtered
-    means); offline, along the ancestral path of the final pass."""
+    stated marginalisation (:meth:`~pyro_slam.model.DVBFLM.marginal_emission`). The reported
+    online poses are smoothed with the particles ``lag`` steps later traced back along their
+    ancestry (0: the filtered means); offline, along the ancestral path of the final pass."""
 
     particles: int = 128
-    proposal: str = "transition"
-    shared: bool = False
+    proposal: str = "scan-match"
     lag: int = 20
 
     def __post_init__(self):
         _positive("filter.particles", self.particles, integer=True)
         _choice("filter.proposal", self.proposal, PROPOSALS)
-        if not isinstance(self.shared, bool):
-            raise ConfigError(f"filter.shared must be true or false, got {self.shared!r}")
         if not (isinstance(self.lag, int) and not isinstance(self.lag, bool) and self.lag >= 0):
             raise ConfigError(f"filter.lag must be an integer >= 0, got {self.lag!r}")
 
@@ -183,7 +183,7 @@ class TrainingConfig:
     chunk_length: int = 4
     chunks: int = 4
     lr: float = 0.02
-    every: int = 1
+    every: int = 2
     lr_emission: float = 1e-3
     cache_particles: int = 50
 
@@ -204,7 +204,7 @@ class OfflineConfig:
 
     rounds: int = 2
     svi_steps: int = 800
-    estimate: str = "forward"
+    estimate: str = "cache"
 
     def __post_init__(self):
         for name in ("rounds", "svi_steps"):
@@ -234,14 +234,18 @@ class HeadingConfig:
 @dataclass(frozen=True)
 class SLAMConfig:
     """A SLAM configuration: one choice per component, plus how the sensor is read
-    (every ``beam_stride``-th beam, readings clipped at ``range_clip``)."""
+    (every ``beam_stride``-th beam, readings clipped at ``range_clip``). ``SLAMConfig()`` is
+    the default preset: the components' defaults, with scan insertion and the heading
+    factor."""
 
-    emission: EmissionConfig = field(default_factory=EmissionConfig)
+    emission: EmissionConfig = field(
+        default_factory=lambda: EmissionConfig(insert=ScanInsertionConfig())
+    )
     transition: TransitionConfig = field(default_factory=TransitionConfig)
     filter: FilterConfig = field(default_factory=FilterConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
     offline: OfflineConfig = field(default_factory=OfflineConfig)
-    heading: HeadingConfig | None = None
+    heading: HeadingConfig | None = field(default_factory=HeadingConfig)
     beam_stride: int = 1
     range_clip: float | None = None
 

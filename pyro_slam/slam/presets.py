@@ -1,18 +1,20 @@
 """Named SLAM configurations. Each preset is one :class:`Preset` object; the CLI takes
 ``--preset NAME`` (plus ``--config`` overrides) and the benchmarks name the preset they ran.
+The default preset is ``SLAMConfig()`` itself (:mod:`pyro_slam.slam.config` holds every
+default); the others say how they differ from it.
 
 ========================  ===============================================================
+``manhattan`` (default)   the ray-cast LiDAR emission with scan insertion and the beam
+                          mixture, the heading factor in a walls' frame estimated from the
+                          scans, the scan-matching proposal
+``raycast``               ``manhattan`` without the heading factor
 ``paper``                 the paper's model: pretrained LiDAR emission MLP, the shipped
-                          learned transition
-``raycast`` (default)     ray-cast LiDAR emission with occupancy scan insertion and
-                          beam-mixture weights
-``manhattan``             ``raycast`` plus the Manhattan-world heading observation in a
-                          walls' frame estimated from the scans
+                          learned transition, the bootstrap filter
 ``visual``                the paper's visual model (row MLPs)
 ``visual-raycast``        the ray camera
-``visual-manhattan``      the ray camera plus the heading observation read from the frames
+``visual-manhattan``      the ray camera plus the heading factor read from the frames
 ``real``                  real laser logs (CARMEN, ROS): ray-cast emission on a metric grid,
-                          heading observation; sensor settings derived from the log
+                          heading factor; sensor settings derived from the log
 ========================  ===============================================================
 
 The figures of each are on the results page (``docs/results.md``).
@@ -31,6 +33,7 @@ from ..data import Traversal
 from .config import (
     ConfigError,
     EmissionConfig,
+    FilterConfig,
     HeadingConfig,
     OfflineConfig,
     ScanInsertionConfig,
@@ -41,7 +44,7 @@ from .config import (
     with_overrides,
 )
 
-DEFAULT = "raycast"
+DEFAULT = "manhattan"
 
 
 @dataclass(frozen=True)
@@ -102,54 +105,62 @@ def adapt_real_log(
     )
 
 
-# the shipped learned transition, its sigma_T scaled (position x 3)
-SHIPPED_TRANSITION = TransitionConfig("learned", scale=(3.0, 3.0, 1.0))
-PAPER = SLAMConfig(
-    emission=EmissionConfig("mlp", sigma=0.05),
-    transition=SHIPPED_TRANSITION,
-    offline=OfflineConfig(estimate="cache"),
+# the default: the ray-cast LiDAR emission with scan insertion and the beam mixture, the shipped
+# learned transition, the heading factor, the scan-matching proposal, SVI every 2 steps
+MANHATTAN = SLAMConfig()
+# the same without the heading factor, for worlds without two dominant wall directions
+RAYCAST = replace(MANHATTAN, heading=None)
+# the paper's LiDAR model: the pretrained emission MLP on a 32 x 32 grid, Gaussian noise, the
+# bootstrap filter, SVI at every step
+PAPER = replace(
+    MANHATTAN,
+    emission=EmissionConfig("mlp", resolution=1 / 31, outlier_prob=0.0),
+    filter=FilterConfig(proposal="transition"),
+    training=TrainingConfig(every=1),
+    heading=None,
 )
-# one SVI step every 4 time steps
-RAYCAST = replace(
-    PAPER,
-    emission=EmissionConfig(
-        "raycast", resolution=1 / 63, sigma=0.05, outlier_prob=0.1, insert=ScanInsertionConfig()
-    ),
-    training=TrainingConfig(every=4),
-)
-MANHATTAN = replace(RAYCAST, heading=HeadingConfig(sigma=1e-3), training=TrainingConfig())
+# the paper's visual model: row MLPs, kinematic transition, the bootstrap filter
 VISUAL = SLAMConfig(
-    emission=EmissionConfig("image_mlp", resolution=1 / 24, margin=0.0),
+    emission=EmissionConfig(
+        "image_mlp", resolution=1 / 24, margin=0.0, sigma=0.1, outlier_prob=0.0
+    ),
     transition=TransitionConfig("kinematic", scale=(0.6, 0.6, 0.15)),
-    training=TrainingConfig(particles=8, chunks=16, lr=0.05),
-    offline=OfflineConfig(rounds=2, svi_steps=400),
+    filter=FilterConfig(proposal="transition"),
+    training=TrainingConfig(particles=8, chunks=16, lr=0.05, every=1),
+    offline=OfflineConfig(rounds=2, svi_steps=400, estimate="forward"),
+    heading=None,
 )
 VISUAL_RAYCAST = replace(
-    VISUAL, emission=EmissionConfig("ray_camera", resolution=1 / 63, margin=0.0)
+    VISUAL,
+    emission=EmissionConfig(
+        "ray_camera", resolution=1 / 63, margin=0.0, sigma=0.1, outlier_prob=0.0
+    ),
 )
-VISUAL_MANHATTAN = replace(VISUAL_RAYCAST, heading=HeadingConfig(sigma=1e-3))
+VISUAL_MANHATTAN = replace(VISUAL_RAYCAST, heading=HeadingConfig())
 # real logs (metres): the ray-cast emission on a 0.1 m grid with scan insertion (hits farther
-# apart than 0.5 m are separate walls), the beam mixture, and the heading factor in the walls'
-# frame estimated from the log, which switches itself off where the walls do not support it
+# apart than 0.5 m are separate walls), the beam mixture, the kinematic odometry transition
+# (its noise read from the log), and the heading factor in the walls' frame estimated from the
+# log, which switches itself off where the walls do not support it
 REAL = SLAMConfig(
     emission=EmissionConfig(
-        "raycast",
-        resolution=0.1,
-        margin=0.0,
-        sigma=0.1,
-        outlier_prob=0.1,
-        insert=ScanInsertionConfig(gap=0.5),
+        resolution=0.1, margin=0.0, sigma=0.1, insert=ScanInsertionConfig(gap=0.5)
     ),
+    transition=TransitionConfig("kinematic", scale=(1.0, 1.0, 1.0)),
+    filter=FilterConfig(proposal="transition"),
     training=TrainingConfig(chunks=8, every=4),
-    heading=HeadingConfig(),
+    offline=OfflineConfig(estimate="forward"),
 )
 
 PRESETS: dict[str, Preset] = {
     p.name: p
     for p in (
         Preset("paper", "the paper's model: pretrained emission MLP, learned transition", PAPER),
-        Preset("raycast", "ray-cast LiDAR emission with scan insertion (default)", RAYCAST),
-        Preset("manhattan", "raycast + heading observation (walls' frame estimated)", MANHATTAN),
+        Preset("raycast", "ray-cast LiDAR emission with scan insertion, scan matching", RAYCAST),
+        Preset(
+            "manhattan",
+            "raycast + the heading factor (walls' frame estimated) (default)",
+            MANHATTAN,
+        ),
         Preset("visual", "the paper's visual model: row MLPs on camera frames", VISUAL),
         Preset("visual-raycast", "ray camera on camera frames", VISUAL_RAYCAST),
         Preset(

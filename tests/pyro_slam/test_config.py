@@ -84,7 +84,7 @@ def maze_traversal():
 # ----------------------------------------------------------------------- presets
 def test_presets_are_the_documented_ones():
     assert list(presets.PRESETS) == PRESET_NAMES
-    assert presets.DEFAULT == "raycast"
+    assert presets.DEFAULT == "manhattan"
     for name, preset in presets.PRESETS.items():
         assert preset.name == name and preset.summary and isinstance(preset.config, SLAMConfig)
         assert presets.get(name) is preset
@@ -107,41 +107,53 @@ def test_adapted_real_preset_round_trips_through_a_plain_dict():
     assert from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
 
 
+def test_slamconfig_is_the_default_preset():
+    """Every default is written once: ``SLAMConfig()`` is the default preset, its components'
+    defaults included."""
+    default = SLAMConfig()
+    assert default == presets.get(presets.DEFAULT).config == presets.default_for(None)
+    assert default.emission == EmissionConfig(insert=ScanInsertionConfig())
+    assert default.heading == HeadingConfig() and default.filter == FilterConfig()
+    assert default.transition == TransitionConfig() and default.training == TrainingConfig()
+
+
 def test_presets_differ_from_each_other_as_documented():
-    paper, raycast = presets.get("paper").config, presets.get("raycast").config
-    assert paper.emission == EmissionConfig("mlp")
-    assert paper.transition == TransitionConfig(
-        "learned", scale=(3.0, 3.0, 0.2), scale_trusted=(3.0, 3.0, 1.0)
+    manhattan, raycast = presets.get("manhattan").config, presets.get("raycast").config
+    assert manhattan.emission == EmissionConfig(
+        "raycast", resolution=1 / 63, sigma=0.05, outlier_prob=0.1, insert=ScanInsertionConfig()
     )
-    assert paper.filter.weighting == "shared" and paper.offline.estimate == "cache"
-    assert raycast == replace(
-        paper,
-        emission=EmissionConfig("raycast", resolution=1 / 63, insert=ScanInsertionConfig()),
-        filter=replace(paper.filter, outlier_prob=0.1),
-        training=replace(paper.training, every=4),
-    )
-    assert presets.get("manhattan").config == replace(
-        raycast, heading=HeadingConfig(1e-3), training=paper.training
+    assert manhattan.transition == TransitionConfig("learned", scale=(3.0, 3.0, 1.0))
+    assert manhattan.filter.proposal == "scan-match" and manhattan.training.every == 2
+    assert manhattan.offline.estimate == "cache" and manhattan.heading == HeadingConfig(1e-3)
+    assert raycast == replace(manhattan, heading=None)
+    paper = presets.get("paper").config
+    assert paper == replace(
+        manhattan,
+        emission=EmissionConfig("mlp", resolution=1 / 31, sigma=0.05, outlier_prob=0.0),
+        filter=FilterConfig(proposal="transition"),
+        training=TrainingConfig(every=1),
+        heading=None,
     )
     visual = presets.get("visual").config
-    assert visual.emission == EmissionConfig("image_mlp", resolution=1 / 24, margin=0.0)
+    assert visual.emission == EmissionConfig(
+        "image_mlp", resolution=1 / 24, margin=0.0, sigma=0.1, outlier_prob=0.0
+    )
     assert visual.emission.observation == "image" and paper.emission.observation == "lidar"
     assert visual.transition == TransitionConfig("kinematic", scale=(0.6, 0.6, 0.15))
-    assert visual.filter == FilterConfig(sigma=0.1)
-    assert visual.training == TrainingConfig(particles=8, chunks=16, lr=0.05)
+    assert visual.filter == FilterConfig(proposal="transition") and visual.heading is None
+    assert visual.training == TrainingConfig(particles=8, chunks=16, lr=0.05, every=1)
     assert visual.offline == OfflineConfig(rounds=2, svi_steps=400, estimate="forward")
-    ray_camera = EmissionConfig("ray_camera", resolution=1 / 63, margin=0.0)
+    ray_camera = EmissionConfig(
+        "ray_camera", resolution=1 / 63, margin=0.0, sigma=0.1, outlier_prob=0.0
+    )
     assert presets.get("visual-raycast").config == replace(visual, emission=ray_camera)
     assert presets.get("visual-manhattan").config == replace(
         visual, emission=ray_camera, heading=HeadingConfig(1e-3)
     )
     real = presets.get("real").config
-    insert = ScanInsertionConfig(gap=0.5)
     assert real.emission == EmissionConfig(
-        "raycast", resolution=0.1, margin=0.0, sigma=0.1, insert=insert
+        "raycast", resolution=0.1, margin=0.0, sigma=0.1, insert=ScanInsertionConfig(gap=0.5)
     )
-    assert real.filter == FilterConfig(weighting="tempered", sigma=0.3, outlier_prob=0.1)
-    assert real.training == TrainingConfig(chunks=8, objective="filter-sigma", every=4)
     assert real.transition.kind == "kinematic" and real.heading == HeadingConfig()
 
 
@@ -177,17 +189,17 @@ def test_default_for_picks_the_real_preset_for_real_logs_only(maze_traversal):
     log = real_log()
     assert presets.is_real_log(log) and not presets.is_real_log(maze_traversal)
     assert presets.default_for(log) == presets.get("real").for_traversal(log)
-    raycast = presets.get("raycast").config
-    assert presets.default_for(maze_traversal) == raycast
-    assert presets.default_for(None) == raycast
+    default = presets.get(presets.DEFAULT).config
+    assert presets.default_for(maze_traversal) == default
+    assert presets.default_for(None) == default
     # a log with walls, or without robot-frame odometry, is not a real log
     walled = replace(log, walls=np.array([[0.0, 0.0, 1.0, 0.0]]))
-    assert not presets.is_real_log(walled) and presets.default_for(walled) == raycast
+    assert not presets.is_real_log(walled) and presets.default_for(walled) == default
     meta = {**log.metadata, "control_model": "rotate_forward"}
     rotate = replace(log, controls=log.controls[:, :2], metadata=meta)
-    assert not presets.is_real_log(rotate) and presets.default_for(rotate) == raycast
+    assert not presets.is_real_log(rotate) and presets.default_for(rotate) == default
     # SLAM without a configuration uses the default for its traversal
-    assert SLAM(maze_traversal).cfg == raycast
+    assert SLAM(maze_traversal).cfg == default
 
 
 # ------------------------------------------------------------------------ overrides
@@ -213,10 +225,9 @@ def test_with_overrides_switches_the_heading_observation_on_and_off():
     raycast, manhattan = presets.get("raycast").config, presets.get("manhattan").config
     on = with_overrides(raycast, {"heading": {"sigma": 0.002}})
     assert on.heading == HeadingConfig(sigma=0.002, support=2)  # from the defaults
-    every = {"training": {"every": 1}}
-    assert with_overrides(raycast, {"heading": {}, **every}) == manhattan
+    assert with_overrides(raycast, {"heading": {}}) == manhattan
     assert with_overrides(manhattan, {"heading": {"support": 3}}).heading == HeadingConfig(1e-3, 3)
-    assert with_overrides(manhattan, {"heading": None, "training": {"every": 4}}) == raycast
+    assert with_overrides(manhattan, {"heading": None}) == raycast
     assert with_overrides(raycast, {"emission": {"insert": None}}).emission.insert is None
 
 
@@ -236,7 +247,7 @@ def test_unknown_fields_are_rejected_by_their_dotted_name(changes, field):
 
 
 def test_unknown_fields_list_the_known_ones():
-    with pytest.raises(ConfigError, match="FilterConfig has outlier_prob, particles, sigma"):
+    with pytest.raises(ConfigError, match="FilterConfig has lag, particles, proposal"):
         with_overrides(SLAMConfig(), {"filter": {"partcles": 5}})
     with pytest.raises(ConfigError, match="unknown fields filter.a, filter.b"):
         with_overrides(SLAMConfig(), {"filter": {"b": 1, "a": 2}})
@@ -259,17 +270,20 @@ def test_bad_particle_counts_are_rejected_by_name(value):
         ({"emission": {"sigma": -0.1}}, "emission.sigma must be a positive number"),
         ({"emission": {"margin": -1}}, "emission.margin must be a number >= 0"),
         ({"emission": {"kind": "nerf"}}, "emission.kind must be one of"),
-        ({"emission": {"kind": "mlp", "insert": {}}}, "emission.insert .* needs emission.kind "
-                                                      "'raycast', got 'mlp'"),
+        ({"emission": {"kind": "mlp", "insert": {}}}, "emission.insert .* needs a ray-cast "
+                                                      "LiDAR emission.kind .*got 'mlp'"),
+        ({"emission": {"outlier_prob": 1.0}}, r"emission.outlier_prob must be in \[0, 1\)"),
+        ({"emission": {"ray_spacing": 0}}, "emission.ray_spacing must be a positive number"),
+        ({"emission": {"insert": {"free": "low"}}}, "emission.insert.free must be a number"),
         ({"emission": {"insert": {"scale": 0}}}, "emission.insert.scale must be a positive"),
         ({"emission": {"insert": {"occupancy": "high"}}}, "emission.insert.occupancy must be"),
         ({"transition": {"scale": [1, 1]}}, r"transition.scale must be 3 positive numbers"),
         ({"transition": {"sigma": [1, 0, 1]}}, r"transition.sigma must be 3 positive numbers"),
-        ({"transition": {"scale_trusted": "x"}}, "transition.scale_trusted must be 3 positive"),
         ({"transition": {"kind": "neural"}}, "transition.kind must be one of"),
-        ({"filter": {"weighting": "predictive"}}, "filter.weighting must be one of"),
-        ({"filter": {"sigma": 0}}, "filter.sigma must be a positive number"),
-        ({"filter": {"outlier_prob": 1.0}}, r"filter.outlier_prob must be in \[0, 1\)"),
+        ({"filter": {"proposal": "predictive"}}, "filter.proposal must be one of"),
+        ({"filter": {"lag": -1}}, "filter.lag must be an integer >= 0"),
+        ({"training": {"cache_particles": 0}}, "training.cache_particles must be a positive"),
+        ({"training": {"lr_emission": 0}}, "training.lr_emission must be a positive number"),
         ({"training": {"chunk_length": 0}}, "training.chunk_length must be a positive integer"),
         ({"training": {"every": 1.5}}, "training.every must be a positive integer"),
         ({"training": {"lr": -1}}, "training.lr must be a positive number"),
@@ -299,7 +313,7 @@ def test_config_errors_are_value_errors_and_configs_are_frozen():
         cfg.filter.particles = 2
 
 
-def test_the_configuration_has_at_most_35_fields():
+def test_the_configuration_has_at_most_37_fields():
     classes = [
         cls
         for name, cls in inspect.getmembers(config_module, inspect.isclass)
@@ -307,7 +321,7 @@ def test_the_configuration_has_at_most_35_fields():
     ]
     assert SLAMConfig in classes and ScanInsertionConfig in classes and HeadingConfig in classes
     assert all(dataclasses.is_dataclass(cls) for cls in classes)
-    assert sum(len(dataclasses.fields(cls)) for cls in classes) <= 35
+    assert sum(len(dataclasses.fields(cls)) for cls in classes) <= 37
 
 
 # ------------------------------------------------------------------ presets in SLAM
@@ -335,15 +349,19 @@ def test_every_preset_builds_a_slam_run_for_its_sensor(name, maze_traversal):
     assert (slam.heading is not None) == (cfg.heading is not None)
     kind = {"learned": LearnedTransition, "kinematic": KinematicTransition}[cfg.transition.kind]
     assert isinstance(slam.model.transition, kind)
-    assert slam.pf.weighting.kind == cfg.filter.weighting
-    assert slam.pf.weighting.sigma == cfg.filter.sigma
+    assert slam.model.outlier_prob == e.outlier_prob
+    proposal = type(slam.pf.proposal).__name__
+    if cfg.filter.proposal == "scan-match":
+        assert proposal == "ScanMatchProposal"
+    else:  # the transition, conditioned on the heading factor where the model has one
+        assert proposal == ("HeadingProposal" if cfg.heading else "TransitionProposal")
+    assert slam.pf.proposal is slam.elbo.pf.proposal  # training proposes as filtering does
     assert slam.elbo.K == cfg.training.particles
 
 
-def test_raycast_preset_weighs_per_beam_and_writes_scans(maze_traversal):
+def test_raycast_preset_writes_scans_and_matches_them(maze_traversal):
     slam = SLAM(maze_traversal, presets.get("raycast").config)
-    assert slam.pf.weighting.per_beam and slam.pf.weighting.outlier_prob == 0.1
-    assert slam.elbo.pf.weighting.per_beam and slam.elbo.pf.weighting.outlier_prob == 0
+    assert type(slam.pf.proposal).__name__ == "ScanMatchProposal"
     assert isinstance(slam.inserter, ScanInserter) and not slam.inserter.inserted.any()
     assert slam.heading is None and not slam.model.learn_emission
     res = slam.run("online", progress=False)
@@ -357,7 +375,7 @@ def test_paper_preset_loads_the_shipped_emission_frozen_and_the_learned_transiti
     tr = maze_traversal
     slam = SLAM(tr, presets.get("paper").config)
     assert not slam.model.learn_emission and slam.inserter is None
-    assert not slam.pf.weighting.per_beam and slam.pf.weighting.kind == "shared"
+    assert type(slam.pf.proposal).__name__ == "TransitionProposal"
     shipped = load_emission(PRETRAINED / EMISSION_FILE, tr).state_dict()
     weights = slam.model.emission.net.state_dict()
     assert weights.keys() == shipped.keys()
@@ -366,10 +384,11 @@ def test_paper_preset_loads_the_shipped_emission_frozen_and_the_learned_transiti
     transition = slam.model.transition
     assert isinstance(transition, LearnedTransition)
     sigma = load_transition(PRETRAINED / TRANSITION_FILE).sigma
-    torch.testing.assert_close(transition.sigma, sigma * torch.tensor([3.0, 3.0, 0.2]))
+    torch.testing.assert_close(transition.sigma, sigma * torch.tensor([3.0, 3.0, 1.0]))
     # SVI learns the map only: the emission stays as shipped
     slam.run("online", progress=False)
-    assert not any(n.startswith("emission") for n in pyro.get_param_store().keys())
+    with slam.scope():
+        assert not any(n.startswith("emission") for n in pyro.get_param_store().keys())
     for k, v in slam.model.emission.net.state_dict().items():
         torch.testing.assert_close(v, shipped[k], rtol=0, atol=0)
     # asked to, SLAM learns the shipped emission too

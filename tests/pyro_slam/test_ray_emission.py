@@ -30,6 +30,7 @@ from pyro_slam.slam import (
     ScanInsertionConfig,
     SLAMConfig,
     TrainingConfig,
+    TransitionConfig,
     build_model,
     presets,
 )
@@ -39,9 +40,11 @@ from simulators.world import LidarConfig
 
 # a small online SLAM configuration of the ray-cast emission
 SMALL = SLAMConfig(
-    emission=EmissionConfig("raycast", resolution=1 / 31),
-    filter=FilterConfig(particles=64),
-    training=TrainingConfig(particles=8, chunk_length=4, chunks=4),
+    emission=EmissionConfig("raycast", resolution=1 / 31, sigma=0.1, outlier_prob=0.0),
+    transition=TransitionConfig("kinematic", scale=(1.0, 1.0, 1.0)),
+    filter=FilterConfig(particles=64, proposal="transition"),
+    training=TrainingConfig(particles=8, chunk_length=4, chunks=4, every=1),
+    heading=None,
 )
 
 
@@ -137,9 +140,6 @@ def test_marginal_emission_knows_beams_that_end_on_mapped_walls():
     assert mean[:, 0] == pytest.approx(torch.tensor([0.2, 0.15]), abs=0.02)
     assert eps[:, 0].max() < 0.11  # east: stops on the mapped wall (the model's 0.1)
     assert eps[:, 1].min() > 0.99  # west: runs out of range in unmapped cells
-    # the cloud's weighted variance: the same for both particles
-    _, shared = model.marginal_emission(belief, z, torch.log(torch.tensor([0.5, 0.5])))
-    assert shared.shape == (1, 2) and torch.allclose(shared[0], eps.mean(0), atol=1e-6)
     # under the belief the weights are the model's emission with that outlier probability
     x = torch.tensor([0.2, 0.3])
     pf = ParticleFilter(model)
@@ -206,8 +206,8 @@ def test_scan_insertion_writes_scan_hits_as_walls_once(small_traversal):
     are written into q(M)'s mean from the given pose; the map then reproduces that scan at that
     pose, and a grid point is written only the first time."""
     tr = small_traversal
-    insert = ScanInsertionConfig(occupancy=2.0, scale=0.3)
-    slam = SLAM(tr, SLAMConfig(emission=EmissionConfig("raycast", 1 / 63, insert=insert)))
+    insert = ScanInsertionConfig(occupancy=2.0, scale=0.3, free=None)
+    slam = SLAM(tr, replace(SMALL, emission=EmissionConfig("raycast", 1 / 63, insert=insert)))
     inserter = slam.inserter
     assert isinstance(inserter, ScanInserter) and not inserter.inserted.any()
     z = torch.as_tensor(tr.poses[0], dtype=slam.obs.dtype)  # [3] the true start pose
@@ -229,23 +229,56 @@ def test_scan_insertion_writes_scan_hits_as_walls_once(small_traversal):
     inserter.inserted.zero_()
     inserter.insert(slam.obs[0], torch.zeros_like(valid), z)
     assert not inserter.inserted.any()
-    with pytest.raises(ConfigError, match="emission.insert .* needs emission.kind 'raycast'"):
+    with pytest.raises(ConfigError, match="emission.insert .* needs a ray-cast LiDAR emission"):
         EmissionConfig("mlp", insert=ScanInsertionConfig())  # the MLP's map has no occupancy
     with pytest.raises(ConfigError, match="emission.insert.scale"):
         ScanInsertionConfig(scale=0.0)
+
+
+def test_scan_insertion_writes_known_free_space_a_hit_may_still_overwrite(small_traversal):
+    """With ``free``, the grid points a scan's beams cross short of their returns get the free
+    mean and the insertion scale (known free space, so a planner may go there), never a wall
+    point; a later hit still writes a wall over a free point."""
+    tr = small_traversal
+    insert = ScanInsertionConfig(occupancy=2.0, scale=0.3, free=-1.0)
+    slam = SLAM(tr, replace(SMALL, emission=EmissionConfig("raycast", 1 / 63, insert=insert)))
+    inserter = slam.inserter
+    z = torch.as_tensor(tr.poses[0], dtype=slam.obs.dtype)
+    valid = torch.ones_like(slam.obs[0], dtype=torch.bool)
+    inserter.insert(slam.obs[0], valid, z)
+    b = slam.map_belief()
+    walls, free = inserter.inserted, inserter.freed
+    assert free.sum() > 3 * walls.sum() and not (walls & free).any()
+    assert torch.allclose(b.loc[free][:, 0], torch.tensor(-1.0))
+    assert torch.allclose(b.scale[free][:, 0], torch.tensor(0.3))
+    # the sensor's own cell is free; the cells beyond a wall are not written
+    i, j = inserter.free_cells(slam.obs[0], valid, z)
+    assert bool(free[i, j].all())
+    # a hit where an earlier scan saw free space writes the wall there: beam 0 of a scan from
+    # a pose a tenth of the range short of a free grid point, looking at it
+    g, em = slam.model.grid, slam.model.emission
+    k, m = map(int, torch.nonzero(free)[len(torch.nonzero(free)) // 2])
+    spacing = g.size[0] / (g.cells[0] - 1)
+    point = torch.tensor([g.origin[0] + k * spacing, g.origin[1] + m * spacing])
+    d = 0.1 * em.max_range
+    z2 = torch.cat([point - torch.tensor([d, 0.0]), -em.beam_angles[:1]])  # beam 0 along +x
+    x = torch.full_like(slam.obs[0], em.max_range)  # every other beam: no return
+    x[0] = d
+    inserter.insert(x, valid, z2)
+    assert bool(inserter.inserted[k, m]) and float(slam.map_belief().loc[k, m, 0]) == 2.0
 
 
 def test_online_slam_inserts_each_scan_from_its_steps_estimate(small_traversal):
     """In the online sweep, scan ``t`` is written from the pose estimated at step ``t``: the
     written grid points are those of every scan placed at its step's estimate."""
     tr = small_traversal
-    cfg = SLAMConfig(
+    cfg = replace(
+        SMALL,
         emission=EmissionConfig("raycast", resolution=1 / 63, insert=ScanInsertionConfig()),
-        filter=FilterConfig(particles=64),
-        training=TrainingConfig(particles=8),
     )
     slam = SLAM(tr, cfg)
-    est = torch.as_tensor(slam.run("online", progress=False)["mean"], dtype=slam.obs.dtype)
+    res = slam.run("online", progress=False)
+    est = torch.as_tensor(res["filtered_mean"], dtype=slam.obs.dtype)  # the step's own estimate
     expect = torch.zeros_like(slam.inserter.inserted)
     valid = torch.ones_like(slam.obs[0], dtype=torch.bool)
     for t in range(est.shape[0]):
