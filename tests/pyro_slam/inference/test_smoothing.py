@@ -7,9 +7,9 @@ from __future__ import annotations
 import math
 
 import torch
+from test_filtering import S0, LinearGaussian, Q, kalman, simulate
 
 from pyro_slam.inference import ParticleFilter, ParticleHistory, Particles
-from test_filtering import Q, S0, LinearGaussian, kalman, simulate
 
 
 def rts(h, x, u, z0):
@@ -42,7 +42,9 @@ def filter_history(K: int, seed: int):
     pf = ParticleFilter(model, generator=g)
     T = x.shape[0]
     hist = ParticleHistory(T, K)
-    p, _ = pf.init(z0 + model.init_scale * torch.randn(K, 3, generator=g, dtype=torch.float64), h, x[0])
+    p, _ = pf.init(
+        z0 + model.init_scale * torch.randn(K, 3, generator=g, dtype=torch.float64), h, x[0]
+    )
     hist.record(0, p, fresh=True)
     for t in range(1, T):
         p, _ = pf.step(p, h, x[t], u[t - 1], step=t)
