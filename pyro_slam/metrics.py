@@ -171,9 +171,17 @@ def write_trajectory_tum(path, poses: np.ndarray, stamps: np.ndarray | None = No
     stamps = np.arange(len(p), dtype=np.float64) if stamps is None else np.asarray(stamps)
     h = p[:, 2] / 2
     rows = np.column_stack(
-        [stamps, p[:, 0], p[:, 1], np.zeros(len(p)), np.zeros(len(p)), np.zeros(len(p)),
-         np.sin(h), np.cos(h)]
-    )  # fmt: skip
+        [
+            stamps,
+            p[:, 0],
+            p[:, 1],
+            np.zeros(len(p)),
+            np.zeros(len(p)),
+            np.zeros(len(p)),
+            np.sin(h),
+            np.cos(h),
+        ]
+    )
     atomic_write(Path(path), lambda f: np.savetxt(f, rows, fmt="%.9f"))
 
 

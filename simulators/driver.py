@@ -131,8 +131,9 @@ class TourDriver:
         tol: a point counts as reached within this distance (cell centres: 2 * tol).
     """
 
-    def __init__(self, maze: Maze, points, speed: float = 0.05, max_rotation: float = 0.3,
-                 tol: float = 0.005):  # fmt: skip
+    def __init__(
+        self, maze: Maze, points, speed: float = 0.05, max_rotation: float = 0.3, tol: float = 0.005
+    ):
         self.maze = maze
         self.todo = [np.asarray(p, dtype=np.float64) for p in np.asarray(points).reshape(-1, 2)]
         self.step_len = speed * maze.corridor_width

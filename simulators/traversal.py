@@ -88,8 +88,18 @@ def simulate_traversal(
         frames = Camera(maze.walls, maze.corridor_width, world.distractor_segments, camera).render(
             poses
         )
-    metadata = _metadata(maze, world, agent, seed, noise_seed, lidar, camera if images else None,
-                         driver, distractors, toured)  # fmt: skip
+    metadata = _metadata(
+        maze,
+        world,
+        agent,
+        seed,
+        noise_seed,
+        lidar,
+        camera if images else None,
+        driver,
+        distractors,
+        toured,
+    )
     walls = maze.walls
     if rotation:
         walls, poses = _rotate(walls, poses, rotation, maze.side / 2)

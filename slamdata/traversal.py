@@ -448,8 +448,11 @@ def _check_sizes(src: str, archive: zipfile.ZipFile) -> None:
             continue
         with archive.open(info) as fh:
             version = np.lib.format.read_magic(fh)
-            read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                    else np.lib.format.read_array_header_2_0)  # fmt: skip
+            read = (
+                np.lib.format.read_array_header_1_0
+                if version == (1, 0)
+                else np.lib.format.read_array_header_2_0
+            )
             shape, _, dtype = read(fh, max_header_size=10000)
         declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
         if declared > info.file_size:
@@ -480,8 +483,14 @@ def load(path: str | os.PathLike) -> Traversal:
     # corrupt members surface as zlib.error (bad deflate stream), NotImplementedError (bit
     # flips in a zip header's compression method / flags) or RuntimeError (a flipped
     # "encrypted" flag: zipfile asks for a password), not only as BadZipFile
-    unreadable = (zipfile.BadZipFile, zlib.error, NotImplementedError, OSError, EOFError,
-                  RuntimeError)  # fmt: skip
+    unreadable = (
+        zipfile.BadZipFile,
+        zlib.error,
+        NotImplementedError,
+        OSError,
+        EOFError,
+        RuntimeError,
+    )
     data = None
     try:
         f = np.load(path, allow_pickle=False)

@@ -200,25 +200,56 @@ def option_cases() -> list[Case]:
     s = ["slam", "good.npz", "--out", "o"]
     sim = ["simulate", "--maze", "simple-small", "--out", "t.npz"]
     cases = []
-    for opt, bad in [("--steps", "-1"), ("--steps", "abc"), ("--steps", "1.5"), ("--seed", "-3"),
-                     ("--seed", "x"), ("--odometry-noise", "-1"), ("--odometry-noise", "0"),
-                     ("--odometry-noise", "nan"), ("--odometry-noise", "inf"), ("--mode", "both"),
-                     ("--preset", "nope")]:  # fmt: skip
+    for opt, bad in [
+        ("--steps", "-1"),
+        ("--steps", "abc"),
+        ("--steps", "1.5"),
+        ("--seed", "-3"),
+        ("--seed", "x"),
+        ("--odometry-noise", "-1"),
+        ("--odometry-noise", "0"),
+        ("--odometry-noise", "nan"),
+        ("--odometry-noise", "inf"),
+        ("--mode", "both"),
+        ("--preset", "nope"),
+    ]:
         cases.append(Case(f"slam {opt} {bad}", [*s, opt, bad], opt))
-    for opt, bad in [("--steps", "0"), ("--steps", "-5"), ("--steps", "1e9x"), ("--seed", "-1"),
-                     ("--distractors", "-2"), ("--maze", "huge")]:  # fmt: skip
+    for opt, bad in [
+        ("--steps", "0"),
+        ("--steps", "-5"),
+        ("--steps", "1e9x"),
+        ("--seed", "-1"),
+        ("--distractors", "-2"),
+        ("--maze", "huge"),
+    ]:
         cases.append(Case(f"simulate {opt} {bad}", [*sim, opt, bad], opt))
     pre = ["pretrain", "--out", "p"]
-    for opt, bad in [("--emission-steps", "-1"), ("--emission-steps", "0"), ("--steps", "-4"),
-                     ("--transition-epochs", "0"), ("--seed", "-1")]:  # fmt: skip
+    for opt, bad in [
+        ("--emission-steps", "-1"),
+        ("--emission-steps", "0"),
+        ("--steps", "-4"),
+        ("--transition-epochs", "0"),
+        ("--seed", "-1"),
+    ]:
         cases.append(Case(f"pretrain {opt} {bad}", [*pre, opt, bad], opt))
-    for opt, bad in [("--steps", "0"), ("--seed", "-1"), ("--mode", "sideways"),
-                     ("--preset", "best")]:  # fmt: skip
+    for opt, bad in [
+        ("--steps", "0"),
+        ("--seed", "-1"),
+        ("--mode", "sideways"),
+        ("--preset", "best"),
+    ]:
         cases.append(Case(f"demo {opt} {bad}", ["demo", "--out", "d", opt, bad], opt))
     nav = ["navigate", "--out", "n.png"]
-    for opt, bad in [("--max-expansions", "0"), ("--fit-steps", "-1"), ("--n-world", "5"),
-                     ("--maze-seed", "-1"), ("--traversal-steps", "0"), ("--inverse-steps", "0"),
-                     ("--planner", "oracle"), ("--map", "none")]:  # fmt: skip
+    for opt, bad in [
+        ("--max-expansions", "0"),
+        ("--fit-steps", "-1"),
+        ("--n-world", "5"),
+        ("--maze-seed", "-1"),
+        ("--traversal-steps", "0"),
+        ("--inverse-steps", "0"),
+        ("--planner", "oracle"),
+        ("--map", "none"),
+    ]:
         cases.append(Case(f"navigate {opt} {bad}", [*nav, opt, bad], opt))
     cases.append(Case("navigate --start nan", [*nav, "--start", "nan", "0", "0"], "--start"))
     cases.append(Case("navigate --goal inf", [*nav, "--goal", "inf", "0"], "--goal"))
@@ -231,32 +262,63 @@ def config_cases(shared) -> list[Case]:
     """``--config`` JSON: syntax, unknown fields, wrong types, out-of-range values, and values
     that would not fit in memory, each naming the field."""
     bad = [
-        ("filter", "particles", -5), ("filter", "particles", "abc"), ("filter", "particles", None),
-        ("filter", "particles", 2.5), ("filter", "particles", 0), ("filter", "particles", True),
-        ("filter", "particles", 10**9), ("filter", "sigma", 0), ("filter", "sigma", -1),
-        ("filter", "sigma", "x"), ("filter", "outlier_prob", 1), ("filter", "outlier_prob", -0.1),
-        ("filter", "weighting", "predictive"), ("filter", "weighting", 3),
-        ("emission", "resolution", 0), ("emission", "resolution", -0.1),
-        ("emission", "resolution", 1e-5), ("emission", "kind", "laser"),
-        ("emission", "margin", -1), ("emission", "sigma", 0), ("emission", "sigma", None),
-        ("emission", "insert", {"gap": 0}), ("emission", "insert", {"scale": -1}),
+        ("filter", "particles", -5),
+        ("filter", "particles", "abc"),
+        ("filter", "particles", None),
+        ("filter", "particles", 2.5),
+        ("filter", "particles", 0),
+        ("filter", "particles", True),
+        ("filter", "particles", 10**9),
+        ("filter", "sigma", 0),
+        ("filter", "sigma", -1),
+        ("filter", "sigma", "x"),
+        ("filter", "outlier_prob", 1),
+        ("filter", "outlier_prob", -0.1),
+        ("filter", "weighting", "predictive"),
+        ("filter", "weighting", 3),
+        ("emission", "resolution", 0),
+        ("emission", "resolution", -0.1),
+        ("emission", "resolution", 1e-5),
+        ("emission", "kind", "laser"),
+        ("emission", "margin", -1),
+        ("emission", "sigma", 0),
+        ("emission", "sigma", None),
+        ("emission", "insert", {"gap": 0}),
+        ("emission", "insert", {"scale": -1}),
         ("emission", "insert", {"occupancy": "high"}),
-        ("transition", "sigma", [-1, 0, 0]), ("transition", "sigma", [1, 1]),
-        ("transition", "scale", [0, 1, 1]), ("transition", "scale", "big"),
-        ("transition", "scale_trusted", [1, 1, None]), ("transition", "kind", "neural"),
-        ("training", "particles", 0), ("training", "chunks", -1), ("training", "chunk_length", 0),
-        ("training", "lr", 0), ("training", "lr", -0.02), ("training", "every", 0),
-        ("training", "objective", "tempered"), ("training", "particles", 10**6),
-        ("offline", "rounds", -1), ("offline", "svi_steps", 2.5), ("offline", "estimate", "both"),
-        ("heading", "sigma", 0), ("heading", "support", 1), ("heading", "support", "many"),
-    ]  # fmt: skip
+        ("transition", "sigma", [-1, 0, 0]),
+        ("transition", "sigma", [1, 1]),
+        ("transition", "scale", [0, 1, 1]),
+        ("transition", "scale", "big"),
+        ("transition", "scale_trusted", [1, 1, None]),
+        ("transition", "kind", "neural"),
+        ("training", "particles", 0),
+        ("training", "chunks", -1),
+        ("training", "chunk_length", 0),
+        ("training", "lr", 0),
+        ("training", "lr", -0.02),
+        ("training", "every", 0),
+        ("training", "objective", "tempered"),
+        ("training", "particles", 10**6),
+        ("offline", "rounds", -1),
+        ("offline", "svi_steps", 2.5),
+        ("offline", "estimate", "both"),
+        ("heading", "sigma", 0),
+        ("heading", "support", 1),
+        ("heading", "support", "many"),
+    ]
     cases = []
     s = ["slam", str(shared["good"]), "--out", "o"]
     for comp, name, value in bad:
         cfg = json.dumps({comp: {name: value}})
         cases.append(Case(f"config {comp}.{name}={value!r}", [*s, "--config", cfg], f"{comp}."))
-    cases.append(Case("config mlp with insertion", [*s, "--config", json.dumps(
-        {"emission": {"kind": "mlp", "insert": {}}})], "emission.insert"))  # fmt: skip
+    cases.append(
+        Case(
+            "config mlp with insertion",
+            [*s, "--config", json.dumps({"emission": {"kind": "mlp", "insert": {}}})],
+            "emission.insert",
+        )
+    )
     for name, text, expect in [
         ("config unknown top field", '{"nope": 1}', "nope"),
         ("config unknown nested field", '{"filter": {"particle": 3}}', "filter.particle"),
@@ -315,9 +377,15 @@ def data_cases(shared) -> list[Case]:
         "controls nan": lambda a: {**a, "controls": a["controls"] * np.nan},
         "format version from the future": lambda a: {**a, "format_version": np.array(99)},
     }
-    cases = [Case(f"data {k}", ["slam", k.replace(" ", "_") + ".npz", "--out", "o"],
-                  k.replace(" ", "_") + ".npz", _npz(shared, k.replace(" ", "_") + ".npz", f))
-             for k, f in changes.items()]  # fmt: skip
+    cases = [
+        Case(
+            f"data {k}",
+            ["slam", k.replace(" ", "_") + ".npz", "--out", "o"],
+            k.replace(" ", "_") + ".npz",
+            _npz(shared, k.replace(" ", "_") + ".npz", f),
+        )
+        for k, f in changes.items()
+    ]
     raw = [
         ("empty file", _bytes("d.npz", b"")),
         ("not a zip", _bytes("d.npz", b"not a zip file at all")),
@@ -333,11 +401,11 @@ def data_cases(shared) -> list[Case]:
         (
             "object array (pickle)",
             lambda d: np.savez(d / "d.npz", observations=np.array([Evil()], dtype=object)),
-        ),  # fmt: skip
+        ),
         (
             "forged array header",
             lambda d: (d / "d.npz").write_bytes(_forged_header(dict(np.load(shared["good"])))),
-        ),  # fmt: skip
+        ),
         ("zip bomb", lambda d: (d / "d.npz").write_bytes(_zip_bomb(dict(np.load(shared["good"]))))),
         ("a directory", lambda d: (d / "d.npz").mkdir()),
         ("missing file", None),
@@ -369,12 +437,22 @@ def log_cases(shared) -> list[Case]:
         "odom wrong count": "\n".join(ok) + "\nODOM 1 2 3\n",
         "odom inf": "\n".join(ok) + "\nODOM 1 inf 3 0 0 0 9 host 9\n",
     }
-    cases = [Case(f"log {k}", ["slam", "l.clf", "--out", "o"], "l.clf", _text("l.clf", v))
-             for k, v in text.items()]  # fmt: skip
-    cases.append(Case("log lenient on an npz", ["slam", str(shared["good"]), "--out", "o",
-                                                "--lenient"], "--lenient"))  # fmt: skip
-    cases.append(Case("log unknown type", ["slam", "l.txt", "--out", "o"], "l.txt",
-                      _text("l.txt", "hello\n")))  # fmt: skip
+    cases = [
+        Case(f"log {k}", ["slam", "l.clf", "--out", "o"], "l.clf", _text("l.clf", v))
+        for k, v in text.items()
+    ]
+    cases.append(
+        Case(
+            "log lenient on an npz",
+            ["slam", str(shared["good"]), "--out", "o", "--lenient"],
+            "--lenient",
+        )
+    )
+    cases.append(
+        Case(
+            "log unknown type", ["slam", "l.txt", "--out", "o"], "l.txt", _text("l.txt", "hello\n")
+        )
+    )
     return cases
 
 
@@ -407,19 +485,19 @@ def resume_cases(shared) -> list[Case]:
             r,
             ck,
             lambda d: (d / "run" / ck).mkdir(parents=True),
-        ),  # fmt: skip
+        ),
         Case(
             "resume another traversal",
             ["slam", "other.npz", "--out", "run", "--config", TINY_JSON, "--resume"],
             "data set",
             lambda d: (_copy_run(shared)(d), _sim(d, 5)),
-        ),  # fmt: skip
+        ),
         Case(
             "resume a shorter traversal",
             [*r[:2], "--steps", "10", *r[2:]],
             "data set",
             _copy_run(shared),
-        ),  # fmt: skip
+        ),
         Case(
             "resume other config",
             ["slam", good, "--out", "run", "--config", '{"filter": {"particles": 8}}', "--resume"],
@@ -435,7 +513,7 @@ def resume_cases(shared) -> list[Case]:
             ["demo", "--out", "run", "--steps", "20"],
             "not empty",
             _copy_run(shared),
-        ),  # fmt: skip
+        ),
     ]
     return cases
 
@@ -468,8 +546,9 @@ def network_cases(shared) -> list[Case]:
         cases.append(
             Case(f"emission {n}", [*s, "--emission", "n.pt"], "n.pt", _bytes("n.pt", data))
         )
-        cases.append(Case(f"transition {n}", [*s, "--transition", "n.pt"], "n.pt",
-                          _bytes("n.pt", data)))  # fmt: skip
+        cases.append(
+            Case(f"transition {n}", [*s, "--transition", "n.pt"], "n.pt", _bytes("n.pt", data))
+        )
     cases += [
         Case("emission is the transition file", [*s, "--emission", str(tr_file)], "emission"),
         Case("transition is the emission file", [*s, "--transition", str(em_file)], "transition"),
@@ -478,7 +557,7 @@ def network_cases(shared) -> list[Case]:
             "emission for the ray-cast preset",
             ["slam", str(shared["good"]), "--out", "o", "--emission", str(em_file)],
             "--emission",
-        ),  # fmt: skip
+        ),
         Case(
             "emission for other beams",
             [*s, "--emission", "wide.pt"],
@@ -486,7 +565,7 @@ def network_cases(shared) -> list[Case]:
             lambda d: (d / "wide.pt").write_bytes(
                 _torch_bytes({"state_dict": {}, "meta": {"n_world": 64, "map_dim": 10}})
             ),
-        ),  # fmt: skip
+        ),
     ]
     return cases
 
@@ -499,7 +578,7 @@ def output_cases(shared) -> list[Case]:
         Case("slam --out is a file", ["slam", good, "--out", "f"], "--out", _text("f", "keep")),
         Case(
             "slam --out under a file", ["slam", good, "--out", "f/sub"], "--out", _text("f", "keep")
-        ),  # fmt: skip
+        ),
         Case(
             "slam --out not empty",
             ["slam", good, "--out", "o"],
@@ -511,40 +590,40 @@ def output_cases(shared) -> list[Case]:
             [*sim, "--out", "keep.npz", "--plot", "f/p.png"],
             "--plot",
             lambda d: (_text("f", "x")(d), _copy_good(shared, d)),
-        ),  # fmt: skip
+        ),
         Case(
             "simulate --plot is a folder",
             [*sim, "--out", "keep.npz", "--plot", "pd"],
             "--plot",
             lambda d: ((d / "pd").mkdir(), _copy_good(shared, d)),
-        ),  # fmt: skip
+        ),
         Case(
             "simulate --out is a folder",
             [*sim, "--out", "od"],
             "--out",
             lambda d: (d / "od").mkdir(),
-        ),  # fmt: skip
+        ),
         Case(
             "simulate --out under a file", [*sim, "--out", "f/t.npz"], "--out", _text("f", "keep")
-        ),  # fmt: skip
+        ),
         Case(
             "navigate --out under a file",
             ["navigate", "--out", "f/n.png", "--traversal-steps", "10"],
             "--out",
             _text("f", "keep"),
-        ),  # fmt: skip
+        ),
         Case(
             "pretrain --out is a file",
             ["pretrain", "--out", "f", "--steps", "10"],
             "--out",
             _text("f", "keep"),
-        ),  # fmt: skip
+        ),
         Case(
             "demo --out is a file",
             ["demo", "--out", "f", "--steps", "10"],
             "--out",
             _text("f", "keep"),
-        ),  # fmt: skip
+        ),
     ]
 
 
@@ -785,15 +864,26 @@ def overwrite_cases(shared) -> list[Case]:
 
 
 def corpus(shared) -> list[Case]:
-    return (option_cases() + config_cases(shared) + data_cases(shared) + log_cases(shared)
-            + resume_cases(shared) + network_cases(shared) + output_cases(shared)
-            + silent_cases(shared) + overwrite_cases(shared))  # fmt: skip
+    return (
+        option_cases()
+        + config_cases(shared)
+        + data_cases(shared)
+        + log_cases(shared)
+        + resume_cases(shared)
+        + network_cases(shared)
+        + output_cases(shared)
+        + silent_cases(shared)
+        + overwrite_cases(shared)
+    )
 
 
 # ------------------------------------------------------------------------------ running
 def _snapshot(d: Path) -> dict[str, str]:
-    return {str(p.relative_to(d)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(d.rglob("*")) if p.is_file()}  # fmt: skip
+    return {
+        str(p.relative_to(d)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(d.rglob("*"))
+        if p.is_file()
+    }
 
 
 def run_case(case: Case, folder: Path) -> dict:
@@ -840,8 +930,16 @@ def main() -> int:
         root = Path(tmp)
         shared = make_shared(root / "shared")
         results = [run_case(c, root / f"case{i}") for i, c in enumerate(corpus(shared))]
-    bad = [r for r in results if r["rc"] != 2 or r["traceback"] or not r["one_line"]
-           or not r["names_it"] or r["lost"] or r["executed"]]  # fmt: skip
+    bad = [
+        r
+        for r in results
+        if r["rc"] != 2
+        or r["traceback"]
+        or not r["one_line"]
+        or not r["names_it"]
+        or r["lost"]
+        or r["executed"]
+    ]
     counts = {
         "cases": len(results),
         "tracebacks": sum(bool(r["traceback"]) for r in results),

@@ -360,9 +360,11 @@ def _check_time_order(source: str, scans: list[Scan]) -> None:
     if back.size and back.max() > MAX_TIME_STEP_BACK:
         i = int(np.argmax(back > MAX_TIME_STEP_BACK))
         raise ParseError(
-            source, scans[i].line, f"timestamp {times[i]:.6f} is {back[i]:.3f} s earlier than an "
-            "earlier scan's: the scans are not in time order"
-        )  # fmt: skip
+            source,
+            scans[i].line,
+            f"timestamp {times[i]:.6f} is {back[i]:.3f} s earlier than an "
+            "earlier scan's: the scans are not in time order",
+        )
 
 
 def carmen_to_traversal(

@@ -35,9 +35,10 @@ def read_relations(path: str | os.PathLike) -> np.ndarray:
                 continue
             if len(tokens) != len(COLUMNS):
                 raise ParseError(
-                    path, lineno, f"expected {len(COLUMNS)} fields ({' '.join(COLUMNS)}), "
-                    f"got {len(tokens)}"
-                )  # fmt: skip
+                    path,
+                    lineno,
+                    f"expected {len(COLUMNS)} fields ({' '.join(COLUMNS)}), got {len(tokens)}",
+                )
             try:
                 row = [parse_float(t) for t in tokens]
             except ValueError as e:

@@ -306,8 +306,12 @@ class GroundTruthEnv(_Rollouts):
             xy = np.stack(np.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
             xy = xy[[point_segment_distance(p, self.maze.walls).min() > 1e-3 for p in xy]]
             ang = 2 * np.pi * np.arange(n_headings) / n_headings
-            rays = raycast(self.maze.walls, xy, np.broadcast_to(ang, (len(xy), n_headings)),
-                           self.lidar.max_range)  # fmt: skip
+            rays = raycast(
+                self.maze.walls,
+                xy,
+                np.broadcast_to(ang, (len(xy), n_headings)),
+                self.lidar.max_range,
+            )
             rays = torch.as_tensor(rays)
             B = self.lidar.n_beams
             ranked = torch.sort(rays.reshape(len(xy), B, n_headings // B), dim=1).values
@@ -427,13 +431,22 @@ def learned_env(
     else:
         if traversal is None:
             traversal = simulate_traversal(maze, steps=steps, seed=seed, tour=tour)
-        model = _mapping_model(traversal, poses, emission_steps, n_world, seed, progress,
-                               prior, noise)  # fmt: skip
-        loc, scale = fit_map(traversal, model, poses, fit_steps, guide=guide, seed=seed,
-                             progress=progress)  # fmt: skip
+        model = _mapping_model(
+            traversal, poses, emission_steps, n_world, seed, progress, prior, noise
+        )
+        loc, scale = fit_map(
+            traversal, model, poses, fit_steps, guide=guide, seed=seed, progress=progress
+        )
     hits = ScanHits(traversal, poses) if hit_margin > 0 else None
-    env = LearnedEnv(model, loc, bounds=maze_bounds(maze), scale=scale, max_std=max_std,
-                     hits=hits, hit_margin=hit_margin)  # fmt: skip
+    env = LearnedEnv(
+        model,
+        loc,
+        bounds=maze_bounds(maze),
+        scale=scale,
+        max_std=max_std,
+        hits=hits,
+        hit_margin=hit_margin,
+    )
     return env, (loc, scale), traversal
 
 
@@ -443,8 +456,9 @@ def _mapping_model(traversal, poses, emission_steps, n_world, seed, progress, pr
     if emission_steps > 0:
         fit_on = traversal if poses is None else replace(traversal, poses=np.asarray(poses))
         em = EmissionMLP(LIDAR_MAP_DIM, n_world, scale=traversal.max_range)
-        em, _ = pretrain_emission([fit_on], MAPPING, emission=em, steps=emission_steps,
-                                  seed=seed, progress=progress)  # fmt: skip
+        em, _ = pretrain_emission(
+            [fit_on], MAPPING, emission=em, steps=emission_steps, seed=seed, progress=progress
+        )
     else:
         em = load_emission(PRETRAINED / EMISSION_FILE, traversal)
     return build_model(traversal, MAPPING, emission=em, prior=prior, noise=noise)[0]

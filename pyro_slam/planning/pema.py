@@ -29,13 +29,24 @@ log = logging.getLogger(__name__)
 class PEMAPolicy:
     """LSTM policy with flat weights ``theta [n]`` (or ``[P, n]`` for ``P`` policies at once)."""
 
-    def __init__(self, n_beams: int = 20, hidden: int = 256, max_range: float = 0.53,
-                 step_length: float = 0.01, max_turn: float = math.pi / 4):  # fmt: skip
+    def __init__(
+        self,
+        n_beams: int = 20,
+        hidden: int = 256,
+        max_range: float = 0.53,
+        step_length: float = 0.01,
+        max_turn: float = math.pi / 4,
+    ):
         self.B, self.H = n_beams, hidden
         self.max_range, self.step_length, self.max_turn = max_range, step_length, max_turn
         B, H = n_beams, hidden
-        self.shapes = {"w_ih": (4 * H, B), "w_hh": (4 * H, H), "b": (4 * H,), "w_out": (1, H),
-                       "b_out": (1,)}  # fmt: skip
+        self.shapes = {
+            "w_ih": (4 * H, B),
+            "w_hh": (4 * H, H),
+            "b": (4 * H,),
+            "w_out": (1, H),
+            "b_out": (1,),
+        }
         self.size = sum(math.prod(s) for s in self.shapes.values())
         self.theta = self.init_params(torch.Generator().manual_seed(0))
 

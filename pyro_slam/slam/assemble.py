@@ -84,8 +84,9 @@ def heading_data(run) -> ManhattanHeading | None:
         return None
     image = cfg.emission.observation == "image"
     drift = float(run.model.transition.sigma[2])
-    return ManhattanHeading(run.tr, run.obs, run.mask, cfg.heading, image, drift,
-                            cfg.emission.outlier_prob)  # fmt: skip
+    return ManhattanHeading(
+        run.tr, run.obs, run.mask, cfg.heading, image, drift, cfg.emission.outlier_prob
+    )
 
 
 def inserter(run) -> ScanInserter | None:

@@ -44,8 +44,9 @@ MAP_CELL = 0.05  # the finest cell of the exported occupancy grid (metres on rea
 MAP_BYTES_PER_CELL = 32  # the export's working set per cell (log odds, probabilities, image)
 
 
-def prepare_out_dir(out: Path, resume: bool = False, overwrite: bool = False,
-                    keep: tuple[str, ...] = ()) -> None:  # fmt: skip
+def prepare_out_dir(
+    out: Path, resume: bool = False, overwrite: bool = False, keep: tuple[str, ...] = ()
+) -> None:
     """Make ``out`` ready for a run, before any work: a writable folder that holds no other
     run's results. A non-empty folder is refused unless ``resume`` (continue the run in it) or
     ``overwrite`` (remove its run outputs first; other files stay); ``keep``: files this
@@ -108,9 +109,16 @@ def _write_trajectories(out: Path, traversal: Traversal, res: dict) -> None:
         paths["true"] = traversal.poses
     for name, poses in paths.items():
         metrics.write_trajectory_tum(out / f"trajectory_{name}.tum", poses, traversal.timestamps)
-    arrays = {k: res[v] for k, v in (("pose_mean", "mean"), ("pose_std", "std"),
-              ("map_loc", "map_loc"), ("map_scale", "map_scale"),
-              ("path_integration", "path_integration"))}  # fmt: skip
+    arrays = {
+        k: res[v]
+        for k, v in (
+            ("pose_mean", "mean"),
+            ("pose_std", "std"),
+            ("map_loc", "map_loc"),
+            ("map_scale", "map_scale"),
+            ("path_integration", "path_integration"),
+        )
+    }
     atomic_write(out / "posterior.npz", lambda f: np.savez_compressed(f, **arrays))
 
 
@@ -170,9 +178,13 @@ def _plots(out: Path, slam: SLAM, traversal: Traversal, res: dict) -> None:
     plotting.plot_slam(traversal, res, slam.model.grid, out / "slam.png")
     if not traversal.walls.shape[0]:  # real log: map image from the reprojected scans
         plotting.plot_scan_map(
-            slam.tr, res["mean"], out / "map.png", slam.model.grid, res["map_loc"],
+            slam.tr,
+            res["mean"],
+            out / "map.png",
+            slam.model.grid,
+            res["map_loc"],
             others={"path integration": res["path_integration"]},
-        )  # fmt: skip
+        )
 
 
 RUN_ARRAYS = ("pose_mean", "map_loc", "map_scale")  # what read_run takes from posterior.npz

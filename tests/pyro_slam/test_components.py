@@ -33,7 +33,7 @@ def toy_kind():
     kind = register_emission(
         EmissionKind(
             "wall-ahead", lambda tr, cfg, reach: WallAhead(tr.beam_angles, reach), learned=False
-        )  # fmt: skip
+        )
     )
     yield kind
     EMISSIONS.pop("wall-ahead")

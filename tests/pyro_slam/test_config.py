@@ -50,8 +50,15 @@ from pyro_slam.slam.insertion import ScanInserter
 from pyro_slam.slam.presets import odometry_sigma
 from simulators import simulate_traversal
 
-PRESET_NAMES = ["paper", "raycast", "manhattan", "visual", "visual-raycast", "visual-manhattan",
-                "real"]  # fmt: skip
+PRESET_NAMES = [
+    "paper",
+    "raycast",
+    "manhattan",
+    "visual",
+    "visual-raycast",
+    "visual-manhattan",
+    "real",
+]
 NO_RETURN = 81.91
 
 
@@ -61,8 +68,9 @@ def real_log(T: int = 20, B: int = 361, seed: int = 0) -> Traversal:
     rng = np.random.default_rng(seed)
     obs = rng.uniform(0.5, 8.0, (T, B))
     obs[:, ::17] = NO_RETURN
-    controls = np.column_stack([rng.uniform(0.1, 0.3, T - 1), np.zeros(T - 1),
-                                rng.normal(0.0, 0.05, T - 1)])  # fmt: skip
+    controls = np.column_stack(
+        [rng.uniform(0.1, 0.3, T - 1), np.zeros(T - 1), rng.normal(0.0, 0.05, T - 1)]
+    )
     return Traversal(
         observations=obs,
         controls=controls,
@@ -207,9 +215,13 @@ def test_with_overrides_applies_nested_changes_and_keeps_the_rest():
     base = presets.get("raycast").config
     cfg = with_overrides(
         base,
-        {"filter": {"particles": 512}, "emission": {"insert": {"gap": 0.1}}, "beam_stride": 2,
-         "transition": {"scale": [1, 2, 3]}},
-    )  # fmt: skip
+        {
+            "filter": {"particles": 512},
+            "emission": {"insert": {"gap": 0.1}},
+            "beam_stride": 2,
+            "transition": {"scale": [1, 2, 3]},
+        },
+    )
     assert cfg.filter == replace(base.filter, particles=512)
     assert cfg.emission.insert == ScanInsertionConfig(gap=0.1)
     assert cfg.emission.kind == "raycast" and cfg.emission.resolution == base.emission.resolution
@@ -270,8 +282,10 @@ def test_bad_particle_counts_are_rejected_by_name(value):
         ({"emission": {"sigma": -0.1}}, "emission.sigma must be a positive number"),
         ({"emission": {"margin": -1}}, "emission.margin must be a number >= 0"),
         ({"emission": {"kind": "nerf"}}, "emission.kind must be one of"),
-        ({"emission": {"kind": "mlp", "insert": {}}}, "emission.insert .* needs a ray-cast "
-                                                      "LiDAR emission.kind .*got 'mlp'"),
+        (
+            {"emission": {"kind": "mlp", "insert": {}}},
+            "emission.insert .* needs a ray-cast LiDAR emission.kind .*got 'mlp'",
+        ),
         ({"emission": {"outlier_prob": 1.0}}, r"emission.outlier_prob must be in \[0, 1\)"),
         ({"emission": {"ray_spacing": 0}}, "emission.ray_spacing must be a positive number"),
         ({"emission": {"insert": {"free": "low"}}}, "emission.insert.free must be a number"),
@@ -296,7 +310,7 @@ def test_bad_particle_counts_are_rejected_by_name(value):
         ({"filter": 5}, "filter must be a FilterConfig, got 5"),
         ({"heading": "on"}, "heading must be a HeadingConfig"),
     ],
-)  # fmt: skip
+)
 def test_bad_values_are_rejected_naming_the_field(changes, message):
     with pytest.raises(ConfigError, match=message):
         with_overrides(presets.get("raycast").config, changes)
@@ -325,8 +339,12 @@ def test_the_configuration_has_at_most_37_fields():
 
 
 # ------------------------------------------------------------------ presets in SLAM
-EMISSIONS = {"mlp": LidarEmission, "raycast": RayEmission, "image_mlp": ImageEmission,
-             "ray_camera": RayImageEmission}  # fmt: skip
+EMISSIONS = {
+    "mlp": LidarEmission,
+    "raycast": RayEmission,
+    "image_mlp": ImageEmission,
+    "ray_camera": RayImageEmission,
+}
 
 
 @pytest.mark.parametrize("name", PRESET_NAMES)

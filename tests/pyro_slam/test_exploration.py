@@ -84,15 +84,18 @@ def test_known_wall_blocks_rollout_and_lowers_mi():
     wall = np.stack([np.full(33, 0.355), np.linspace(0.3, 0.62, 33)], -1)
     obst = KnownObstacles(wall, cfg.block_radius)
     straight = np.array([[0.0, 0.02]] * 29)
-    detour = np.array([[np.pi / 2, 0.02]] + [[0.0, 0.02]] * 7 + [[-np.pi / 2, 0.02]]
-                      + [[0.0, 0.02]] * 20)  # fmt: skip
+    detour = np.array(
+        [[np.pi / 2, 0.02]] + [[0.0, 0.02]] * 7 + [[-np.pi / 2, 0.02]] + [[0.0, 0.02]] * 20
+    )
     eff, blocked = obst.effective_controls(start, np.stack([straight, detour]))
     assert blocked[0].any() and not blocked[1].any()
     first = int(np.argmax(blocked[0]))
     assert first == 4 and blocked[0, first:].all()  # x = 0.33 is reached; then it stays
     assert np.allclose(eff[1], detour)
-    mi = {k: mutual_information(mapper, torch.as_tensor(u, dtype=torch.float32), start, cfg)
-          for k, u in (("naive", straight), ("straight", eff[0]), ("detour", eff[1]))}  # fmt: skip
+    mi = {
+        k: mutual_information(mapper, torch.as_tensor(u, dtype=torch.float32), start, cfg)
+        for k, u in (("naive", straight), ("straight", eff[0]), ("detour", eff[1]))
+    }
     assert mi["naive"] > mi["straight"] + 2.0, mi
     assert mi["detour"] > mi["straight"] + 2.0, mi
 
@@ -136,8 +139,9 @@ def test_exploration_ratio():
 
 
 def test_run_agent_smoke():
-    cfg = ExploreConfig.smoke(candidates=2, cand_steps=3, mi_L=5, mi_M=2, mi_K=5, train_steps=3,
-                              horizon=10)  # fmt: skip
+    cfg = ExploreConfig.smoke(
+        candidates=2, cand_steps=3, mi_L=5, mi_M=2, mi_K=5, train_steps=3, horizon=10
+    )
     c = run_agent("simple-small", "mi", 20, cfg)
     assert c["steps"] == [0, 10, 20] and len(c["mi"]) >= 2
     assert c["infogain"][-1] > 0 and 0 < c["ratio"][-1] <= 1

@@ -91,8 +91,9 @@ def test_learned_rollouts_are_the_pyro_models_and_batched_plans_are_exact_a_star
     assert ends.shape == (3, P, 3) and scans.shape == (3, P, 20) and paths.shape == (3, P, L + 1, 3)
     for i, z in enumerate(torch.as_tensor(z0, dtype=prims.dtype)):
         sites = [f"z_{t}" for t in range(L + 1)] + [f"scan_{L}"]
-        pred = Predictive(env.planner_model.model, {"map": env.M[None], "z_0": z[None]},
-                          return_sites=sites)  # fmt: skip
+        pred = Predictive(
+            env.planner_model.model, {"map": env.M[None], "z_0": z[None]}, return_sites=sites
+        )
         with pyro.validation_enabled(False):
             s = pred(None, prims, z)
         want = torch.stack([s[f"z_{t}"].reshape(-1, 3).expand(P, 3) for t in range(L + 1)], 1)
@@ -130,8 +131,10 @@ def test_learned_env_fitted_emission_beats_shipped_on_its_maze():
     z = torch.as_tensor(tr.poses, dtype=torch.float32)
     x = torch.as_tensor(tr.observations, dtype=torch.float32)
     with torch.no_grad():
-        rms = [(e.model.emission_mean(m, z) - x).pow(2).mean().sqrt() for e, m in
-               ((shipped, loc0), (fitted, loc1))]  # fmt: skip
+        rms = [
+            (e.model.emission_mean(m, z) - x).pow(2).mean().sqrt()
+            for e, m in ((shipped, loc0), (fitted, loc1))
+        ]
     assert rms[1] < 0.8 * rms[0], rms
 
 
@@ -160,8 +163,9 @@ def test_scan_hits_keep_the_planner_off_walls_that_the_map_belief_lost():
     h, v = np.zeros((3, 4), bool), np.zeros((4, 3), bool)
     h[:, [0, 3]], v[[0, 3], :] = True, True  # the same square, outer walls only
     torch.manual_seed(0)
-    room, _, _ = learned_env(Maze("room", 0, 3, maze.corridor_width, h, v), steps=600,
-                             fit_steps=100)  # fmt: skip
+    room, _, _ = learned_env(
+        Maze("room", 0, 3, maze.corridor_width, h, v), steps=600, fit_steps=100
+    )
     hits = ScanHits(simulate_traversal(maze, steps=600, seed=1))
     on_wall = [point_segment_distance(q, maze.walls).min() for q in hits.points]
     assert len(hits.points) > 1000 and max(on_wall) < 1e-6
@@ -187,8 +191,9 @@ class _StripEnv(GroundTruthEnv):
         return ~((x > 0.2) & (x < 0.215))
 
     def rollout(self, z0, controls):  # single precision, as the learned model's rollouts
-        return tuple(np.float32(v) if i != 2 else v for i, v in
-                     enumerate(super().rollout(z0, controls)))  # fmt: skip
+        return tuple(
+            np.float32(v) if i != 2 else v for i, v in enumerate(super().rollout(z0, controls))
+        )
 
 
 def test_check_path_rejects_primitives_crossing_unexplored_space():

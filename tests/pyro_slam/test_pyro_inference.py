@@ -204,8 +204,13 @@ def smc_run(model, M, obs, ctl, init, K, resample=True):
     """Pyro's SMCFilter on ``FilterModel``: weighted means ``[T, 3]`` and (without resampling)
     the log-evidence from the particles' log-likelihoods and weights."""
     guide = ProposalGuide(model, TransitionProposal())
-    smc = SMCFilter(FilterModel(model, M), guide, K, max_plate_nesting=0,
-                    ess_threshold=0.5 if resample else 1e-12)  # fmt: skip
+    smc = SMCFilter(
+        FilterModel(model, M),
+        guide,
+        K,
+        max_plate_nesting=0,
+        ess_threshold=0.5 if resample else 1e-12,
+    )
     log_ev = 0.0
     means = []
     with torch.no_grad():
@@ -309,10 +314,12 @@ def test_filter_weights_are_model_likelihood(proposal):
     mean, eps = _read_marginal(model, belief, z)
     scan_ll = model.emission_dist(mean, outlier_prob=eps).log_prob(x)  # [K]
     frame, std = h.frame, math.sqrt(float(h.sigma) ** 2 + h.frame_var)
-    head_ll = WrappedMixture(frame - z[:, 2], std, math.pi / 2,
-                             model.heading.outlier_prob).log_prob(h.direction)  # fmt: skip
-    q = slam.proposal.dist(model, z_prev, scan_prev, u.unsqueeze(-2), x=x, M=belief,
-                           heading=h.per_particle())  # fmt: skip
+    head_ll = WrappedMixture(
+        frame - z[:, 2], std, math.pi / 2, model.heading.outlier_prob
+    ).log_prob(h.direction)
+    q = slam.proposal.dist(
+        model, z_prev, scan_prev, u.unsqueeze(-2), x=x, M=belief, heading=h.per_particle()
+    )
     trans = model.transition_dist(z_prev, u.unsqueeze(-2), scan_prev)
     correction = trans.log_prob(z) - q.log_prob(z)
     torch.testing.assert_close(got, scan_ll + head_ll + correction, atol=2e-3, rtol=1e-4)
@@ -357,8 +364,16 @@ def _expected_increments(slam, prev: Particles, z, M, t):
     h = None if slam.heading is None else slam.heading.evidence().at(t)
     if h is not None:
         ll = ll + model.heading_log_prob(z[:, 2], h)
-    q = slam.proposal.dist(model, prev.z, prev.scan, u.unsqueeze(-2), x=x, mask=mask, M=M,
-                           heading=None if h is None else h.per_particle())  # fmt: skip
+    q = slam.proposal.dist(
+        model,
+        prev.z,
+        prev.scan,
+        u.unsqueeze(-2),
+        x=x,
+        mask=mask,
+        M=M,
+        heading=None if h is None else h.per_particle(),
+    )
     trans = model.transition_dist(prev.z, u.unsqueeze(-2), prev.scan)
     return ll + trans.log_prob(z) - q.log_prob(z)
 

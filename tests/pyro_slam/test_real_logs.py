@@ -111,9 +111,17 @@ def test_cli_slam_on_carmen_log(tmp_path, capsys):
     log = write_carmen(tr, tmp_path / "room.clf")
     out = tmp_path / "run"
     rc = cli.main(
-        ["slam", str(log), "--out", str(out), "--config", json.dumps(SMALL), "--odometry-noise",
-         "0.2"]
-    )  # fmt: skip
+        [
+            "slam",
+            str(log),
+            "--out",
+            str(out),
+            "--config",
+            json.dumps(SMALL),
+            "--odometry-noise",
+            "0.2",
+        ]
+    )
     assert rc == 0
     for name in ("metrics.json", "map.png", "slam.png", "trajectory_slam.tum", "posterior.npz"):
         assert (out / name).is_file(), name

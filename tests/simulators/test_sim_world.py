@@ -218,5 +218,6 @@ def test_rotated_world_keeps_scans_and_controls_and_turns_walls_and_poses():
     angles = np.mod(np.arctan2(wall[:, 1], wall[:, 0]), np.pi / 2)
     np.testing.assert_allclose(angles, 0.3, atol=1e-9)  # every wall turned by 0.3
     ang = b.poses[:, 2:3] + b.beam_angles[None]
-    np.testing.assert_allclose(raycast(b.walls, b.poses[:, :2], ang, b.max_range),
-                               b.observations, atol=1e-6)  # fmt: skip
+    np.testing.assert_allclose(
+        raycast(b.walls, b.poses[:, :2], ang, b.max_range), b.observations, atol=1e-6
+    )

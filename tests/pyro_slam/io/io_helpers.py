@@ -42,13 +42,24 @@ def synthetic_traversal(T=6, B=5, seed=0) -> Traversal:
     controls = rng.normal(0, 0.3, (T - 1, 3))
     start = np.array([1.0, -2.0, 0.3])
     poses = odometry_poses(
-        Traversal(obs, controls, np.zeros((0, 4)), np.zeros(B), 5.0,
-                  metadata={"control_model": "odometry_delta", "odometry_origin": list(start)})
-    ) + rng.normal(0, 0.05, (T, 3))  # fmt: skip
+        Traversal(
+            obs,
+            controls,
+            np.zeros((0, 4)),
+            np.zeros(B),
+            5.0,
+            metadata={"control_model": "odometry_delta", "odometry_origin": list(start)},
+        )
+    ) + rng.normal(0, 0.05, (T, 3))
     poses[:, 2] = (poses[:, 2] + np.pi) % (2 * np.pi) - np.pi
     return Traversal(
-        observations=np.where(mask, obs, 5.0), controls=controls, walls=np.zeros((0, 4)),
-        beam_angles=np.linspace(-1.2, 1.2, B), max_range=5.0, poses=poses, obs_mask=mask,
+        observations=np.where(mask, obs, 5.0),
+        controls=controls,
+        walls=np.zeros((0, 4)),
+        beam_angles=np.linspace(-1.2, 1.2, B),
+        max_range=5.0,
+        poses=poses,
+        obs_mask=mask,
         timestamps=np.arange(T) * 0.25 + 100,
         metadata={"control_model": "odometry_delta", "odometry_origin": list(start)},
-    )  # fmt: skip
+    )

@@ -100,9 +100,11 @@ def test_lenient_mode_skips_and_counts(tmp_path):
     assert tr.num_steps == 3
     assert tr.metadata["skipped_lines"] == len(BROKEN)
     reasons = tr.metadata["skip_reasons"]
-    assert len(reasons) == 5 and reasons[0].endswith(":2: " + "wrong number of fields: "
-                                                     "num_readings=3 needs 14 fields (n readings "
-                                                     "+ 6 pose + 3 time/host), got 13")  # fmt: skip
+    assert len(reasons) == 5 and reasons[0].endswith(
+        ":2: " + "wrong number of fields: "
+        "num_readings=3 needs 14 fields (n readings "
+        "+ 6 pose + 3 time/host), got 13"
+    )
 
 
 @pytest.mark.parametrize("lines", [[], ["# only a comment", "", "ODOM 0 0 0 0 0 0 1 h 1"]])
@@ -221,12 +223,44 @@ def test_writer_rejects_asymmetric_beams(tmp_path):
 
 # --- fuzzing ------------------------------------------------------------------------------------
 
-NASTY = ["nan", "-inf", "inf", "1e999", "-1e999", "1e308", "9" * 400, "1_0", "٣", "１２", "",
-         "x", "-", ".", "e5", "0x10", "\x00", "🤖", "FLASER", "ODOM", "-0", "+.5e-3", "1e308",
-         "-1e308", "1e15", "-1e15", "1e16", "2147483648", "0", "1"]  # fmt: skip
-TEMPLATES = [flaser([1.0, 2.0, 3.0], pose=(0.5, 0.5, 0.1), t=2.5), odom_line((1, 2, 3), 2.6),
-             "ROBOTLASER1 0 -1.57 3.14 1.57 50 0.01 0 3 1 2 3 0 0 0 0 0 0 0 0 0 0 0 0 3 h 3",
-             "PARAM laser_front_laser_fov 90"]  # fmt: skip
+NASTY = [
+    "nan",
+    "-inf",
+    "inf",
+    "1e999",
+    "-1e999",
+    "1e308",
+    "9" * 400,
+    "1_0",
+    "٣",
+    "１２",
+    "",
+    "x",
+    "-",
+    ".",
+    "e5",
+    "0x10",
+    "\x00",
+    "🤖",
+    "FLASER",
+    "ODOM",
+    "-0",
+    "+.5e-3",
+    "1e308",
+    "-1e308",
+    "1e15",
+    "-1e15",
+    "1e16",
+    "2147483648",
+    "0",
+    "1",
+]
+TEMPLATES = [
+    flaser([1.0, 2.0, 3.0], pose=(0.5, 0.5, 0.1), t=2.5),
+    odom_line((1, 2, 3), 2.6),
+    "ROBOTLASER1 0 -1.57 3.14 1.57 50 0.01 0 3 1 2 3 0 0 0 0 0 0 0 0 0 0 0 0 3 h 3",
+    "PARAM laser_front_laser_fov 90",
+]
 
 
 @st.composite

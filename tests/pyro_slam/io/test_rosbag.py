@@ -43,10 +43,17 @@ def messages(store, ros1: bool):
     out = []
     for k, t in enumerate(SCAN_TIMES):
         scan = T_["sensor_msgs/msg/LaserScan"](
-            header=header(t, "laser"), angle_min=ANGLE_MIN, angle_max=ANGLE_MIN + ANGLE_INC * 6,
-            angle_increment=ANGLE_INC, time_increment=0.0, scan_time=0.1, range_min=0.05,
-            range_max=RANGE_MAX, ranges=scan_ranges(k), intensities=np.zeros(0, np.float32),
-        )  # fmt: skip
+            header=header(t, "laser"),
+            angle_min=ANGLE_MIN,
+            angle_max=ANGLE_MIN + ANGLE_INC * 6,
+            angle_increment=ANGLE_INC,
+            time_increment=0.0,
+            scan_time=0.1,
+            range_min=0.05,
+            range_max=RANGE_MAX,
+            ranges=scan_ranges(k),
+            intensities=np.zeros(0, np.float32),
+        )
         out.append(("/scan", "sensor_msgs/msg/LaserScan", t, scan))
     gm = "geometry_msgs/msg/"
     for t in np.arange(99.9, 101.2, 0.05):
@@ -64,9 +71,11 @@ def messages(store, ros1: bool):
             covariance=cov,
         )
         odom = T_["nav_msgs/msg/Odometry"](
-            header=header(t, "odom"), child_frame_id="base_link",
-            pose=T_[gm + "PoseWithCovariance"](pose=pose, covariance=cov), twist=twist,
-        )  # fmt: skip
+            header=header(t, "odom"),
+            child_frame_id="base_link",
+            pose=T_[gm + "PoseWithCovariance"](pose=pose, covariance=cov),
+            twist=twist,
+        )
         out.append(("/odom", "nav_msgs/msg/Odometry", t, odom))
     return sorted(out, key=lambda m: m[2])
 
