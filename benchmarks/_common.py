@@ -6,6 +6,13 @@ import argparse
 import json
 from pathlib import Path
 
+from pyro_slam.slam import ConfigError, presets, with_overrides
+
+# the test mazes (moderate-medium) of the SLAM and navigation benchmarks, and the held-out
+# mazes on which options are screened (never in the test figures)
+MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
+TUNING_SEEDS = (991, 992, 993, 994, 995, 996)
+
 
 def parse_maze_seeds(
     p: argparse.ArgumentParser, text: str, test: tuple[int, ...], tuning: tuple[int, ...] = ()
@@ -28,8 +35,6 @@ def parse_maze_seeds(
 def add_config_args(p: argparse.ArgumentParser, default: str, prefix: str = "") -> None:
     """``--{prefix}preset NAME`` (a :mod:`pyro_slam.slam.presets` name, default ``default``) and
     ``--{prefix}config JSON`` (nested overrides of the preset's configuration)."""
-    from pyro_slam.slam import presets
-
     p.add_argument(
         f"--{prefix}preset",
         choices=list(presets.PRESETS),
@@ -56,8 +61,6 @@ def slam_config(
     if any), then the JSON overrides ``text`` applied (:func:`pyro_slam.slam.with_overrides`);
     text that is not JSON or a configuration error is a usage error (``p.error``, exit 2) with a
     one-line message naming the problem."""
-    from pyro_slam.slam import ConfigError, presets, with_overrides
-
     try:
         changes = json.loads(text)
     except json.JSONDecodeError as e:
