@@ -4,7 +4,20 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
+import time
 from pathlib import Path
+
+import torch
+
+from pyro_slam.inference import ParticleFilter
+from pyro_slam.slam import ConfigError, SLAMConfig, build_model, presets, with_overrides
+from simulators import simulate_traversal
+
+# the test mazes (moderate-medium) of the SLAM and navigation benchmarks, and the held-out
+# mazes on which options are screened (never in the test figures)
+MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
+TUNING_SEEDS = (991, 992, 993, 994, 995, 996)
 
 
 def parse_maze_seeds(
@@ -28,8 +41,6 @@ def parse_maze_seeds(
 def add_config_args(p: argparse.ArgumentParser, default: str, prefix: str = "") -> None:
     """``--{prefix}preset NAME`` (a :mod:`pyro_slam.slam.presets` name, default ``default``) and
     ``--{prefix}config JSON`` (nested overrides of the preset's configuration)."""
-    from pyro_slam.slam import presets
-
     p.add_argument(
         f"--{prefix}preset",
         choices=list(presets.PRESETS),
@@ -56,8 +67,6 @@ def slam_config(
     if any), then the JSON overrides ``text`` applied (:func:`pyro_slam.slam.with_overrides`);
     text that is not JSON or a configuration error is a usage error (``p.error``, exit 2) with a
     one-line message naming the problem."""
-    from pyro_slam.slam import ConfigError, presets, with_overrides
-
     try:
         changes = json.loads(text)
     except json.JSONDecodeError as e:
@@ -97,3 +106,43 @@ def check_out_config(path: Path, record: dict) -> None:
         return
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(record, indent=1))
+
+
+# ------------------------------------------- the online filter run of filter_speed and reliability
+def peak_rss_mib() -> float:
+    """This process's peak resident memory (MiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def filter_setup(steps: int, seed: int = 0):
+    """The fixed filtering problem of ``filter_speed`` and ``reliability``: the default
+    configuration's model on a ``steps``-step moderate-medium traversal (``seed``) and a random
+    fixed map. Returns ``(model, M, obs [T, B], controls [T - 1, 2], start pose [3])``."""
+    tr = simulate_traversal("moderate-medium", steps=steps, seed=seed)
+    model, guide = build_model(tr, SLAMConfig())
+    g = torch.Generator().manual_seed(seed)
+    M = torch.randn(model.grid.shape, generator=g)  # a fixed map: speed does not depend on it
+    obs = torch.as_tensor(tr.observations, dtype=torch.float32)
+    ctl = torch.as_tensor(tr.controls, dtype=torch.float32)
+    init = torch.as_tensor(tr.poses[0], dtype=torch.float32)
+    return model, M, obs, ctl, init
+
+
+def filter_run(model, M, obs, ctl, init, K, steps, checkpoints=(), autocast_dtype=None):
+    """Our particle filter, ``K`` particles, ``steps`` steps (cycling over the traversal) of
+    :func:`filter_setup`'s problem; returns (steps/s, {step in ``checkpoints``: peak RSS MiB})."""
+    g = torch.Generator().manual_seed(0)
+    pf = ParticleFilter(model, generator=g, autocast_dtype=autocast_dtype)
+    T = obs.shape[0]
+    rss = {}
+    with torch.no_grad():
+        p, _ = pf.init(init + 1e-3 * torch.randn(K, 3), M, obs[0])
+        t0 = time.perf_counter()
+        for t in range(1, steps + 1):
+            i = t % T  # cycle over the traversal for very long runs
+            p, _ = pf.step(p, M, obs[i], ctl[(i - 1) % (T - 1)], step=t)
+            _ = p.mean()  # the online estimate
+            if t in checkpoints:
+                rss[t] = peak_rss_mib()
+        rate = steps / (time.perf_counter() - t0)
+    return rate, rss

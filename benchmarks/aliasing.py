@@ -38,10 +38,15 @@ import json
 import time
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
+from tqdm.auto import tqdm
 
-from benchmarks._common import parse_maze_seeds
-from benchmarks.navigation import MAZE_SEEDS, observation_targets
+from benchmarks._common import MAZE_SEEDS, parse_maze_seeds
+from pyro_slam.planning import free_grid
+from pyro_slam.planning.evaluation import aliasing, observation_targets
+from simulators import LidarConfig, make_maze
 
 
 def parse_sensor(text: str) -> tuple[int, float]:
@@ -55,24 +60,30 @@ def parse_sensor(text: str) -> tuple[int, float]:
         ) from None
 
 
-def aliasing(maze, tposes: np.ndarray, lidar, tols, spacing: float) -> dict:
-    """Look-alikes of the targets ``tposes [n, 3]`` in ``maze`` seen by ``lidar``, for each
-    tolerance of ``tols`` (mean absolute range difference): per target the number of look-alike
-    places more than 0.05 away and the failure probability of a uniform choice among all its
-    places within the tolerance. Returns ``{tol: {"lookalikes": [n], "ideal_failure": [n]}}``."""
-    from pyro_slam.planning import GroundTruthEnv, lookalikes
-
-    env = GroundTruthEnv(maze, lidar)
-    n_headings = 360 if 360 % lidar.n_beams == 0 else 18 * lidar.n_beams
-    places = env.places(env.scan(tposes).numpy(), spacing=spacing, n_headings=n_headings)
-    out = {}
-    for tol in tols:
-        counts = [lookalikes(pz, pd, tp, tol) for tp, (pz, pd) in zip(tposes, places)]
-        out[tol] = {"lookalikes": [c[0] for c in counts], "ideal_failure": [c[1] for c in counts]}
-    return out
-
-
 def main(argv=None) -> int:
+    args, mazes, sensors, tols = _parse(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    result = {"args": {k: str(v) for k, v in vars(args).items()}, "sensors": {}}
+    for beams, rng in sensors:
+        rows = sensor_rows(LidarConfig(n_beams=beams, max_range=rng), mazes, tols, args)
+        result["sensors"][f"{beams}x{rng:g}"] = {
+            f"{tol:g}": _summary({str(ms): r[tol] for ms, r in rows.items()}) for tol in tols
+        }
+    result["wall_s"] = time.perf_counter() - t0
+    (args.out / "aliasing.json").write_text(json.dumps(result, indent=1))
+    _plot(result, args.out / "aliasing.png")
+    headline = {
+        sensor: {tol: {k: s[k] for k in ("aliased", "ideal_failure")} for tol, s in by_tol.items()}
+        for sensor, by_tol in result["sensors"].items()
+    }
+    print(json.dumps(headline))
+    return 0
+
+
+def _parse(argv) -> tuple[argparse.Namespace, tuple[int, ...], list, list[float]]:
+    """The arguments, the mazes, the sensors ``(beams, range)`` and the tolerances; usage
+    errors exit 2."""
     p = argparse.ArgumentParser(
         prog="python -m benchmarks.aliasing", description=__doc__.split("\n")[0]
     )
@@ -83,10 +94,11 @@ def main(argv=None) -> int:
         "--sensors", default="20x0.53", help="comma-separated BEAMSxRANGE LiDARs (paper: 20x0.53)"
     )
     p.add_argument(
-        "--tols", default="1e-6,0.01",
+        "--tols",
+        default="1e-6,0.01",
         help="comma-separated look-alike tolerances (mean absolute range): 1e-6 is exact; 0.01, "
         "a tenth of the model's sigma_E, is what a learned model can hope to resolve",
-    )  # fmt: skip
+    )
     p.add_argument("--spacing", type=float, default=0.01, help="position grid of the search")
     args = p.parse_args(argv)
     mazes = (
@@ -96,41 +108,28 @@ def main(argv=None) -> int:
         sensors = [parse_sensor(t) for t in args.sensors.split(",")]
     except argparse.ArgumentTypeError as e:
         p.error(str(e))
-
     try:
         tols = [float(t) for t in args.tols.split(",")]
     except ValueError:
         p.error(f"--tols: expected comma-separated numbers, got {args.tols!r}")
-    from tqdm.auto import tqdm
+    return args, mazes, sensors, tols
 
-    from pyro_slam.planning import free_grid
-    from simulators import LidarConfig, make_maze
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    result = {"args": {k: str(v) for k, v in vars(args).items()}, "sensors": {}}
-    for beams, rng in sensors:
-        lidar = LidarConfig(n_beams=beams, max_range=rng)
-        rows = {}  # maze -> tol -> per-target lists
-        for ms in tqdm(mazes, desc=f"{beams}x{rng:g}"):
-            maze = make_maze("moderate-medium", ms)
-            pts = free_grid(maze)  # [25, 2]
-            tposes = observation_targets(pts, ms, args.seed)  # [50, 3]
-            rows[ms] = aliasing(maze, tposes, lidar, tols, args.spacing)
-            # free_grid moves a grid point near a wall to its cell's centre
-            moved = np.abs(pts - free_grid(maze, clearance=0.0)).max(1) > 1e-9  # [25]
-            for r in rows[ms].values():
-                r["moved"] = np.repeat(moved, 2).tolist()
-        result["sensors"][f"{beams}x{rng:g}"] = {
-            f"{tol:g}": _summary({str(ms): r[tol] for ms, r in rows.items()}) for tol in tols
-        }
-    result["wall_s"] = time.perf_counter() - t0
-    (args.out / "aliasing.json").write_text(json.dumps(result, indent=1))
-    _plot(result, args.out / "aliasing.png")
-    print(json.dumps({sensor: {tol: {k: s[k] for k in ("aliased", "ideal_failure")}
-                               for tol, s in by_tol.items()}
-                      for sensor, by_tol in result["sensors"].items()}))  # fmt: skip
-    return 0
+def sensor_rows(lidar, mazes, tols, args) -> dict:
+    """Per maze, :func:`~pyro_slam.planning.evaluation.aliasing` of the navigation benchmark's
+    observation targets seen by ``lidar``, with whether each target's grid point was moved to
+    its cell's centre (``moved``): ``{maze: {tol: per-target lists}}``."""
+    rows = {}
+    for ms in tqdm(mazes, desc=f"{lidar.n_beams}x{lidar.max_range:g}"):
+        maze = make_maze("moderate-medium", ms)
+        pts = free_grid(maze)  # [25, 2]
+        tposes = observation_targets(pts, ms, args.seed)  # [50, 3]
+        rows[ms] = aliasing(maze, tposes, lidar, tols, args.spacing)
+        # free_grid moves a grid point near a wall to its cell's centre
+        moved = np.abs(pts - free_grid(maze, clearance=0.0)).max(1) > 1e-9  # [25]
+        for r in rows[ms].values():
+            r["moved"] = np.repeat(moved, 2).tolist()
+    return rows
 
 
 def _summary(per_maze: dict) -> dict:
@@ -158,11 +157,7 @@ def _summary(per_maze: dict) -> dict:
 
 
 def _plot(result: dict, path: Path) -> None:
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     bars = [
         (f"LiDAR {sensor}, look-alike < {tol}", s)
         for sensor, by_tol in result["sensors"].items()

@@ -30,8 +30,11 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 import torch
 from tqdm.auto import tqdm
@@ -39,7 +42,7 @@ from tqdm.auto import tqdm
 from pyro_slam.data import load_tensors
 from pyro_slam.planning.exploration import ExploreConfig, run_agent
 from pyro_slam.planning.pema import ARSConfig, PEMAPolicy, train_pema
-from simulators import SCALES
+from simulators import SCALES, make_maze
 
 AGENTS = ("mi", "pema", "random")
 COLOURS = {"mi": "tab:blue", "pema": "tab:purple", "random": "tab:gray"}
@@ -47,6 +50,31 @@ COLOURS = {"mi": "tab:blue", "pema": "tab:purple", "random": "tab:gray"}
 
 def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")  # the library's progress
+    args = _parser().parse_args(argv)
+    if args.merge:
+        summary = merge(args.merge, Path(args.out))
+        print(json.dumps(summary["final"], indent=1))
+        return 0
+    torch.set_num_threads(1)
+    scales = list(SCALES) if args.scales == ["all"] else args.scales
+    cfg, (ars_cfg, n_mazes, ars_steps) = _configs(args)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    per_job = ("out", "workers", "seeds", "first_seed", "scales")  # not in a run's settings
+    settings = {k: str(v) for k, v in vars(args).items() if k not in per_job}
+    policy = PEMAPolicy(step_length=cfg.step_length, max_turn=cfg.max_turn)
+    ars_hist, t_ars = _trained_pema(policy, out / "pema.pt", settings, ars_cfg, n_mazes, ars_steps)
+    jobs = _jobs(args, scales, cfg, policy)
+    ars = {"ars_cfg": ars_cfg, "n_mazes": n_mazes, "ars_steps": ars_steps, "ars_hist": ars_hist}
+    finished = partial(save, out=out, args=args, cfg=cfg, **ars, t_ars=t_ars, t0=t0)
+    summary = run_agents(jobs, out, settings, args, finished)
+    print(f"total {summary['seconds']:.0f} s (ARS {t_ars:.0f} s)", file=sys.stderr)
+    print(json.dumps(summary["final"], indent=1))
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="python -m benchmarks.exploration", description=__doc__.splitlines()[0]
     )
@@ -54,9 +82,11 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--first-seed", type=int, default=0, help="evaluation mazes first..+seeds-1")
     ap.add_argument(
-        "--merge", nargs="+", metavar="JSON",
+        "--merge",
+        nargs="+",
+        metavar="JSON",
         help="combine the seeds of several runs' exploration.json into --out (no agents run)",
-    )  # fmt: skip
+    )
     ap.add_argument("--step-fraction", type=float, default=0.2)
     ap.add_argument("--max-steps", type=int, default=None, help="cap on steps per run")
     ap.add_argument("--paper", action="store_true", help="paper budgets (Appendix D/E/F)")
@@ -66,58 +96,62 @@ def main(argv=None) -> int:
     ap.add_argument("--ars-steps", type=int, default=300)
     ap.add_argument("--horizon", type=int, default=50, help="plan horizon T (paper: 50)")
     ap.add_argument(
-        "--execute-steps", type=int, default=None,
+        "--execute-steps",
+        type=int,
+        default=None,
         help="steps of each plan executed before replanning (default: 25, --paper: all T)",
-    )  # fmt: skip
+    )
     ap.add_argument("--workers", type=int, default=1, help="agents run in parallel (1 thread each)")
     ap.add_argument("--out", default="out/exploration")
-    args = ap.parse_args(argv)
-    if args.merge:
-        summary = merge(args.merge, Path(args.out))
-        print(json.dumps(summary["final"], indent=1))
-        return 0
-    torch.set_num_threads(1)
-    scales = list(SCALES) if args.scales == ["all"] else args.scales
+    return ap
+
+
+def _configs(args) -> tuple[ExploreConfig, tuple[ARSConfig, int, int]]:
+    """The agents' configuration, and PEMA's ARS configuration, training mazes and steps."""
     cfg = ExploreConfig() if args.paper else ExploreConfig.smoke()
     cfg = replace(cfg, horizon=args.horizon)
     if args.execute_steps is not None:
         cfg = replace(cfg, execute_steps=args.execute_steps)
     if args.paper:
-        ars_cfg, n_mazes, ars_steps = ARSConfig(), 10, 1000
-    else:
-        ars_cfg = ARSConfig(args.ars_iterations, args.ars_directions, args.ars_directions // 2)
-        n_mazes, ars_steps = args.ars_mazes, args.ars_steps
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.time()
-    per_job = ("out", "workers", "seeds", "first_seed", "scales")  # not in a run's settings
-    settings = {k: str(v) for k, v in vars(args).items() if k not in per_job}
-    policy = PEMAPolicy(step_length=cfg.step_length, max_turn=cfg.max_turn)
-    ars_hist, t_ars = _trained_pema(policy, out / "pema.pt", settings, ars_cfg, n_mazes, ars_steps)
-    results = {}
+        return cfg, (ARSConfig(), 10, 1000)
+    ars_cfg = ARSConfig(args.ars_iterations, args.ars_directions, args.ars_directions // 2)
+    return cfg, (ars_cfg, args.ars_mazes, args.ars_steps)
+
+
+def _jobs(args, scales, cfg, policy) -> list[tuple]:
+    """The agent runs ``(scale, agent, steps, cfg, seed, policy)``: every scale, agent and
+    seed, each run ``--step-fraction`` of the scale's Table II budget (``--paper``: all of it),
+    at most ``--max-steps``."""
     steps_of = {}
     for name in scales:
         steps = SCALES[name].steps if args.paper else int(SCALES[name].steps * args.step_fraction)
         steps_of[name] = min(steps, args.max_steps or steps)
-    bar = tqdm(total=sum(steps_of.values()) * len(AGENTS) * args.seeds, desc="agent steps")
-    jobs = [(n, a, steps_of[n], cfg, s, policy) for n in scales for a in AGENTS
-            for s in range(args.first_seed, args.first_seed + args.seeds)]  # fmt: skip
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    return [(n, a, steps_of[n], cfg, s, policy) for n in scales for a in AGENTS for s in seeds]
+
+
+def run_agents(jobs, out: Path, settings: dict, args, finished) -> dict:
+    """Run each job (:func:`_timed_run`, in ``--workers`` processes), or load its curve from a
+    finished run with the same ``settings`` (``OUT/runs``); each computed curve is saved there.
+    ``finished(results)`` is called whenever a scale has every agent's runs, and its last value
+    is returned."""
     (out / "runs").mkdir(exist_ok=True)
     cached = {}
     for job in jobs:  # finished runs of an interrupted benchmark with the same settings
         f = _run_file(out, job)
         if f.exists() and (saved := json.loads(f.read_text()))["settings"] == settings:
             cached[f] = saved["curve"]
+    bar = tqdm(total=sum(job[2] for job in jobs), desc="agent steps")
+    results, summary = {}, None
     with ProcessPoolExecutor(args.workers) if args.workers > 1 else _Serial() as pool:
-        futures = [None if _run_file(out, j) in cached else pool.submit(_timed_run, *j)
-                   for j in jobs]  # fmt: skip
+        futures = [
+            None if _run_file(out, j) in cached else pool.submit(_timed_run, *j) for j in jobs
+        ]
         for job, fut in zip(jobs, futures):
             name, agent, steps, _, seed, _ = job
             f = _run_file(out, job)
-            if fut is None:
-                c = cached[f]
-            else:
-                c = fut.result()
+            c = cached[f] if fut is None else fut.result()
+            if fut is not None:
                 tmp = f.with_suffix(".tmp")  # written whole, then renamed
                 tmp.write_text(json.dumps({"settings": settings, "curve": c}))
                 tmp.replace(f)
@@ -126,13 +160,9 @@ def main(argv=None) -> int:
             msg = f"ratio {c['ratio'][-1]:.3f} infogain {c['infogain'][-1]:.1f}"
             bar.write(f"{name} {agent} seed {seed}: {msg} ({c['seconds']:.0f} s)")
             if all(len(results.get(name, {}).get(a, [])) == args.seeds for a in AGENTS):
-                summary = save(
-                    results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, t0
-                )
+                summary = finished(results)
     bar.close()
-    print(f"total {summary['seconds']:.0f} s (ARS {t_ars:.0f} s)", file=sys.stderr)
-    print(json.dumps(summary["final"], indent=1))
-    return 0
+    return summary
 
 
 def _run_file(out: Path, job) -> Path:
@@ -197,7 +227,7 @@ def save(results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, 
             "steps": ars_steps,
             "history": ars_hist,
             "seconds": t_ars,
-        },  # fmt: skip
+        },
         "step_fraction": 1.0 if args.paper else args.step_fraction,
         "workers": args.workers,
         "max_steps": args.max_steps,
@@ -208,8 +238,9 @@ def save(results, out, args, cfg, ars_cfg, n_mazes, ars_steps, ars_hist, t_ars, 
         "final": finals(results),
     }
     keys = ("steps", "ratio", "infogain", "mi", "collisions")
-    curves = {n: {a: [{k: c[k] for k in keys} for c in r[a]] for a in AGENTS}
-              for n, r in results.items()}  # fmt: skip
+    curves = {
+        n: {a: [{k: c[k] for k in keys} for c in r[a]] for a in AGENTS} for n, r in results.items()
+    }
     (out / "exploration.json").write_text(json.dumps({**summary, "curves": curves}, indent=1))
     plot(results, out / "exploration_curves.png")
     plot_paths(results, out / "exploration_paths.png")
@@ -267,11 +298,7 @@ def replot(json_path, png_path) -> None:
 
 
 def plot(results, path):
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     names = list(results)
     ncol = min(3, len(names))
     nrow = 2 * math.ceil(len(names) / ncol)  # per scale: infogain above exploration ratio
@@ -299,13 +326,7 @@ def plot(results, path):
 
 
 def plot_paths(results, path):
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from simulators import make_maze
-
     names = list(results)
     fig, axes = plt.subplots(len(names), 3, figsize=(9, 3 * len(names)), squeeze=False)
     for i, name in enumerate(names):

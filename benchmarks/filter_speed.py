@@ -16,50 +16,17 @@ the most any filter could gain over SMCFilter at that precision.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
-import resource
 import time
 
+import pyro
 import torch
+from pyro.infer import SMCFilter
 
-
-def peak_rss_mib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
-def setup(steps: int, seed: int = 0):
-    from pyro_slam.slam import SLAMConfig, build_model
-    from simulators import simulate_traversal
-
-    tr = simulate_traversal("moderate-medium", steps=steps, seed=seed)
-    model, guide = build_model(tr, SLAMConfig())
-    g = torch.Generator().manual_seed(seed)
-    M = torch.randn(model.grid.shape, generator=g)  # a fixed map: speed does not depend on it
-    obs = torch.as_tensor(tr.observations, dtype=torch.float32)
-    ctl = torch.as_tensor(tr.controls, dtype=torch.float32)
-    init = torch.as_tensor(tr.poses[0], dtype=torch.float32)
-    return model, M, obs, ctl, init
-
-
-def ours(model, M, obs, ctl, init, K, steps, checkpoints=(), autocast_dtype=None):
-    """Our filter; returns (steps/s, {step: peak RSS MiB})."""
-    from pyro_slam.inference import ParticleFilter
-
-    g = torch.Generator().manual_seed(0)
-    pf = ParticleFilter(model, generator=g, autocast_dtype=autocast_dtype)
-    T = obs.shape[0]
-    rss = {}
-    with torch.no_grad():
-        p, _ = pf.init(init + 1e-3 * torch.randn(K, 3), M, obs[0])
-        t0 = time.perf_counter()
-        for t in range(1, steps + 1):
-            i = t % T  # cycle over the traversal for very long runs
-            p, _ = pf.step(p, M, obs[i], ctl[(i - 1) % (T - 1)], step=t)
-            _ = p.mean()  # the online estimate
-            if t in checkpoints:
-                rss[t] = peak_rss_mib()
-        rate = steps / (time.perf_counter() - t0)
-    return rate, rss
+from benchmarks._common import filter_run, filter_setup
+from pyro_slam.inference import ProposalGuide, TransitionProposal
+from pyro_slam.model import FilterModel
 
 
 def emission_only(model, M, init, K, steps, autocast_dtype=None):
@@ -69,8 +36,6 @@ def emission_only(model, M, init, K, steps, autocast_dtype=None):
     this times that call by itself (fixed particles, no transition, weights or resampling), so
     ``steps / s`` here bounds what any implementation of the same step can reach.
     """
-    import contextlib
-
     g = torch.Generator().manual_seed(0)
     z = init + 1e-2 * torch.randn(K, 3, generator=g)  # [K, 3]
     ctx = (
@@ -88,12 +53,6 @@ def emission_only(model, M, init, K, steps, autocast_dtype=None):
 
 def smcfilter(model, M, obs, ctl, init, K, steps):
     """pyro.infer.SMCFilter running the same model step (pyro_slam.model.FilterModel)."""
-    import pyro
-    from pyro.infer import SMCFilter
-
-    from pyro_slam.inference import ProposalGuide, TransitionProposal
-    from pyro_slam.model import FilterModel
-
     pyro.set_rng_seed(0)
     guide = ProposalGuide(model, TransitionProposal())
     smc = SMCFilter(FilterModel(model, M), guide, K, max_plate_nesting=0)
@@ -116,14 +75,14 @@ def main(argv=None) -> dict:
     p.add_argument("--threads", type=int, default=2)
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
-    model, M, obs, ctl, init = setup(max(args.steps + 1, 3000))
+    model, M, obs, ctl, init = filter_setup(max(args.steps + 1, 3000))
     # warm-up both (allocator, lazy init) before timing
-    ours(model, M, obs, ctl, init, args.particles, 20)
+    filter_run(model, M, obs, ctl, init, args.particles, 20)
     smcfilter(model, M, obs, ctl, init, args.particles, 20)
     r_smc = smcfilter(model, M, obs, ctl, init, args.particles, args.steps)
-    r_ours, _ = ours(model, M, obs, ctl, init, args.particles, args.steps)
-    ours(model, M, obs, ctl, init, args.particles, 20, autocast_dtype=torch.bfloat16)
-    r_bf16, _ = ours(
+    r_ours, _ = filter_run(model, M, obs, ctl, init, args.particles, args.steps)
+    filter_run(model, M, obs, ctl, init, args.particles, 20, autocast_dtype=torch.bfloat16)
+    r_bf16, _ = filter_run(
         model, M, obs, ctl, init, args.particles, args.steps, autocast_dtype=torch.bfloat16
     )
     r_mlp = emission_only(model, M, init, args.particles, args.steps)
@@ -133,7 +92,7 @@ def main(argv=None) -> dict:
     n = args.long_steps
     marks = (n // 10, n)
     t0 = time.perf_counter()
-    r_long, rss = ours(model, M, obs, ctl, init, args.particles, n, checkpoints=marks)
+    r_long, rss = filter_run(model, M, obs, ctl, init, args.particles, n, checkpoints=marks)
     out = {
         "particles": args.particles,
         "threads": torch.get_num_threads(),

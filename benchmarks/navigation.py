@@ -23,7 +23,7 @@ one search with the largest budget gives the whole success-vs-budget curve.
 **Observation targets** (planner ``learned_obs``): the target is the simulator's scan at the
 target grid point with a random heading; the goal is the mode of the inverse model ``q(z | x)``
 (:mod:`pyro_slam.planning.inverse`, trained once per maze on the mapping traversal's scans).
-They are judged on two criteria:
+They are judged on two criteria (:mod:`pyro_slam.planning.evaluation`):
 
 1. primary, in observation space: the agent stops within 0.05 of a place whose true scan, at
    some heading, differs from the target scan by less than ``--alias-tol`` 0.01 (mean absolute
@@ -64,14 +64,36 @@ from multiprocessing import get_context
 from pathlib import Path
 from types import SimpleNamespace
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
+import torch
+from tqdm.auto import tqdm
 
-from benchmarks._common import add_config_args, parse_maze_seeds, slam_config
+from benchmarks._common import (
+    MAZE_SEEDS,
+    TUNING_SEEDS,
+    add_config_args,
+    parse_maze_seeds,
+    slam_config,
+)
+from pyro_slam import metrics
+from pyro_slam.planning import GroundTruthEnv, execute, free_grid, learned_env, lookalikes, plan
+from pyro_slam.planning.evaluation import (
+    PLANNERS,
+    mean_or_none,
+    miss_counts,
+    observation_reached,
+    observation_targets,
+    pose_reached,
+    reached_within,
+    success_ratios,
+)
+from pyro_slam.planning.inverse import fit_inverse
+from pyro_slam.plotting import plot_navigation
+from pyro_slam.slam import SLAM, path_integration
+from simulators import make_maze, simulate_traversal
 
-MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
-TUNING_SEEDS = (991, 992, 993, 994, 995, 996)  # held out: options are screened on these
-# planner rows per pair: the learned model and the truth, to the pose and to the observation
-PLANNERS = ("learned", "ground_truth", "learned_obs", "ground_truth_obs")
 SIZES = {"full": (6, 50), "quick": (2, 10)}  # (mazes, pairs per maze)
 # row format: 4 adds each observation target's look-alikes within --alias-tol
 ROWS = "4"
@@ -81,27 +103,11 @@ def main(argv=None) -> int:
     p = _parser()
     args = p.parse_args(argv)
     mazes = _resolve(p, args)
-
-    import torch
-
     torch.set_num_threads(1)
     (args.out / "mazes").mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     runs, targets, resumed = run_mazes(mazes, args)
-    summary = {
-        **headline(runs, args.map_poses),
-        "wall_s": time.perf_counter() - t0,
-        "map_poses": args.map_poses,
-        "pairs": len(runs) // len(PLANNERS),
-        "resumed_mazes": resumed,
-        "args": {k: str(v) for k, v in vars(args).items() if k != "slam"},
-        # --map-poses slam: the SLAM run's preset and configuration (None: no SLAM ran)
-        "slam_preset": args.slam_preset if args.map_poses == "slam" else None,
-        "slam_config": args.slam.to_dict() if args.map_poses == "slam" else None,
-        **details(runs, args),
-        "per_maze": _counts(runs),
-        "inverse": _inverse_summary(targets, args.alias_tol),
-    }
+    summary = summarise(runs, targets, args, time.perf_counter() - t0, resumed)
     (args.out / "targets.json").write_text(json.dumps(targets, indent=1))
     (args.out / "runs.json").write_text(json.dumps(runs, indent=1))
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -116,61 +122,84 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", type=Path, default=Path("out/navigation"))
     p.add_argument(
-        "--quick", action="store_true",
+        "--quick",
+        action="store_true",
         help="2 mazes, 10 pairs each (instead of all 6 test mazes, 50 pairs each)",
-    )  # fmt: skip
+    )
     p.add_argument("--mazes", type=int, default=None, help="the first N of the 6 test mazes")
     p.add_argument(
-        "--maze-seeds", default=None,
+        "--maze-seeds",
+        default=None,
         help="comma-separated maze seeds (instead of --mazes): a share of the test mazes, or the "
         f"held-out tuning mazes {list(TUNING_SEEDS)}; a maze's pairs are the same whichever run",
-    )  # fmt: skip
+    )
     p.add_argument("--pairs-limit", type=int, default=None, help="random pairs per maze (0: all)")
     p.add_argument("--workers", type=int, default=1, help="mazes run in parallel (1 thread each)")
+    _add_model_args(p)
+    add_config_args(p, "paper", prefix="slam-")  # --slam-preset, --slam-config
+    return p
+
+
+def _add_model_args(p: argparse.ArgumentParser) -> None:
+    """The learned model's fits, the planner, the targets and the verdicts' tolerances."""
     p.add_argument("--max-expansions", type=int, default=1200)
     p.add_argument("--fit-steps", type=int, default=1500)
     p.add_argument("--traversal-steps", type=int, default=6000, help="mapping traversal length")
     p.add_argument(
-        "--emission-steps", type=int, default=3000,
+        "--emission-steps",
+        type=int,
+        default=3000,
         help="fit the emission per maze for this many steps (0: shipped, frozen)",
-    )  # fmt: skip
+    )
     p.add_argument("--n-world", type=int, default=60, help="world directions of a fitted emission")
     p.add_argument("--max-std", type=float, default=0.6, help="explored: chart std below this")
     p.add_argument(
-        "--hit-margin", type=float, default=0.02,
+        "--hit-margin",
+        type=float,
+        default=0.02,
         help="the learned planner keeps this far from the mapping scans' returns (0: off)",
-    )  # fmt: skip
+    )
     p.add_argument(
-        "--check-path", action=argparse.BooleanOptionalAction, default=True,
+        "--check-path",
+        action=argparse.BooleanOptionalAction,
+        default=True,
         help="every step of a primitive must be explored (not only its end pose)",
-    )  # fmt: skip
+    )
     p.add_argument(
-        "--start-scan", action=argparse.BooleanOptionalAction, default=True,
+        "--start-scan",
+        action=argparse.BooleanOptionalAction,
+        default=True,
         help="the learned planner also trusts the free space of the real scan at the start",
-    )  # fmt: skip
+    )
     p.add_argument(
-        "--cover-grid", action=argparse.BooleanOptionalAction, default=True,
+        "--cover-grid",
+        action=argparse.BooleanOptionalAction,
+        default=True,
         help="end the mapping traversal with a tour through the grid points it missed",
-    )  # fmt: skip
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sleep-steps", type=int, default=3000, help="q(z|x) sleep-phase steps")
     p.add_argument("--inverse-steps", type=int, default=1000, help="q(z|x) ELBO steps")
     p.add_argument(
-        "--alias-tol", type=float, default=0.01,
+        "--alias-tol",
+        type=float,
+        default=0.01,
         help="scans closer than this (mean absolute range difference) look alike",
-    )  # fmt: skip
+    )
     p.add_argument(
-        "--exact-tol", type=float, default=1e-6,
+        "--exact-tol",
+        type=float,
+        default=1e-6,
         help="a place whose true scan differs from the target's by less (mean absolute range, "
         "after refinement) is an exact look-alike",
-    )  # fmt: skip
+    )
     p.add_argument(
-        "--map-poses", choices=["true", "slam"], default="true",
+        "--map-poses",
+        choices=["true", "slam"],
+        default="true",
         help="poses the emission and q(M) are fitted at: the traversal's true poses (mapping "
         "with known poses) or the pose means of online DVBF-LM SLAM on it",
-    )  # fmt: skip
-    add_config_args(p, "paper", prefix="slam-")  # --slam-preset, --slam-config
-    return p
+    )
 
 
 def _resolve(p: argparse.ArgumentParser, args) -> tuple[int, ...]:
@@ -199,8 +228,7 @@ def _resolve(p: argparse.ArgumentParser, args) -> tuple[int, ...]:
 
 def _settings(args) -> dict:
     """What a maze's rows depend on: a saved maze is resumed only with the same settings."""
-    skip = ("out", "mazes", "maze_seeds", "quick", "workers", "slam", "slam_preset",
-            "slam_config")  # fmt: skip
+    skip = ("out", "mazes", "maze_seeds", "quick", "workers", "slam", "slam_preset", "slam_config")
     settings = {k: str(v) for k, v in vars(args).items() if k not in skip}
     settings["slam_config"] = "{}"
     if args.map_poses == "slam":  # the SLAM run's configuration
@@ -238,8 +266,6 @@ def run_mazes(mazes, args) -> tuple[list, list, list]:
 
 def _maze_job(ms: int, pairs, args, settings: dict) -> tuple[list, list]:
     """:func:`run_maze` in a worker (one torch thread), its rows saved to ``OUT/mazes``."""
-    import torch
-
     torch.set_num_threads(1)
     runs, targets = run_maze(ms, pairs, args)
     f = args.out / "mazes" / f"m{ms}.json"
@@ -250,31 +276,35 @@ def _maze_job(ms: int, pairs, args, settings: dict) -> tuple[list, list]:
 
 
 # ------------------------------------------------------------------------------- summaries
-def headline(runs: list[dict], map_poses: str) -> dict:
-    """The sample's verdicts (noise-free executions): observation targets failed in observation
-    space; failed by position over the runs whose target has no look-alike within
-    ``--alias-tol`` (and how many runs that leaves); the learned planner's pose targets reached
-    over the pairs the ground-truth planner solves, under the name of the map it planned in."""
-    obs = [r for r in runs if r["planner"] == "learned_obs"]
-    clear = [r for r in obs if r["target_lookalikes_tol"] == 0]
-    gt = {_pair(r) for r in runs if r["planner"] == "ground_truth" and r["success_noiseless"]}
-    pose = [r["success_noiseless"] for r in runs if r["planner"] == "learned" and _pair(r) in gt]
-    pose_ratio = _mean(pose)
+def summarise(runs: list[dict], targets: list[dict], args, wall_s: float, resumed) -> dict:
+    """The summary of ``summary.json``: the headline figures first, then the run's settings,
+    the success curves and other ratios, the per-maze counts and the inverse model's figures."""
     return {
-        "obs_failure_ratio_obs_space": _mean([not r["scan_success_noiseless"] for r in obs]),
-        "obs_failure_ratio_position_unaliased": _mean([not r["success_noiseless"] for r in clear]),
-        "unaliased_targets": len(clear),
-        "pose_success_ratio_known_pose_map": pose_ratio if map_poses == "true" else None,
-        "pose_success_ratio_slam_map": pose_ratio if map_poses == "slam" else None,
+        **headline(runs, args.map_poses),
+        "wall_s": wall_s,
+        "map_poses": args.map_poses,
+        "pairs": len(runs) // len(PLANNERS),
+        "resumed_mazes": resumed,
+        "args": {k: str(v) for k, v in vars(args).items() if k != "slam"},
+        # --map-poses slam: the SLAM run's preset and configuration (None: no SLAM ran)
+        "slam_preset": args.slam_preset if args.map_poses == "slam" else None,
+        "slam_config": args.slam.to_dict() if args.map_poses == "slam" else None,
+        **details(runs, args),
+        "per_maze": miss_counts(runs),
+        "inverse": _inverse_summary(targets, args.alias_tol),
     }
 
 
-def _pair(r: dict) -> tuple[int, int, int]:
-    return r["maze"], r["start"], r["goal"]
-
-
-def _mean(xs) -> float | None:
-    return float(np.mean(xs)) if len(xs) else None
+def headline(runs: list[dict], map_poses: str) -> dict:
+    """The sample's verdicts (:func:`~pyro_slam.planning.evaluation.success_ratios`), the pose
+    targets' ratio under the name of the map the learned planner planned in."""
+    ratios = success_ratios(runs)
+    pose = ratios.pop("pose_success_ratio")
+    return {
+        **ratios,
+        "pose_success_ratio_known_pose_map": pose if map_poses == "true" else None,
+        "pose_success_ratio_slam_map": pose if map_poses == "slam" else None,
+    }
 
 
 def details(runs: list[dict], args) -> dict:
@@ -288,16 +318,19 @@ def details(runs: list[dict], args) -> dict:
         rs = [r for r in runs if r["planner"] == name]
         for nz in ("noiseless", "noisy"):
             out[f"{name}_{nz}"] = [
-                _mean([r[f"success_{nz}"] and r["expansions"] <= b for r in rs]) for b in budgets
+                mean_or_none([r[f"success_{nz}"] and r["expansions"] <= b for r in rs])
+                for b in budgets
             ]
-        out[f"{name}_found"] = _mean([r["found"] for r in rs])
+        out[f"{name}_found"] = mean_or_none([r["found"] for r in rs])
     obs = [r for r in runs if r["planner"] == "learned_obs"]
     gobs = [r for r in runs if r["planner"] == "ground_truth_obs"]
-    out["obs_failure_ratio_position"] = _mean([not r["success_noiseless"] for r in obs])
-    out["obs_failure_ratio_obs_space_noisy"] = _mean([not r["scan_success_noisy"] for r in obs])
+    out["obs_failure_ratio_position"] = mean_or_none([not r["success_noiseless"] for r in obs])
+    out["obs_failure_ratio_obs_space_noisy"] = mean_or_none(
+        [not r["scan_success_noisy"] for r in obs]
+    )
     # how the verdict depends on the tolerance (the model's sigma_E is 0.1)
     out["obs_failure_ratio_obs_space_by_tol"] = {
-        f"{tol:g}": _mean([not _reached(r, tol) for r in obs])
+        f"{tol:g}": mean_or_none([not reached_within(r, tol) for r in obs])
         for tol in sorted({0.0025, 0.005, args.alias_tol})
     }
     # the search's own resolution: where the agent did reach the target, the smallest scan
@@ -310,66 +343,17 @@ def details(runs: list[dict], args) -> dict:
     # the upper bound: the truth's inverse (its best-matching place) and planner; and what any
     # inverse reading only the scan can expect: the runs whose target has an exact look-alike
     # more than 0.05 away, the failure of a uniform choice among the exact look-alikes
-    out["ground_truth_obs_failure_ratio_position"] = _mean(
+    out["ground_truth_obs_failure_ratio_position"] = mean_or_none(
         [not r["success_noiseless"] for r in gobs]
     )
-    out["ground_truth_obs_failure_ratio_obs_space"] = _mean(
+    out["ground_truth_obs_failure_ratio_obs_space"] = mean_or_none(
         [not r["scan_success_noiseless"] for r in gobs]
     )
-    out["obs_target_aliased_exact"] = _mean([r["target_lookalikes_exact"] > 0 for r in obs])
-    out["obs_oracle_expected_failure"] = _mean([r["target_oracle_failure"] for r in obs])
+    out["obs_target_aliased_exact"] = mean_or_none([r["target_lookalikes_exact"] > 0 for r in obs])
+    out["obs_oracle_expected_failure"] = mean_or_none([r["target_oracle_failure"] for r in obs])
     for name, rs in (("learned_obs", obs), ("ground_truth_obs", gobs)):
         clear = [not r["success_noiseless"] for r in rs if r["target_lookalikes_exact"] == 0]
-        out[f"{name}_failure_ratio_position_unaliased_exact"] = _mean(clear)
-    return out
-
-
-def _reached(r: dict, tol: float) -> bool:
-    """A noise-free observation run reached its target's view within ``tol``."""
-    return r["success_noiseless"] or (r["found"] and r["scan_diff_noiseless"] < tol)
-
-
-def _counts(runs: list[dict]) -> dict[str, dict[str, int]]:
-    """Per maze and over all (``"all"``), the counts behind the summary's ratios (noise-free
-    runs): pairs, ground-truth-solved pairs and the learned planner's successes on them,
-    observation targets missed by position and in observation space (``scan_success``), and
-    the latter by cause: ``not_found`` (no plan), ``wrong_goal`` (a plan to an inferred goal
-    more than 0.05 from the target, ending where the target's view is not), ``execution`` (the
-    goal was within 0.05 of the target, the executed controls ended elsewhere); observation
-    runs whose target has no look-alike within ``--alias-tol`` and the misses by position among
-    them, runs whose target has an exact look-alike place more than 0.05 away, and the
-    ground-truth observation-target planner's misses by position."""
-    out = {}
-    for ms in sorted({r["maze"] for r in runs}):
-        by = {
-            p: {(r["start"], r["goal"]): r for r in runs if r["maze"] == ms and r["planner"] == p}
-            for p in PLANNERS
-        }
-        solved = [k for k, r in by["ground_truth"].items() if r["success_noiseless"]]
-        obs = by["learned_obs"].values()
-        missed = [r for r in obs if not r["scan_success_noiseless"]]
-        clear = [r for r in obs if r["target_lookalikes_tol"] == 0]
-        out[str(ms)] = {
-            "pairs": len(by["ground_truth"]),
-            "gt_solved": len(solved),
-            "learned_on_gt_solved": sum(by["learned"][k]["success_noiseless"] for k in solved),
-            "obs_missed": sum(not r["success_noiseless"] for r in obs),
-            "obs_missed_scan": len(missed),
-            "obs_missed_scan_not_found": sum(not r["found"] for r in missed),
-            "obs_missed_scan_wrong_goal": sum(
-                r["found"] and r["inference_error"] > 0.05 for r in missed
-            ),
-            "obs_missed_scan_execution": sum(
-                r["found"] and r["inference_error"] <= 0.05 for r in missed
-            ),
-            "obs_unaliased": len(clear),
-            "obs_unaliased_missed": sum(not r["success_noiseless"] for r in clear),
-            "obs_target_aliased": sum(r["target_lookalikes_exact"] > 0 for r in obs),
-            "gt_obs_missed": sum(
-                not r["success_noiseless"] for r in by["ground_truth_obs"].values()
-            ),
-        }
-    out["all"] = {k: sum(c[k] for c in out.values()) for k in next(iter(out.values()), {})}
+        out[f"{name}_failure_ratio_position_unaliased_exact"] = mean_or_none(clear)
     return out
 
 
@@ -412,9 +396,6 @@ def maze_pairs(pairs_limit: int, seed: int) -> dict[int, list[tuple[int, int]]]:
     """The (start, target) grid-point pairs of every test and tuning maze: all ordered pairs,
     or ``pairs_limit`` of them drawn at random. Drawn for all mazes in turn from one ``seed``
     (the test mazes first), so a maze's pairs do not depend on which mazes a run computes."""
-    from pyro_slam.planning import free_grid
-    from simulators import make_maze
-
     rng = np.random.default_rng(seed)
     out = {}
     for ms in MAZE_SEEDS + TUNING_SEEDS:
@@ -426,24 +407,12 @@ def maze_pairs(pairs_limit: int, seed: int) -> dict[int, list[tuple[int, int]]]:
     return out
 
 
-def observation_targets(pts: np.ndarray, ms: int, seed: int) -> np.ndarray:
-    """The observation targets of maze ``ms``: every grid point of ``pts [n, 2]``, two random
-    headings each, ``[2 n, 3]`` (own rng: the pairs drawn in main stay those of the
-    pose-to-pose runs)."""
-    trng = np.random.default_rng([seed, ms])
-    return np.concatenate([np.repeat(pts, 2, 0), trng.uniform(-np.pi, np.pi, (2 * len(pts), 1))], 1)
-
-
 # ------------------------------------------------------------------------------- one maze
 def run_maze(ms: int, pairs, args) -> tuple[list, list]:
     """Fit the learned model of maze ``ms``, evaluate q(z|x), plan and execute ``pairs``; the
     first pair's observation-target run is drawn to ``OUT/plots/m<ms>_obs.png``.
 
     Returns the rows of ``runs.json`` and ``targets.json`` for this maze."""
-    from tqdm.auto import tqdm
-
-    from simulators import make_maze
-
     maze = make_maze("moderate-medium", ms)
     m = _fit_models(maze, ms, args)
     targets, goals = _targets(maze, ms, m, args)
@@ -457,38 +426,42 @@ def run_maze(ms: int, pairs, args) -> tuple[list, list]:
 def _fit_models(maze, ms: int, args) -> SimpleNamespace:
     """The learned environment of maze ``ms`` (emission and ``q(M)`` fitted at the true or the
     SLAM poses of the mapping traversal), its inverse model, and the truth."""
-    from pyro_slam.planning import GroundTruthEnv, free_grid, learned_env
-    from pyro_slam.planning.inverse import fit_inverse
-
     pts = free_grid(maze)
     tour = pts if args.cover_grid else None
     traversal, poses, slam_err = None, None, None
     if args.map_poses == "slam":
         traversal, poses, slam_err = _slam_poses(maze, ms, tour, args)
     lenv, _, traversal = learned_env(
-        maze, traversal=traversal, poses=poses, steps=args.traversal_steps,
-        fit_steps=args.fit_steps, emission_steps=args.emission_steps, n_world=args.n_world,
-        max_std=args.max_std, tour=tour, hit_margin=args.hit_margin,
-    )  # fmt: skip
+        maze,
+        traversal=traversal,
+        poses=poses,
+        steps=args.traversal_steps,
+        fit_steps=args.fit_steps,
+        emission_steps=args.emission_steps,
+        n_world=args.n_world,
+        max_std=args.max_std,
+        tour=tour,
+        hit_margin=args.hit_margin,
+    )
     t = time.perf_counter()
     inv = fit_inverse(
         lenv, traversal, steps=args.inverse_steps, sleep_steps=args.sleep_steps, seed=ms
     )
     return SimpleNamespace(
-        pts=pts, lenv=lenv, gt=GroundTruthEnv(maze), inv=inv, inv_fit_s=time.perf_counter() - t,
-        traversal_steps=len(traversal.poses), slam_err=slam_err,
-    )  # fmt: skip
+        pts=pts,
+        lenv=lenv,
+        gt=GroundTruthEnv(maze),
+        inv=inv,
+        inv_fit_s=time.perf_counter() - t,
+        traversal_steps=len(traversal.poses),
+        slam_err=slam_err,
+    )
 
 
 def _targets(maze, ms: int, m, args) -> tuple[list, SimpleNamespace]:
     """The observation targets of maze ``ms`` (:func:`observation_targets`), their true scans,
     the inverse model's answers and the truth's places. Returns the rows of ``targets.json`` and
     ``(poses [2 n, 3], scans [2 n, B], mode [2 n, 3], places)`` for the runs."""
-    import torch
-
-    from pyro_slam.metrics import heading_error
-    from pyro_slam.planning import lookalikes
-
     tposes = observation_targets(m.pts, ms, args.seed)  # [2 * 25, 3]
     tscans = m.gt.scan(tposes)  # [2 * 25, B]
     t = time.perf_counter()
@@ -509,34 +482,46 @@ def _targets(maze, ms: int, m, args) -> tuple[list, SimpleNamespace]:
         pz, pd = places[i]  # [k, 3], [k]
         n_far, oracle_failure = lookalikes(pz, pd, tp, args.exact_tol)
         n_tol = lookalikes(pz, pd, tp, args.alias_tol)[0]  # look-alikes within --alias-tol
-        rows.append({
-            "maze": ms, "point": i // 2, "pose": tp.tolist(), "mode": mode[i].tolist(),
-            "error_mode": float(np.hypot(*(mode[i, :2] - tp[:2]))),
-            "error_encoder": float(np.hypot(*(enc[i, :2] - tp[:2]))),
-            "heading_error_mode": float(heading_error(mode[i, 2], tp[2])),
-            "lookalikes_tol": n_tol, "aliased": n_tol > 0,
-            "lookalikes_exact": n_far,
-            # a uniform choice among the exact look-alike places misses the target this often
-            "oracle_failure": oracle_failure,
-            "gt_inverse": pz[0].tolist(),
-            "gt_inverse_error": float(np.hypot(*(pz[0, :2] - tp[:2]))),
-            "gt_inverse_diff": float(pd[0]), "true_scan_diff_at_mode": float(mode_diff[i]),
-            "ll_mode": float(ll_mode[i]), "ll_true_refined": float(ll_true[i]),
-            "fit_s": m.inv_fit_s, "traversal_steps": m.traversal_steps,
-            "slam_error": m.slam_err, "infer_s": infer_s,
-        })  # fmt: skip
+        rows.append(
+            {
+                "maze": ms,
+                "point": i // 2,
+                "pose": tp.tolist(),
+                "mode": mode[i].tolist(),
+                "error_mode": float(np.hypot(*(mode[i, :2] - tp[:2]))),
+                "error_encoder": float(np.hypot(*(enc[i, :2] - tp[:2]))),
+                "heading_error_mode": float(metrics.heading_error(mode[i, 2], tp[2])),
+                "lookalikes_tol": n_tol,
+                "aliased": n_tol > 0,
+                "lookalikes_exact": n_far,
+                # a uniform choice among the exact look-alike places misses the target this often
+                "oracle_failure": oracle_failure,
+                "gt_inverse": pz[0].tolist(),
+                "gt_inverse_error": float(np.hypot(*(pz[0, :2] - tp[:2]))),
+                "gt_inverse_diff": float(pd[0]),
+                "true_scan_diff_at_mode": float(mode_diff[i]),
+                "ll_mode": float(ll_mode[i]),
+                "ll_true_refined": float(ll_true[i]),
+                "fit_s": m.inv_fit_s,
+                "traversal_steps": m.traversal_steps,
+                "slam_error": m.slam_err,
+                "infer_s": infer_s,
+            }
+        )
     return rows, SimpleNamespace(poses=tposes, scans=tscans.numpy(), mode=mode, places=places)
 
 
 def _run_pair(maze, ms: int, pair, m, targets, tg, args, plot: Path | None) -> list[dict]:
     """Plan and execute pair ``(a, b)`` with each of :data:`PLANNERS`; the observation target is
     point ``b`` seen at its first heading. ``plot``: draw the ``learned_obs`` run there."""
-    from pyro_slam.planning import plan
-
     a, b = pair
     start = np.array([*m.pts[a], 0.0])
-    goals = {"learned": m.pts[b], "ground_truth": m.pts[b], "learned_obs": tg.mode[2 * b, :2],
-             "ground_truth_obs": tg.places[2 * b][0][0, :2]}  # fmt: skip
+    goals = {
+        "learned": m.pts[b],
+        "ground_truth": m.pts[b],
+        "learned_obs": tg.mode[2 * b, :2],
+        "ground_truth_obs": tg.places[2 * b][0][0, :2],
+    }
     envs = {"learned": m.lenv, "ground_truth": m.gt}
     if args.start_scan:  # the agent's own scan at the start: trusted free space
         envs["learned"] = m.lenv.with_observation(start, m.gt.scan(start)[0].numpy())
@@ -544,21 +529,44 @@ def _run_pair(maze, ms: int, pair, m, targets, tg, args, plot: Path | None) -> l
     for name in PLANNERS:
         goal = goals[name]
         t = time.perf_counter()
-        r = plan(envs[name.removesuffix("_obs")], start, goal,
-                 max_expansions=args.max_expansions, check_path=args.check_path)  # fmt: skip
-        row = {"maze": ms, "start": a, "goal": b, "planner": name, "found": r.success,
-               "expansions": r.expansions, "steps": len(r.controls),
-               "plan_s": time.perf_counter() - t}  # fmt: skip
+        r = plan(
+            envs[name.removesuffix("_obs")],
+            start,
+            goal,
+            max_expansions=args.max_expansions,
+            check_path=args.check_path,
+        )
+        row = {
+            "maze": ms,
+            "start": a,
+            "goal": b,
+            "planner": name,
+            "found": r.success,
+            "expansions": r.expansions,
+            "steps": len(r.controls),
+            "plan_s": time.perf_counter() - t,
+        }
         obs = name.endswith("_obs")
         if obs:
             t = targets[2 * b]
-            row.update(target_heading=float(tg.poses[2 * b, 2]),
-                       inference_error=float(np.hypot(*(goal - m.pts[b]))),
-                       target_lookalikes_tol=t["lookalikes_tol"],
-                       target_lookalikes_exact=t["lookalikes_exact"],
-                       target_oracle_failure=t["oracle_failure"])  # fmt: skip
-        executed = _execute(maze, m, start, r, m.pts[b], tg.scans[2 * b] if obs else None,
-                            row, args.alias_tol, seed=a * 100 + b)  # fmt: skip
+            row.update(
+                target_heading=float(tg.poses[2 * b, 2]),
+                inference_error=float(np.hypot(*(goal - m.pts[b]))),
+                target_lookalikes_tol=t["lookalikes_tol"],
+                target_lookalikes_exact=t["lookalikes_exact"],
+                target_oracle_failure=t["oracle_failure"],
+            )
+        executed = _execute(
+            maze,
+            m,
+            start,
+            r,
+            m.pts[b],
+            tg.scans[2 * b] if obs else None,
+            row,
+            args.alias_tol,
+            seed=a * 100 + b,
+        )
         if plot is not None and name == "learned_obs":
             _plot_run(maze, m.lenv, r, executed, tg.poses[2 * b], goal, row, plot)
         rows.append(row)
@@ -568,30 +576,26 @@ def _run_pair(maze, ms: int, pair, m, targets, tg, args, plot: Path | None) -> l
 
 def _execute(maze, m, start, r, target, tscan, row: dict, alias_tol: float, seed: int):
     """Execute plan ``r`` without and with actuation noise; adds each execution's error to the
-    true ``target [2]``, success (within 0.05) and collisions to ``row``, and for an observation
-    target (``tscan [B]``, its true scan) the verdict in observation space
-    (:func:`scan_reached`). Returns the noise-free executed poses ``[T + 1, 3]``."""
-    from pyro_slam.planning import execute
-
+    true ``target [2]``, success (:func:`~pyro_slam.planning.evaluation.pose_reached`) and
+    collisions to ``row``, and for an observation target (``tscan [B]``, its true scan) the
+    verdict in observation space
+    (:func:`~pyro_slam.planning.evaluation.observation_reached`). Returns the noise-free
+    executed poses ``[T + 1, 3]``."""
     out = None
     for nz, noise in (("noiseless", 0), ("noisy", None)):
         ex, coll = execute(maze, start, r.controls, noise=noise, seed=seed)
         out = ex if out is None else out
-        err = float(np.hypot(*(ex[-1, :2] - target)))
-        row[f"error_{nz}"] = err
-        row[f"success_{nz}"] = bool(r.success and err <= 0.05)
+        ok, err = pose_reached(r.success, ex[-1], target)
+        row[f"error_{nz}"], row[f"success_{nz}"] = err, ok
         row[f"collisions_{nz}"] = int(coll)
         if tscan is not None:  # the place it reached looks like the target
-            seen, d = scan_reached(m.gt, ex[-1, :2], tscan, alias_tol)
-            row[f"scan_diff_{nz}"] = d
-            row[f"scan_success_{nz}"] = bool(r.success and (row[f"success_{nz}"] or seen))
+            ok, d = observation_reached(r.success, ex[-1], target, m.gt, tscan, alias_tol)
+            row[f"scan_diff_{nz}"], row[f"scan_success_{nz}"] = d, ok
     return out
 
 
 def _plot_run(maze, lenv, r, executed, target, goal, row: dict, path: Path) -> None:
     """One observation-target run: its plan over the learned belief next to its execution."""
-    from pyro_slam.plotting import plot_navigation
-
     path.parent.mkdir(parents=True, exist_ok=True)
     verdict = "reached" if row["scan_success_noiseless"] else "missed"
     title = (
@@ -607,14 +611,14 @@ def _slam_poses(maze, ms: int, tour, args):
     summary)``; the traversal is the one :func:`~pyro_slam.planning.learned_env` would simulate
     (same seed). The poses are kept in ``OUT/mazes/slam_m<ms>.json`` and reused by runs with
     the same configuration and traversal."""
-    from pyro_slam import metrics
-    from pyro_slam.slam import SLAM, path_integration
-    from simulators import simulate_traversal
-
     seed = 1
     tr = simulate_traversal(maze, steps=args.traversal_steps, seed=seed, tour=tour)
-    key = {"slam_config": args.slam.to_dict(), "steps": len(tr.poses), "seed": seed,
-           "cover_grid": tour is not None}  # fmt: skip
+    key = {
+        "slam_config": args.slam.to_dict(),
+        "steps": len(tr.poses),
+        "seed": seed,
+        "cover_grid": tour is not None,
+    }
     key = json.loads(json.dumps(key))  # tuples as lists, as read back
     f = args.out / "mazes" / f"slam_m{ms}.json"
     saved = json.loads(f.read_text()) if f.exists() else None
@@ -624,54 +628,20 @@ def _slam_poses(maze, ms: int, tour, args):
     est = slam.run("online", progress=False)["mean"]  # [T, 3]
     err = metrics.localisation_error(est, tr.poses)  # [T]
     pi = metrics.localisation_error(path_integration(tr, slam.model.transition), tr.poses)
-    summary = {"final": float(err[-1]), "mean": float(err.mean()), "max": float(err.max()),
-               "pi_final": float(pi[-1]), "pi_mean": float(pi.mean())}  # fmt: skip
+    summary = {
+        "final": float(err[-1]),
+        "mean": float(err.mean()),
+        "max": float(err.max()),
+        "pi_final": float(pi[-1]),
+        "pi_mean": float(pi.mean()),
+    }
     est = np.asarray(est)
     f.write_text(json.dumps({"key": key, "poses": est.tolist(), "summary": summary}))
     return tr, est, summary
 
 
-# ---------------------------------------------------------------------- observation space
-def scan_reached(gt_env, xy, scan, tol: float = 0.01, radius: float = 0.05):
-    """The verdict in observation space for an agent that stopped at position ``xy [2]``: did
-    it stop within ``radius`` of a place whose true scan, at some heading, differs from the
-    target's true ``scan [B]`` by less than ``tol`` (mean absolute range difference)? A target
-    seen identically at several places is reached at any of them. Returns ``(reached, the
-    smallest difference)`` (:func:`scan_match`)."""
-    d = scan_match(gt_env, xy, scan, radius=radius)
-    return d < tol, d
-
-
-def scan_match(gt_env, xy, scan, radius=0.05, spacing=0.01, headings=360) -> float:
-    """Smallest mean absolute range difference between a true ``scan [B]`` and the true scans
-    at the wall-free positions within ``radius`` of position ``xy [2]`` (a ``spacing`` grid
-    around ``xy``, and ``xy`` itself) at ``headings`` evenly spaced headings (the agent may
-    turn in place at the end). Each position is ray-cast once in the ``headings`` directions
-    (a multiple of the beam count): every heading's scan is a rotation of those rays."""
-    from simulators import raycast
-    from simulators.world import point_segment_distance
-
-    B = len(scan)
-    if headings % B:
-        raise ValueError(f"headings={headings} must be a multiple of the {B} beams")
-    off = np.arange(-radius, radius + 1e-9, spacing)
-    pts = np.array([(dx, dy) for dx in off for dy in off if np.hypot(dx, dy) <= radius])
-    pts = np.concatenate([np.zeros((1, 2)), pts]) + np.asarray(xy)[None]  # [P, 2]
-    walls = gt_env.maze.walls
-    pts = pts[[point_segment_distance(q, walls).min() > 1e-3 for q in pts]]
-    ang = 2 * np.pi * np.arange(headings) / headings - np.pi  # [H]
-    rays = raycast(walls, pts, np.broadcast_to(ang, (len(pts), headings)),
-                   gt_env.lidar.max_range)  # fmt: skip  # [P, H]
-    beams = (np.arange(headings)[:, None] + (headings // B) * np.arange(B)) % headings  # [H, B]
-    return float(np.abs(rays[:, beams] - np.asarray(scan)).mean(-1).min())
-
-
 def _plot(s, path):
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     fig, ax = plt.subplots(figsize=(6, 4))
     for name, c in (
         ("learned", "tab:blue"),

@@ -120,68 +120,58 @@ def run(budget: Budget, out: Path, progress: bool, seed: int = 0) -> dict:
         beam = pfnet.evaluate(bl.BeamModelPF(**beam_params), test.with_sensor("lidar"), K=300)
         rm[f"Beam-model PF, K=300|{setting}|lidar"] = beam
         for sensor in SENSORS:
-            tag = f"{setting.replace(' ', '_')}-{sensor}"
             tr = train.with_sensor(sensor, fresh_init=True)
             te = test.with_sensor(sensor)
             ocfg = train.obs_model_config(sensor)
-            # PF-net
-            torch.manual_seed(seed)
-            om = pfnet.ObservationModel(ocfg)
-            pre = out / f"pfnet-{tag}-pretrain.pt"
-            t0 = time.monotonic()
-            if pre.exists():
-                om.load_state_dict(load_tensors(pre, "a PF-net observation model"))
-            else:
-                pfnet.pretrain_observation_model(
-                    om, tr, budget.pretrain_steps, seed=seed, progress=progress
-                )
-                torch.save(om.state_dict(), pre)
-            net = pfnet.PFNet(om, resample="ess", alpha=0.5)
-            secs = time.monotonic() - t0
-            secs += fit(
-                net,
-                tr,
-                budget.pfnet_epochs,
-                budget,
-                out / f"pfnet-{tag}.pt",
-                3e-4,
-                f"PF-net {tag}",
-                progress,
+            learned_filters(results, (setting, sensor), tr, te, ocfg, budget, out, progress, seed)
+            row = ", ".join(
+                f"{key.split('|')[0]}: {v:.1f}"
+                for key, v in rm.items()
+                if key.endswith(f"|{setting}|{sensor}")
             )
-            results["train_seconds"][f"PF-net|{tag}"] = secs
-            for K in budget.K_eval:
-                rm[f"PF-net, K={K}|{setting}|{sensor}"] = pfnet.evaluate(net, te, K=K)
-            # histogram filter network
-            torch.manual_seed(seed)
-            hf = bl.HistogramFilterNet(ocfg)
-            results["train_seconds"][f"HF|{tag}"] = fit(
-                hf, tr, budget.hf_epochs, budget, out / f"hf-{tag}.pt", 1e-3, f"HF {tag}", progress
-            )
-            rm[f"Histogram filter network|{setting}|{sensor}"] = pfnet.evaluate(hf, te)
-            # LSTM network
-            torch.manual_seed(seed)
-            lstm = bl.LSTMNet(ocfg)
-            results["train_seconds"][f"LSTM|{tag}"] = fit(
-                lstm,
-                tr,
-                budget.lstm_epochs,
-                budget,
-                out / f"lstm-{tag}.pt",
-                1e-3,
-                f"LSTM {tag}",
-                progress,
-            )
-            rm[f"LSTM network|{setting}|{sensor}"] = pfnet.evaluate(lstm, te)
-            print(
-                f"[{setting} / {sensor}] "
-                + ", ".join(
-                    f"{key.split('|')[0]}: {v:.1f}"
-                    for key, v in rm.items()
-                    if key.endswith(f"|{setting}|{sensor}")
-                ),
-                flush=True,
-            )
+            print(f"[{setting} / {sensor}] {row}", flush=True)
     return results
+
+
+def learned_filters(results, case, tr, te, ocfg, budget, out, progress, seed) -> None:
+    """Train PF-net, the histogram filter network and the LSTM network on ``tr`` (checkpoints
+    under ``out``) for ``case`` ``(setting, sensor)``, and add their RMSE on ``te`` and their
+    training times to ``results``."""
+    setting, sensor = case
+    rm, secs_of = results["rmse_cm"], results["train_seconds"]
+    tag = f"{setting.replace(' ', '_')}-{sensor}"
+    # PF-net
+    torch.manual_seed(seed)
+    om = pfnet.ObservationModel(ocfg)
+    pre = out / f"pfnet-{tag}-pretrain.pt"
+    t0 = time.monotonic()
+    if pre.exists():
+        om.load_state_dict(load_tensors(pre, "a PF-net observation model"))
+    else:
+        pfnet.pretrain_observation_model(
+            om, tr, budget.pretrain_steps, seed=seed, progress=progress
+        )
+        torch.save(om.state_dict(), pre)
+    net = pfnet.PFNet(om, resample="ess", alpha=0.5)
+    secs = time.monotonic() - t0
+    ckpt = out / f"pfnet-{tag}.pt"
+    secs += fit(net, tr, budget.pfnet_epochs, budget, ckpt, 3e-4, f"PF-net {tag}", progress)
+    secs_of[f"PF-net|{tag}"] = secs
+    for K in budget.K_eval:
+        rm[f"PF-net, K={K}|{setting}|{sensor}"] = pfnet.evaluate(net, te, K=K)
+    # histogram filter network
+    torch.manual_seed(seed)
+    hf = bl.HistogramFilterNet(ocfg)
+    ckpt = out / f"hf-{tag}.pt"
+    secs_of[f"HF|{tag}"] = fit(hf, tr, budget.hf_epochs, budget, ckpt, 1e-3, f"HF {tag}", progress)
+    rm[f"Histogram filter network|{setting}|{sensor}"] = pfnet.evaluate(hf, te)
+    # LSTM network
+    torch.manual_seed(seed)
+    lstm = bl.LSTMNet(ocfg)
+    ckpt = out / f"lstm-{tag}.pt"
+    epochs = budget.lstm_epochs
+    secs_of[f"LSTM|{tag}"] = fit(lstm, tr, epochs, budget, ckpt, 1e-3, f"LSTM {tag}", progress)
+    rm[f"LSTM network|{setting}|{sensor}"] = pfnet.evaluate(lstm, te)
 
 
 def markdown(results: dict, K_eval) -> str:

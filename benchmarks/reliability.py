@@ -30,8 +30,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks._common import add_config_args, slam_config
-from pyro_slam.slam import checkpoint
+from benchmarks._common import add_config_args, filter_run, filter_setup, slam_config
+from pyro_slam.data import load
+from pyro_slam.slam import SLAM, checkpoint
+from simulators import simulate_traversal
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -40,9 +42,6 @@ SMALL = {"filter": {"particles": 64}, "training": {"particles": 8, "chunks": 4, 
 
 
 def bad_input_cases(tmp: Path) -> list[dict]:
-    from pyro_slam.data import load
-    from simulators import simulate_traversal
-
     tr = simulate_traversal("simple-small", steps=20, seed=0)
     good = tr.save(tmp / "good.npz")
     d = dict(np.load(good))
@@ -80,9 +79,6 @@ def bad_input_cases(tmp: Path) -> list[dict]:
 
 
 def nan_free(config, seeds: int, steps: int) -> dict:
-    from pyro_slam.slam import SLAM
-    from simulators import simulate_traversal
-
     tr = simulate_traversal("moderate-medium", steps=steps, seed=1)
     finite = []
     for s in range(seeds):
@@ -112,9 +108,10 @@ np.savez({out!r}, mean=res["mean"], map_loc=res["map_loc"], map_scale=res["map_s
 def kill_resume(config, tmp: Path, steps: int, kill_after: float) -> dict:
     def script(ckpt, out, resume):
         return textwrap.dedent(
-            SCRIPT.format(steps=steps, config=config.to_dict(), ckpt=str(ckpt), out=str(out),
-                          resume=resume)
-        )  # fmt: skip
+            SCRIPT.format(
+                steps=steps, config=config.to_dict(), ckpt=str(ckpt), out=str(out), resume=resume
+            )
+        )
 
     ref_out, res_out, ckpt = tmp / "ref.npz", tmp / "res.npz", tmp / "ckpt.pt"
     py = [sys.executable, "-c"]
@@ -131,18 +128,25 @@ def kill_resume(config, tmp: Path, steps: int, kill_after: float) -> dict:
     subprocess.run([*py, script(ckpt, res_out, True)], check=True, cwd=REPO)
     a, b = np.load(ref_out), np.load(res_out)
     diff = max(float(np.abs(a[k] - b[k]).max()) for k in ("mean", "map_loc", "map_scale"))
-    return {"steps": steps, "killed_with": "SIGKILL", "killed_returncode": proc.returncode,
-            "resumed_from_step": t_ckpt, "max_abs_diff": diff}  # fmt: skip
+    return {
+        "steps": steps,
+        "killed_with": "SIGKILL",
+        "killed_returncode": proc.returncode,
+        "resumed_from_step": t_ckpt,
+        "max_abs_diff": diff,
+    }
 
 
 def memory(long_steps: int, particles: int) -> dict:
-    from benchmarks.filter_speed import ours, setup
-
-    model, M, obs, ctl, init = setup(3000)
+    model, M, obs, ctl, init = filter_setup(3000)
     marks = (long_steps // 10, long_steps)
-    rate, rss = ours(model, M, obs, ctl, init, particles, long_steps, checkpoints=marks)
-    return {"steps": long_steps, "particles": particles, "steps_per_s": round(rate, 1),
-            **{f"peak_rss_mib_at_{k}": round(v, 1) for k, v in rss.items()}}  # fmt: skip
+    rate, rss = filter_run(model, M, obs, ctl, init, particles, long_steps, checkpoints=marks)
+    return {
+        "steps": long_steps,
+        "particles": particles,
+        "steps_per_s": round(rate, 1),
+        **{f"peak_rss_mib_at_{k}": round(v, 1) for k, v in rss.items()},
+    }
 
 
 def main(argv=None) -> dict:

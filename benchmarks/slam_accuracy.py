@@ -43,33 +43,43 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import multiprocessing as mp
 import time
 from pathlib import Path
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
-from benchmarks._common import add_config_args, check_out_config, parse_maze_seeds, slam_config
+from benchmarks._common import (
+    MAZE_SEEDS,
+    TUNING_SEEDS,
+    add_config_args,
+    check_out_config,
+    parse_maze_seeds,
+    slam_config,
+)
+from benchmarks._diagnostics import pin_cache
+from pyro_slam import metrics
+from pyro_slam.plotting import plot_error_bands
+from pyro_slam.slam import SLAM, path_integration
+from simulators import simulate_traversal
+from simulators.maze import make_maze
+from simulators.world import LidarConfig
 
-MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
-# held-out moderate-medium mazes for screening options (never in the test figures)
-TUNING_SEEDS = (991, 992, 993, 994, 995, 996)
 
-
-def _traversal(maze_seed: int, seed: int, steps: int, per_maze_noise: bool = False,
-               world: dict | None = None):  # fmt: skip
+def _traversal(
+    maze_seed: int, seed: int, steps: int, per_maze_noise: bool = False, world: dict | None = None
+):
     """``world``: ``{"lidar": LidarConfig fields, "rotation": rad}`` (None: the paper's)."""
-    from simulators import simulate_traversal
-    from simulators.maze import make_maze
-    from simulators.world import LidarConfig
-
     world = world or {}
     maze = make_maze("moderate-medium", maze_seed)
     noise_seed = (seed, maze_seed) if per_maze_noise else None  # None: the noise follows seed
-    return simulate_traversal(maze, steps=steps, seed=seed, noise_seed=noise_seed,
-                              lidar=LidarConfig(**world.get("lidar", {})),
-                              rotation=world.get("rotation", 0.0))  # fmt: skip
+    lidar = LidarConfig(**world.get("lidar", {}))
+    rotation = world.get("rotation", 0.0)
+    return simulate_traversal(
+        maze, steps=steps, seed=seed, noise_seed=noise_seed, lidar=lidar, rotation=rotation
+    )
 
 
 def _add_world_args(p: argparse.ArgumentParser) -> None:
@@ -99,13 +109,7 @@ def _world(p: argparse.ArgumentParser, args) -> tuple[dict, str]:
 def run_one(job) -> dict:
     """One SLAM run (in a worker process, 1 thread); returns errors over time."""
     mode, maze_seed, seed, steps, config, map_poses, path, per_maze_noise, world = job
-    import torch
-
     torch.set_num_threads(1)
-    from benchmarks._diagnostics import pin_cache
-    from pyro_slam import metrics
-    from pyro_slam.slam import SLAM, path_integration
-
     tr = _traversal(maze_seed, seed, steps, per_maze_noise, world)
     t0 = time.perf_counter()
     slam = SLAM(tr, config, seed=seed)
@@ -126,15 +130,41 @@ def run_one(job) -> dict:
         "std": np.asarray(res["std"], dtype=np.float32),  # [T, 3] the filter's posterior std
     }
     if slam.heading is not None:  # the Manhattan frame's error (modulo a quarter turn)
-        q = math.pi / 2
-        frame = slam.heading.frame.mean - world.get("rotation", 0.0)
-        out["frame_error"] = (frame + q / 2) % q - q / 2
+        out["frame_error"] = metrics.frame_error(
+            slam.heading.frame.mean, world.get("rotation", 0.0)
+        )
     np.savez(path, **out)
-    return {"mode": mode, "maze": maze_seed, "seed": seed, "final": float(out["slam"][-1]),
-            "pi": float(out["pi"][-1]), "wall_s": wall}  # fmt: skip
+    final, pi_final = float(out["slam"][-1]), float(out["pi"][-1])
+    return {
+        "mode": mode,
+        "maze": maze_seed,
+        "seed": seed,
+        "final": final,
+        "pi": pi_final,
+        "wall_s": wall,
+    }
 
 
 def main(argv=None) -> int:
+    p = _parser()
+    args = p.parse_args(argv)
+    config, mazes, seeds, world, world_tag = _resolve(p, args)
+    (args.out / "runs").mkdir(parents=True, exist_ok=True)
+    # the run names carry mode, maze, traversal, steps and the diagnostics; the configuration
+    # must match the folder's
+    check_out_config(args.out / "config.json", {"config": config.to_dict(), **world})
+    files, jobs = _jobs(args, config, mazes, seeds, world, world_tag)
+    with mp.get_context("spawn").Pool(args.workers) as pool:
+        for r in tqdm(pool.imap_unordered(run_one, jobs), total=len(jobs), desc="SLAM runs"):
+            tqdm.write(json.dumps(r))
+    summary, curves, dist = summarise(files, args, config, mazes, seeds, world)
+    plot_error_bands(curves, args.out / "error_bands.png", distance=dist, title="DVBF-LM SLAM")
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m benchmarks.slam_accuracy", description=__doc__.split("\n")[0]
     )
@@ -171,14 +201,18 @@ def main(argv=None) -> int:
         "--no-per-maze-noise: the noise follows the traversal seed alone, so the 6 mazes of one "
         "traversal share one noise sequence",
     )
-    args = p.parse_args(argv)
+    return p
+
+
+def _resolve(p: argparse.ArgumentParser, args):
+    """The configuration, mazes, driver seeds, world options and run-name tag of the arguments;
+    usage errors exit 2."""
     config = slam_config(p, args.preset, args.config)
     if config.emission.observation != "lidar":
         p.error(f"--preset {args.preset}: a camera emission; this benchmark runs LiDAR SLAM")
     mazes = list(MAZE_SEEDS[: args.mazes])
     if args.maze_seeds is not None:
         mazes = parse_maze_seeds(p, args.maze_seeds, MAZE_SEEDS, TUNING_SEEDS)
-    modes = args.modes.split(",")
     try:
         seeds = [int(v) for v in args.traversals.split(",") if v.strip()]
     except ValueError:
@@ -187,75 +221,80 @@ def main(argv=None) -> int:
         seeds = list(range(1, seeds[0] + 1))
     if not seeds or min(seeds) < 1:
         p.error(f"--traversals needs driver seeds >= 1, got {args.traversals!r}")
-    from tqdm import tqdm
+    return config, mazes, seeds, *_world(p, args)
 
-    from pyro_slam import metrics
-    from pyro_slam.plotting import plot_error_bands
 
-    runs = args.out / "runs"
-    runs.mkdir(parents=True, exist_ok=True)
-    # the run names carry mode, maze, traversal, steps and the diagnostics; the configuration
-    # must match the folder's
-    world, world_tag = _world(p, args)
-    check_out_config(args.out / "config.json", {"config": config.to_dict(), **world})
-    jobs, files = [], {}
-    for mode in modes:
+def _jobs(args, config, mazes, seeds, world: dict, world_tag: str) -> tuple[dict, list]:
+    """Each mode's run files ``OUT/runs/<mode><tags>_m<maze>_t<seed>_T<steps>.npz``, and the
+    jobs of :func:`run_one` for those not finished yet."""
+    tag = "" if args.map_poses == "filter" else f"_map-{args.map_poses}"
+    tag += ("_pn" if args.per_maze_noise else "") + world_tag
+    files, jobs = {}, []
+    for mode in args.modes.split(","):
         for m in mazes:
             for s in seeds:
-                tag = "" if args.map_poses == "filter" else f"_map-{args.map_poses}"
-                tag += ("_pn" if args.per_maze_noise else "") + world_tag
-                f = runs / f"{mode}{tag}_m{m}_t{s}_T{args.steps}.npz"
+                f = args.out / "runs" / f"{mode}{tag}_m{m}_t{s}_T{args.steps}.npz"
                 files.setdefault(mode, []).append(f)
                 if not f.is_file():
-                    jobs.append((mode, m, s, args.steps, config, args.map_poses, f,
-                                 args.per_maze_noise, world))  # fmt: skip
-    with mp.get_context("spawn").Pool(args.workers) as pool:
-        for r in tqdm(pool.imap_unordered(run_one, jobs), total=len(jobs), desc="SLAM runs"):
-            tqdm.write(json.dumps(r))
-    summary = {"steps": args.steps, "runs_per_mode": len(mazes) * len(seeds),
-               "mazes": mazes,
-               "preset": args.preset, "config": config.to_dict(),
-               "map_poses": args.map_poses,
-               "per_maze_noise": args.per_maze_noise, **world}  # fmt: skip
+                    job = (mode, m, s, args.steps, config, args.map_poses, f, args.per_maze_noise)
+                    jobs.append((*job, world))
+    return files, jobs
+
+
+def summarise(files: dict, args, config, mazes, seeds, world: dict):
+    """The summary of the finished runs (per mode and for path integration), the error curves
+    ``[R, T]`` to plot by label, and the distance travelled ``[R, T]``."""
+    summary = {
+        "steps": args.steps,
+        "runs_per_mode": len(mazes) * len(seeds),
+        "mazes": mazes,
+        "preset": args.preset,
+        "config": config.to_dict(),
+        "map_poses": args.map_poses,
+        "per_maze_noise": args.per_maze_noise,
+        **world,
+    }
     curves = {}
-    for mode in modes:
-        data = [np.load(f) for f in files[mode]]
+    label = "" if args.map_poses == "filter" else f" (map at {args.map_poses} poses)"
+    for mode, paths in files.items():
+        data = [np.load(f) for f in paths]
         e = np.stack([d["slam"] for d in data])  # [R, T]
-        label = "" if args.map_poses == "filter" else f" (map at {args.map_poses} poses)"
         curves[f"{mode} SLAM{label}"] = e
         pi, dist = np.stack([d["pi"] for d in data]), np.stack([d["distance"] for d in data])
-        summary[mode] = {
-            "final_mean": float(e[:, -1].mean()),
-            "final_std": float(e[:, -1].std()),
-            "relative_final_mean": float((e[:, -1] / dist[:, -1]).mean()),
-            # the error averaged over all steps: a less noisy figure than the final one
-            "time_avg_mean": float(e.mean()),
-            "wall_s_mean": float(np.mean([d["wall_s"] for d in data])),
-        }
-        # diagnostic: the error left after a rigid alignment of each whole trajectory to the
-        # truth, and that alignment's rotation (a map turned as a whole about the start)
-        al = [metrics.aligned_error(d["estimate"], d["truth"]) for d in data]
-        summary[mode]["aligned_final_mean"] = float(np.mean([a[0][-1] for a in al]))
-        summary[mode]["aligned_final_std"] = float(np.std([a[0][-1] for a in al]))
-        summary[mode]["aligning_rotation_abs_mean"] = float(np.mean([abs(a[1]) for a in al]))
-        if all("frame_error" in d for d in data):  # the heading observation's frame
-            summary[mode]["frame_error_abs_max"] = float(max(abs(d["frame_error"]) for d in data))
-        if all("std" in d for d in data):  # runs from before the std was saved lack it
-            pos_std = np.stack([np.hypot(d["std"][:, 0], d["std"][:, 1]) for d in data])
-            # calibration: the filter's position std over its actual error (1: calibrated)
-            summary[mode]["std_over_error_median"] = float(
-                np.median(pos_std.mean(1) / np.maximum(e.mean(1), 1e-12))
-            )
+        summary[mode] = _mode_summary(data, e, dist)
     summary["path_integration"] = {
         "final_mean": float(pi[:, -1].mean()),
         "final_std": float(pi[:, -1].std()),
         "relative_final_mean": float((pi[:, -1] / dist[:, -1]).mean()),
     }
     curves["path integration"] = pi
-    plot_error_bands(curves, args.out / "error_bands.png", distance=dist, title="DVBF-LM SLAM")
-    (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps(summary, indent=2))
-    return 0
+    return summary, curves, dist
+
+
+def _mode_summary(data: list, e: np.ndarray, dist: np.ndarray) -> dict:
+    """One mode's figures over its runs ``data`` (their errors ``e [R, T]``, distances ``dist
+    [R, T]``)."""
+    out = {
+        "final_mean": float(e[:, -1].mean()),
+        "final_std": float(e[:, -1].std()),
+        "relative_final_mean": float((e[:, -1] / dist[:, -1]).mean()),
+        # the error averaged over all steps: a less noisy figure than the final one
+        "time_avg_mean": float(e.mean()),
+        "wall_s_mean": float(np.mean([d["wall_s"] for d in data])),
+    }
+    # diagnostic: the error left after a rigid alignment of each whole trajectory to the
+    # truth, and that alignment's rotation (a map turned as a whole about the start)
+    al = [metrics.aligned_error(d["estimate"], d["truth"]) for d in data]
+    out["aligned_final_mean"] = float(np.mean([a[0][-1] for a in al]))
+    out["aligned_final_std"] = float(np.std([a[0][-1] for a in al]))
+    out["aligning_rotation_abs_mean"] = float(np.mean([abs(a[1]) for a in al]))
+    if all("frame_error" in d for d in data):  # the heading observation's frame
+        out["frame_error_abs_max"] = float(max(abs(d["frame_error"]) for d in data))
+    if all("std" in d for d in data):  # runs from before the std was saved lack it
+        # calibration: the filter's position std over its actual error (1: calibrated)
+        ratios = [metrics.std_over_error(d["std"], err) for d, err in zip(data, e)]
+        out["std_over_error_median"] = float(np.median(ratios))
+    return out
 
 
 if __name__ == "__main__":

@@ -57,14 +57,36 @@ import argparse
 import copy
 import dataclasses
 import json
+import multiprocessing as mp
 import time
 from pathlib import Path
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
-from benchmarks._common import add_config_args, check_out_config, parse_maze_seeds, slam_config
+from benchmarks._common import (
+    MAZE_SEEDS,
+    add_config_args,
+    check_out_config,
+    parse_maze_seeds,
+    slam_config,
+)
+from benchmarks._diagnostics import pin_cache
+from pyro_slam import metrics
+from pyro_slam.model import KinematicTransition
+from pyro_slam.plotting import _save, plot_error_bands, plt
+from pyro_slam.slam import (
+    SLAM,
+    TransitionConfig,
+    build_model,
+    path_integration,
+    prepare_traversal,
+    pretrain_emission,
+)
+from simulators import OdometryNoise, simulate_traversal
+from simulators.maze import make_maze
 
-MAZE_SEEDS = (1001, 1002, 1003, 1004, 1005, 1006)
 # held-out mazes for choosing settings at full length (never in the test figures)
 TUNING_SEEDS = (997, 998)
 # held-out mazes for --calibrate-odometry (path integration only)
@@ -79,9 +101,6 @@ PAPER_ODOMETRY_SCALE = 0.57
 def _traversal(
     maze_seed: int, seed: int, steps: int, odometry_scale=1.0, images=True, per_maze_noise=False
 ):
-    from simulators import OdometryNoise, simulate_traversal
-    from simulators.maze import make_maze
-
     maze = make_maze("moderate-medium", maze_seed)
     d = OdometryNoise()
     noise = OdometryNoise(d.rotation_std * odometry_scale, d.forward_std * odometry_scale)
@@ -105,10 +124,6 @@ def calibrate_odometry(
     ``seeds`` is ``target``: measured at scale 1, then ``rounds`` times at
     ``scale * target / measured`` (the error grows about in proportion to the noise).
     ``scale_for_target`` is the measured scale whose mean is closest to ``target``."""
-    from pyro_slam.metrics import localisation_error
-    from pyro_slam.model import KinematicTransition
-    from pyro_slam.slam import TransitionConfig, path_integration
-
     sigma = TransitionConfig().sigma  # the mean is all path integration uses
 
     def measure(f):
@@ -116,26 +131,32 @@ def calibrate_odometry(
         for m in seeds:
             tr = _traversal(m, 1, steps, f, images=False, per_maze_noise=per_maze_noise)
             trans = KinematicTransition(sigma, tr.metadata.get("control_model", "rotate_forward"))
-            e.append(float(localisation_error(path_integration(tr, trans), tr.poses)[-1]))
+            e.append(float(metrics.localisation_error(path_integration(tr, trans), tr.poses)[-1]))
         e = np.array(e)  # [mazes]
-        return {"scale": f, "mean": float(e.mean()), "std": float(e.std()),
-                "median": float(np.median(e))}  # fmt: skip
+        return {
+            "scale": f,
+            "mean": float(e.mean()),
+            "std": float(e.std()),
+            "median": float(np.median(e)),
+        }
 
     points = [measure(1.0)]
     for _ in range(rounds):
         points.append(measure(round(points[-1]["scale"] * target / points[-1]["mean"], 2)))
     best = min(points, key=lambda q: abs(q["mean"] - target))
-    return {"steps": steps, "mazes": list(seeds), "target": target,
-            "per_maze_noise": per_maze_noise, "points": points,
-            "scale_for_target": best["scale"], "at_scale": best}  # fmt: skip
+    return {
+        "steps": steps,
+        "mazes": list(seeds),
+        "target": target,
+        "per_maze_noise": per_maze_noise,
+        "points": points,
+        "scale_for_target": best["scale"],
+        "at_scale": best,
+    }
 
 
 def pretrained_emission(path: Path, cfg, steps: int, pretrain_steps: int):
     """Fit the image emission on maze ``PRETRAIN_MAZE`` with true poses (cached at ``path``)."""
-    import torch
-
-    from pyro_slam.slam import build_model, prepare_traversal, pretrain_emission
-
     tr = prepare_traversal(_traversal(PRETRAIN_MAZE, 0, steps), cfg)
     if path.is_file():
         em = build_model(tr, cfg)[0].emission
@@ -164,14 +185,7 @@ def run_one(
     odometry_scale: float = 1.0,
     per_maze_noise: bool = False,
 ) -> dict:
-    import torch
-
     torch.set_num_threads(threads)
-
-    from benchmarks._diagnostics import pin_cache
-    from pyro_slam import metrics
-    from pyro_slam.slam import SLAM, path_integration
-
     tr = _traversal(maze_seed, seed, steps, odometry_scale, per_maze_noise=per_maze_noise)
     emission = copy.deepcopy(emission)  # fine-tuning must not leak from one maze to the next
     t0 = time.perf_counter()
@@ -206,17 +220,22 @@ def run_one(
         "sweep": np.asarray(res["sweep_mean"], dtype=np.float32),
     }
     np.savez(path, **out)
-    return {"maze": maze_seed, "final": float(out["slam"][-1]), "pi": float(out["pi"][-1]),
-            "wall_s": wall}  # fmt: skip
+    return {
+        "maze": maze_seed,
+        "final": float(out["slam"][-1]),
+        "pi": float(out["pi"][-1]),
+        "wall_s": wall,
+    }
 
 
 def plot_reconstructions(data: dict, path_png):
-    from pyro_slam.plotting import _save, plt
-
     n = len(data["idx"])
     fig, axes = plt.subplots(3, n, figsize=(2.2 * n, 5.2), squeeze=False)
-    rows = [("true", data["true_images"]), ("rec. @ SLAM pose", data["rec_images"]),
-            ("rec. @ true pose", data["rec_images_true_pose"])]  # fmt: skip
+    rows = [
+        ("true", data["true_images"]),
+        ("rec. @ SLAM pose", data["rec_images"]),
+        ("rec. @ true pose", data["rec_images_true_pose"]),
+    ]
     for r, (name, imgs) in enumerate(rows):
         for c in range(n):
             ax = axes[r, c]
@@ -231,6 +250,44 @@ def plot_reconstructions(data: dict, path_png):
 
 
 def main(argv=None) -> int:
+    p = _parser()
+    args = p.parse_args(argv)
+    cfg = _resolve(p, args)
+    if args.calibrate_odometry:
+        res = calibrate_odometry(args.steps, per_maze_noise=args.per_maze_noise)
+        print(json.dumps(res, indent=2))
+        return 0
+    mazes = list(MAZE_SEEDS[: args.mazes])
+    if args.maze_seeds is not None:
+        mazes = parse_maze_seeds(p, args.maze_seeds, MAZE_SEEDS, TUNING_SEEDS)
+    torch.set_num_threads(args.threads)
+    (args.out / "runs").mkdir(parents=True, exist_ok=True)
+    # the run names carry maze, odometry scale, noise and steps; the rest must match the folder
+    record = {"config": cfg.to_dict(), "pretrain_traversal": args.pretrain_traversal}
+    check_out_config(args.out / "config.json", {**record, "pretrain_steps": args.pretrain_steps})
+    if args.odometry_scale != 1.0 and "sigma" not in json.loads(args.config).get("transition", {}):
+        cfg = scaled_config(cfg, args.odometry_scale)
+    t0 = time.perf_counter()
+    em, em_meta = pretrained_emission(
+        args.out / "emission_image.pt", cfg, args.pretrain_traversal, args.pretrain_steps
+    )
+    pretraining = {**em_meta, "wall_s_this_call": time.perf_counter() - t0}
+    files, jobs = _jobs(args, mazes, cfg, em)
+    _run_jobs(jobs, args.workers)
+    data = [np.load(f) for f in files]
+    summary = summarise(data, args, mazes, cfg, pretraining)
+    e, pi = np.stack([d["slam"] for d in data]), np.stack([d["pi"] for d in data])
+    label = "" if args.map_poses == "filter" else f" (map at {args.map_poses} poses)"
+    curves = {f"offline visual SLAM{label}": e, "path integration": pi}
+    dist = np.stack([d["distance"] for d in data])
+    plot_error_bands(curves, args.out / "error_bands.png", distance=dist, title="visual DVBF-LM")
+    plot_reconstructions(data[0], args.out / "reconstructions.png")
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m benchmarks.visual_slam", description=__doc__.split("\n")[0]
     )
@@ -274,57 +331,40 @@ def main(argv=None) -> int:
         "--no-per-maze-noise: it follows the driver seed alone, so all mazes share one noise "
         "sequence",
     )
-    args = p.parse_args(argv)
+    return p
+
+
+def _resolve(p: argparse.ArgumentParser, args):
+    """The SLAM configuration of the arguments; usage errors exit 2."""
     cfg = slam_config(p, args.preset, args.config)
     if cfg.emission.observation != "image":
         p.error(f"--preset {args.preset}: a LiDAR emission; this benchmark needs a camera one")
     if not args.odometry_scale > 0:
         p.error(f"--odometry-scale must be > 0, got {args.odometry_scale}")
-    if args.calibrate_odometry:
-        res = calibrate_odometry(args.steps, per_maze_noise=args.per_maze_noise)
-        print(json.dumps(res, indent=2))
-        return 0
-    mazes = list(MAZE_SEEDS[: args.mazes])
-    if args.maze_seeds is not None:
-        mazes = parse_maze_seeds(p, args.maze_seeds, MAZE_SEEDS, TUNING_SEEDS)
-    import torch
+    return cfg
 
-    torch.set_num_threads(args.threads)
-    from tqdm import tqdm
 
-    from pyro_slam.plotting import plot_error_bands
-
-    runs = args.out / "runs"
-    runs.mkdir(parents=True, exist_ok=True)
-    # the run names carry maze, odometry scale, noise and steps; the rest must match the folder
-    check_out_config(args.out / "config.json", {
-        "config": cfg.to_dict(), "pretrain_traversal": args.pretrain_traversal,
-        "pretrain_steps": args.pretrain_steps,
-    })  # fmt: skip
-    if args.odometry_scale != 1.0 and "sigma" not in json.loads(args.config).get("transition", {}):
-        cfg = scaled_config(cfg, args.odometry_scale)
-    t0 = time.perf_counter()
-    em, em_meta = pretrained_emission(
-        args.out / "emission_image.pt", cfg, args.pretrain_traversal, args.pretrain_steps
-    )
-    pretrain_s = time.perf_counter() - t0
+def _jobs(args, mazes, cfg, em) -> tuple[list[Path], list[tuple]]:
+    """Each maze's run file ``OUT/runs/m<maze><tags>_T<steps>.npz``, and the jobs of
+    :func:`run_one` for those not finished yet."""
+    tag = "" if args.map_poses == "filter" else f"_map-{args.map_poses}"
+    tag += "" if args.odometry_scale == 1.0 else f"_od{args.odometry_scale:g}"
+    tag += "_pn" if args.per_maze_noise else ""
     files, jobs = [], []
     for m in mazes:
-        tag = "" if args.map_poses == "filter" else f"_map-{args.map_poses}"
-        tag += "" if args.odometry_scale == 1.0 else f"_od{args.odometry_scale:g}"
-        tag += "_pn" if args.per_maze_noise else ""
-        f = runs / f"m{m}{tag}_T{args.steps}.npz"
+        f = args.out / "runs" / f"m{m}{tag}_T{args.steps}.npz"
         files.append(f)
         if not f.is_file():
-            jobs.append(
-                (m, 1, args.steps, cfg, em, f, args.threads, args.map_poses,
-                 args.odometry_scale, args.per_maze_noise)
-            )  # fmt: skip
-    bar = tqdm(total=len(jobs), desc="visual SLAM runs")
-    if args.workers > 1 and len(jobs) > 1:
-        import multiprocessing as mp
+            run = (m, 1, args.steps, cfg, em, f, args.threads, args.map_poses)
+            jobs.append((*run, args.odometry_scale, args.per_maze_noise))
+    return files, jobs
 
-        with mp.get_context("spawn").Pool(args.workers) as pool:
+
+def _run_jobs(jobs: list[tuple], workers: int) -> None:
+    """:func:`run_one` of each job, in ``workers`` processes where there are several."""
+    bar = tqdm(total=len(jobs), desc="visual SLAM runs")
+    if workers > 1 and len(jobs) > 1:
+        with mp.get_context("spawn").Pool(workers) as pool:
             for r in pool.imap_unordered(_run_job, jobs):
                 bar.update()
                 bar.write(json.dumps(r))
@@ -334,7 +374,11 @@ def main(argv=None) -> int:
             bar.update()
             bar.write(json.dumps(r))
     bar.close()
-    data = [np.load(f) for f in files]
+
+
+def summarise(data: list, args, mazes, cfg, pretraining: dict) -> dict:
+    """The summary of the finished runs ``data``: offline SLAM and path integration at t = T
+    per maze and over mazes, and the online sweep offline SLAM starts from."""
     e = np.stack([d["slam"] for d in data])
     pi = np.stack([d["pi"] for d in data])
     dist = np.stack([d["distance"] for d in data])
@@ -346,34 +390,29 @@ def main(argv=None) -> int:
         "map_poses": args.map_poses,
         "odometry_scale": args.odometry_scale,
         "per_maze_noise": args.per_maze_noise,
-        "emission_pretraining": {**em_meta, "wall_s_this_call": pretrain_s},
+        "emission_pretraining": pretraining,
         "offline": {
-            "final_mean": float(e[:, -1].mean()),
-            "final_std": float(e[:, -1].std()),
-            "relative_final_mean": float((e[:, -1] / dist[:, -1]).mean()),
-            "per_maze": [float(v) for v in e[:, -1]],
+            **_final(e, dist),
             "wall_s_mean": float(np.mean([d["wall_s"] for d in data])),
         },
-        "path_integration": {
-            "final_mean": float(pi[:, -1].mean()),
-            "final_std": float(pi[:, -1].std()),
-            "relative_final_mean": float((pi[:, -1] / dist[:, -1]).mean()),
-            "per_maze": [float(v) for v in pi[:, -1]],
-        },
+        "path_integration": _final(pi, dist),
     }
     # the online sweep offline SLAM starts from, where the runs exported it
     if all("sweep" in d.files and len(d["sweep"]) for d in data):
-        from pyro_slam.metrics import localisation_error
-
-        sw = np.array([localisation_error(d["sweep"], d["truth"])[-1] for d in data])  # [mazes]
+        sw = [metrics.localisation_error(d["sweep"], d["truth"])[-1] for d in data]
+        sw = np.array(sw)  # [mazes]
         summary["online_sweep"] = {"final_mean": float(sw.mean()), "per_maze": sw.tolist()}
-    label = "" if args.map_poses == "filter" else f" (map at {args.map_poses} poses)"
-    curves = {f"offline visual SLAM{label}": e, "path integration": pi}
-    plot_error_bands(curves, args.out / "error_bands.png", distance=dist, title="visual DVBF-LM")
-    plot_reconstructions(data[0], args.out / "reconstructions.png")
-    (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps(summary, indent=2))
-    return 0
+    return summary
+
+
+def _final(e: np.ndarray, dist: np.ndarray) -> dict:
+    """The error at t = T of the runs' errors ``e [R, T]`` (distances ``dist [R, T]``)."""
+    return {
+        "final_mean": float(e[:, -1].mean()),
+        "final_std": float(e[:, -1].std()),
+        "relative_final_mean": float((e[:, -1] / dist[:, -1]).mean()),
+        "per_maze": [float(v) for v in e[:, -1]],
+    }
 
 
 if __name__ == "__main__":

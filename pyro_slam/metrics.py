@@ -9,6 +9,7 @@ anchored at the known start pose; evo is the optional extra ``[eval]``, and with
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -132,18 +133,29 @@ def aligned_error(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, float]
     return err, float(np.arctan2(rot[1, 0], rot[0, 0]))
 
 
+def std_over_error(std: np.ndarray, error: np.ndarray) -> float:
+    """The posterior's calibration over one run: its time-averaged position std (``std [T,
+    >= 2]``, the filter's ``x, y`` std) over the time-averaged position error ``error [T]`` (1:
+    calibrated; below 1: overconfident)."""
+    spread = float(np.hypot(std[:, 0], std[:, 1]).mean())
+    return spread / max(float(np.mean(error)), 1e-12)
+
+
 def calibration(std: np.ndarray, est: np.ndarray, true: np.ndarray) -> dict:
     """How the posterior's spread compares with its error over one run: the time-averaged
     position std (``std [T, 3]``, the filter's) over the time-averaged position error of ``est
     [T, 3]``, raw and after the rigid alignment of :func:`aligned_error` (1: calibrated; below
-    1: overconfident)."""
-    spread = float(np.hypot(std[:, 0], std[:, 1]).mean())
-    raw = float(localisation_error(est, true).mean())
-    aligned = float(aligned_error(est, true)[0].mean())
+    1: overconfident; :func:`std_over_error`)."""
     return {
-        "std_over_error": spread / max(raw, 1e-12),
-        "std_over_aligned_error": spread / max(aligned, 1e-12),
+        "std_over_error": std_over_error(std, localisation_error(est, true)),
+        "std_over_aligned_error": std_over_error(std, aligned_error(est, true)[0]),
     }
+
+
+def frame_error(frame: float, true_frame: float = 0.0) -> float:
+    """The error of an estimated walls' frame ``frame`` (rad; the heading observation's
+    ``phi``) against ``true_frame``, modulo a quarter turn: in ``[-pi / 4, pi / 4)``."""
+    return float(wrap_angle(frame - true_frame, math.pi / 2))
 
 
 def summary(est: np.ndarray, true: np.ndarray) -> dict:

@@ -387,100 +387,39 @@ def test_navigation_bad_arguments_exit_2_with_one_line(args, message):
     assert "Traceback" not in err.stderr
 
 
-def test_navigation_counts_sort_the_missed_observation_targets_by_cause():
-    from benchmarks.navigation import _counts, headline
+def test_navigation_headline_names_the_pose_ratio_by_the_map_planned_in():
+    """The headline is :func:`~pyro_slam.planning.evaluation.success_ratios` with the pose
+    targets' ratio under the name of the map the learned planner planned in."""
+    from benchmarks.navigation import headline
+    from pyro_slam.planning.evaluation import success_ratios
 
-    def row(maze, goal, planner, ok, **kw):
-        return {"maze": maze, "start": 0, "goal": goal, "planner": planner,
-                "success_noiseless": ok, "found": True, **kw}  # fmt: skip
-
-    def obs(maze, goal, ok, scan_ok, found=True, inference_error=0.01, aliased=0, near=0):
-        return row(maze, goal, "learned_obs", ok, scan_success_noiseless=scan_ok, found=found,
-                   inference_error=inference_error, target_lookalikes_exact=aliased,
-                   target_lookalikes_tol=max(near, aliased))  # fmt: skip
+    def row(goal, planner, ok, **kw):
+        return {
+            "maze": 1001,
+            "start": 0,
+            "goal": goal,
+            "planner": planner,
+            "found": True,
+            "success_noiseless": ok,
+            **kw,
+        }
 
     runs = [
-        *(row(1001, g, "ground_truth", g != 4) for g in range(1, 6)),  # 4 solved by the truth
-        *(row(1001, g, "learned", g not in (3, 4)) for g in range(1, 6)),  # misses 3 (and 4)
-        obs(1001, 1, True, True),
-        obs(1001, 2, False, True, inference_error=0.3, aliased=2),  # a look-alike: reached
-        *(row(1001, g, "ground_truth_obs", g not in (2, 4)) for g in range(1, 6)),
-        obs(1001, 3, False, False, found=False),
-        obs(1001, 4, False, False, inference_error=0.3, near=1),  # a wrong goal, near-alike
-        obs(1001, 5, False, False),  # right goal, ended elsewhere
-        row(1002, 1, "ground_truth", True),
-        row(1002, 1, "learned", True),
-        obs(1002, 1, False, False, inference_error=0.2),
+        *(row(g, "ground_truth", True) for g in (1, 2)),
+        row(1, "learned", True),
+        row(2, "learned", False),
+        row(1, "learned_obs", False, scan_success_noiseless=True, target_lookalikes_tol=0),
     ]
-    c = _counts(runs)
-    assert c["1001"] == {
-        "pairs": 5, "gt_solved": 4, "learned_on_gt_solved": 3, "obs_missed": 4,
-        "obs_missed_scan": 3, "obs_missed_scan_not_found": 1, "obs_missed_scan_wrong_goal": 1,
-        "obs_missed_scan_execution": 1, "obs_unaliased": 3, "obs_unaliased_missed": 2,
-        "obs_target_aliased": 1, "gt_obs_missed": 2,
-    }  # fmt: skip
-    assert c["1002"]["obs_missed_scan_wrong_goal"] == 1 and c["1002"]["gt_solved"] == 1
-    assert c["all"]["pairs"] == 6 and c["all"]["obs_missed_scan"] == 4
-    assert c["all"]["learned_on_gt_solved"] == 4
-    # the headline: 4 of 6 observation runs missed in observation space; by position 3 of the
-    # 4 runs whose target has no look-alike within the tolerance; pose targets 4 of the 5
-    # pairs the truth solves, named by the map they were planned in
-    h = headline(runs, "slam")
-    assert h == {
-        "obs_failure_ratio_obs_space": 4 / 6, "obs_failure_ratio_position_unaliased": 3 / 4,
-        "unaliased_targets": 4, "pose_success_ratio_known_pose_map": None,
-        "pose_success_ratio_slam_map": 4 / 5,
-    }  # fmt: skip
-    assert headline(runs, "true")["pose_success_ratio_known_pose_map"] == 4 / 5
-
-
-def test_navigation_scan_match_finds_the_target_view_near_it_and_not_elsewhere():
-    from benchmarks.navigation import scan_match
-    from pyro_slam.planning import GroundTruthEnv, free_grid
-    from simulators import make_maze
-
-    maze = make_maze("moderate-medium", 1001)
-    env, pts = GroundTruthEnv(maze), free_grid(maze)
-    scan = env.scan(np.array([*pts[3], 0.7]))[0].numpy()  # a target seen with heading 0.7
-    # at the target, or within the 0.05 success radius, some heading sees (almost) that scan
-    assert scan_match(env, pts[3], scan) < 0.01
-    assert scan_match(env, pts[3] + 0.03, scan) < 0.01
-    # the other grid points of this maze do not look like it
-    others = [scan_match(env, q, scan) for i, q in enumerate(pts[:8]) if i != 3]
-    assert min(others) > 0.02
-    # every heading's scan is a rotation of the rays cast from each position: the exact scan
-    # at a grid heading is found to float precision
-    h = 2 * np.pi * 37 / 360 - np.pi
-    exact = env.scan(np.array([*pts[3], h]))[0].numpy()
-    assert scan_match(env, pts[3], exact) < 1e-6
-    with pytest.raises(ValueError, match="multiple of the 20 beams"):
-        scan_match(env, pts[3], scan, headings=72)
-
-
-def test_observation_space_verdict_counts_both_places_of_an_aliased_pair():
-    """In an empty square room a scan is seen identically at four places (the room's quarter
-    turns): an agent that stops at any of them has reached the observation, although only one
-    is within 0.05 of the target; a place that looks different has not."""
-    from benchmarks.navigation import scan_reached
-    from pyro_slam.planning import GroundTruthEnv
-    from simulators.maze import Maze
-
-    n = 6
-    h, v = np.zeros((n, n + 1), bool), np.zeros((n + 1, n), bool)
-    h[:, [0, n]], v[[0, n], :] = True, True  # outer walls only
-    env = GroundTruthEnv(Maze("room", 0, n, 1 / n, h, v))
-    target = np.array([0.3, 0.4, 0.7])
-    scan = env.scan(target)[0].numpy()
-    here, d_here = scan_reached(env, target[:2], scan)
-    there, d_there = scan_reached(env, np.array([0.7, 0.6]), scan)  # turned by half a turn
-    assert here and there and d_here < 0.01 and d_there < 0.01
-    assert np.hypot(*(np.array([0.7, 0.6]) - target[:2])) > 0.05  # missed by position
-    # nearby, within the 0.05 radius, still reached; elsewhere in the room, not
-    assert scan_reached(env, np.array([0.73, 0.6]), scan)[0]
-    far, d_far = scan_reached(env, np.array([0.5, 0.5]), scan)
-    assert not far and d_far > 0.01
-    # the tolerance decides: the verdict at the twin place flips below its difference
-    assert not scan_reached(env, np.array([0.7, 0.6]), scan, tol=d_there / 2)[0]
+    assert success_ratios(runs)["pose_success_ratio"] == 0.5
+    assert headline(runs, "slam") == {
+        "obs_failure_ratio_obs_space": 0.0,
+        "obs_failure_ratio_position_unaliased": 1.0,
+        "unaliased_targets": 1,
+        "pose_success_ratio_known_pose_map": None,
+        "pose_success_ratio_slam_map": 0.5,
+    }
+    assert headline(runs, "true")["pose_success_ratio_known_pose_map"] == 0.5
+    assert headline(runs, "true")["pose_success_ratio_slam_map"] is None
 
 
 def test_navigation_benchmark_maps_at_slam_poses(tmp_path):
@@ -662,25 +601,11 @@ def test_compare_runs_pairs_the_runs_both_outputs_share(tmp_path):
     assert err.returncode == 2 and "no runs matching 'online_*.npz'" in err.stderr
 
 
-def test_aliasing_counts_exact_look_alikes_and_the_ideal_failure():
-    """In an empty square room every pose but the centre has three exact look-alikes (the
-    room's rotations), so an ideal inverse picks the right one of four: it fails 3/4 of the
-    time; the centre is unique. A longer range does not help in an empty room, and a sensor
-    that is not BEAMSxRANGE is a usage error."""
-    from benchmarks.aliasing import _summary, aliasing
-    from simulators import LidarConfig
-    from simulators.maze import Maze
+def test_aliasing_summary_splits_moved_and_kept_points_and_a_bad_sensor_exits_2():
+    """The per-target look-alikes (:func:`pyro_slam.planning.evaluation.aliasing`) are
+    summarised per maze and over all; a sensor that is not BEAMSxRANGE is a usage error."""
+    from benchmarks.aliasing import _summary
 
-    n = 6
-    h, v = np.zeros((n, n + 1), bool), np.zeros((n + 1, n), bool)
-    h[:, [0, n]], v[[0, n], :] = True, True
-    room = Maze("room", 0, n, 1 / n, h, v)
-    tposes = np.array([[0.3, 0.4, 0.7], [0.5, 0.5, 0.2], [0.2, 0.2, -1.0]])
-    r = aliasing(room, tposes, LidarConfig(), tols=[1e-6], spacing=0.01)[1e-6]
-    assert r["lookalikes"] == [3, 0, 3]
-    assert r["ideal_failure"] == pytest.approx([0.75, 0.0, 0.75])
-    r = aliasing(room, tposes[:1], LidarConfig(n_beams=40, max_range=1.5), [1e-6], 0.01)
-    assert r[1e-6]["lookalikes"] == [3]
     # the summary splits the targets by whether free_grid moved their point to a cell centre
     per_maze = {
         "1": {"lookalikes": [3, 0], "ideal_failure": [0.75, 0.0], "moved": [True, False]},

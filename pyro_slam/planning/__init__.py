@@ -1,7 +1,7 @@
 """Planning and exploration in the learned model: hybrid A* (:mod:`.planner`), planning
 environments (:mod:`.envs`), the inverse model ``q(z | x)`` for observation targets
-(:mod:`.inverse`), mutual-information exploration (:mod:`.exploration`) and PEMA
-(:mod:`.pema`)."""
+(:mod:`.inverse`), the measures that judge a navigation run (:mod:`.evaluation`),
+mutual-information exploration (:mod:`.exploration`) and PEMA (:mod:`.pema`)."""
 
 from .envs import (
     GroundTruthEnv,

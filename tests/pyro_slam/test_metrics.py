@@ -13,10 +13,13 @@ from pyro_slam.metrics import (
     aligned_error,
     along_track_error,
     ate,
+    calibration,
     distance_travelled,
+    frame_error,
     heading_only_error,
     localisation_error,
     relative_error,
+    std_over_error,
     summary,
     write_trajectory_tum,
 )
@@ -72,6 +75,41 @@ def test_aligned_error_removes_a_rigid_turn_and_reports_its_angle():
     bent[2, :2] += [0.4, 0.0]
     err, rot = aligned_error(bent, SQUARE)
     assert err[2] > 0.2 and abs(rot) < 0.2
+
+
+def test_std_over_error_is_the_time_averaged_position_std_over_the_mean_error():
+    std = np.array([[0.3, 0.4, 9.0], [0.6, 0.8, 9.0]])  # position std 0.5 and 1 (heading ignored)
+    assert std_over_error(std, np.array([1.0, 2.0])) == pytest.approx(0.75 / 1.5)
+    assert std_over_error(std, np.array([0.25, 0.25])) == pytest.approx(3.0)  # underconfident
+    assert std_over_error(std, np.zeros(2)) == pytest.approx(0.75 / 1e-12)  # no error: no NaN
+
+
+def test_calibration_compares_the_spread_with_the_raw_and_the_aligned_error():
+    """A trajectory turned about its start has a raw error but no shape error: a spread that
+    matches the raw error is calibrated against it and looks underconfident after alignment."""
+    c, s = math.cos(0.3), math.sin(0.3)
+    turned = SQUARE.copy()
+    turned[:, :2] = SQUARE[:, :2] @ np.array([[c, s], [-s, c]])
+    turned[:, :2] += [0.01, 0.0]  # a little shape error for the aligned ratio's denominator
+    turned[0, :2] = 0.0
+    err = localisation_error(turned, SQUARE)
+    std = np.repeat(err[:, None], 3, 1) / np.sqrt(2)  # position std = error at every step
+    std[:, 2] = 1.0
+    r = calibration(std, turned, SQUARE)
+    assert r["std_over_error"] == pytest.approx(1.0)
+    aligned = aligned_error(turned, SQUARE)[0]
+    assert r["std_over_aligned_error"] == pytest.approx(err.mean() / aligned.mean())
+    assert r["std_over_aligned_error"] > 5
+
+
+def test_frame_error_is_the_difference_modulo_a_quarter_turn():
+    q = math.pi / 2
+    assert frame_error(0.1) == pytest.approx(0.1)
+    assert frame_error(0.1 + 3 * q) == pytest.approx(0.1)  # the walls look alike every quarter
+    assert frame_error(0.3, 0.5) == pytest.approx(-0.2)
+    assert frame_error(q - 0.1, 0.0) == pytest.approx(-0.1)
+    assert frame_error(q / 2) == pytest.approx(-q / 2)  # half-open: [-pi / 4, pi / 4)
+    assert isinstance(frame_error(0.1), float)
 
 
 def test_ate_statistics_match_numpy():
