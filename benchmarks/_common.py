@@ -11,7 +11,7 @@ from pathlib import Path
 import torch
 
 from pyro_slam.inference import ParticleFilter
-from pyro_slam.slam import ConfigError, SLAMConfig, build_model, presets, with_overrides
+from pyro_slam.slam import ConfigError, build_model, presets
 from simulators import simulate_traversal
 
 # the test mazes (moderate-medium) of the SLAM and navigation benchmarks, and the held-out
@@ -64,16 +64,11 @@ def slam_config(
     base: dict | None = None,
 ):
     """The configuration of ``preset`` with the nested overrides ``base`` (a benchmark's own,
-    if any), then the JSON overrides ``text`` applied (:func:`pyro_slam.slam.with_overrides`);
-    text that is not JSON or a configuration error is a usage error (``p.error``, exit 2) with a
-    one-line message naming the problem."""
+    if any), then the JSON overrides ``text`` applied, as the command line chooses it
+    (:func:`pyro_slam.slam.presets.configure`); text that is not JSON or a configuration error
+    is a usage error (``p.error``, exit 2) with a one-line message naming the problem."""
     try:
-        changes = json.loads(text)
-    except json.JSONDecodeError as e:
-        p.error(f"{flag}: not JSON ({e})")
-    config = with_overrides(presets.get(preset).config, base or {})
-    try:
-        return with_overrides(config, changes)
+        return presets.configure(preset, overrides=[base, text])[1]
     except ConfigError as e:
         p.error(f"{flag}: {e}")
 
@@ -119,7 +114,7 @@ def filter_setup(steps: int, seed: int = 0):
     configuration's model on a ``steps``-step moderate-medium traversal (``seed``) and a random
     fixed map. Returns ``(model, M, obs [T, B], controls [T - 1, 2], start pose [3])``."""
     tr = simulate_traversal("moderate-medium", steps=steps, seed=seed)
-    model, guide = build_model(tr, SLAMConfig())
+    model, guide = build_model(tr, presets.get("paper").config)  # the emission MLP
     g = torch.Generator().manual_seed(seed)
     M = torch.randn(model.grid.shape, generator=g)  # a fixed map: speed does not depend on it
     obs = torch.as_tensor(tr.observations, dtype=torch.float32)

@@ -123,8 +123,10 @@ def run_mrpt(tr, work: Path):
     write_carmen(replace(tr, poses=None), clf)
     subprocess.run(
         ["carmen2rawlog", "-q", "-w", "-i", str(clf), "-o", str(rawlog)],
-        check=True, capture_output=True, cwd=work,
-    )  # fmt: skip
+        check=True,
+        capture_output=True,
+        cwd=work,
+    )
     ini = MRPT_INI.read_text()
     subs = {
         "SHOW_PROGRESS_3D_REAL_TIME": "0",
@@ -140,15 +142,21 @@ def run_mrpt(tr, work: Path):
     t0 = time.perf_counter()
     res = subprocess.run(
         ["icp-slam", "icp.ini", rawlog.name],
-        cwd=work, capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=1800,
-    )  # fmt: skip
+        cwd=work,
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        timeout=1800,
+    )
     wall = time.perf_counter() - t0
     (work / "icp.log").write_text(res.stdout + res.stderr)
     path = np.loadtxt(work / "icp_out" / "log_estimated_path.txt")  # [N_obs, 4]: i x y phi
     listing = subprocess.run(
         ["rawlog-edit", "--list-timestamps", "-i", rawlog.name, "--text-file-output", "ts.txt"],
-        cwd=work, capture_output=True, text=True,
-    )  # fmt: skip
+        cwd=work,
+        capture_output=True,
+        text=True,
+    )
     labels = [ln.split()[1] for ln in (work / "ts.txt").read_text().splitlines() if ln.strip()]
     if listing.returncode or len(labels) != len(path):
         raise RuntimeError(f"icp-slam output: {len(path)} poses for {len(labels)} observations")
@@ -248,8 +256,10 @@ def headline(result: dict) -> dict:
 
     mrpt = csail.get("MRPT icp-slam", {}).get("scan_consistency", {}).get("mean")
     scans = result["scans"]
-    wall = sum(rows["DVBF-LM"]["seconds_per_scan"] * scans[log] for log, rows in
-               (("mit-csail", csail), ("intel", intel)))  # fmt: skip
+    wall = sum(
+        rows["DVBF-LM"]["seconds_per_scan"] * scans[log]
+        for log, rows in (("mit-csail", csail), ("intel", intel))
+    )
     return {
         "intel_relation_error_trans_m": intel["DVBF-LM"]["relation_error"]["trans_mean"],
         "intel_odometry_relation_error_trans_m": intel["odometry"]["relation_error"]["trans_mean"],

@@ -74,7 +74,7 @@ def breakdown(tr, config, steps: int) -> dict:
     slam.run("online", progress=False)
     prof.disable()
     stats = pstats.Stats(prof).stats
-    total = max(v[3] for k, v in stats.items() if k[2] == "_online")
+    total = max(v[3] for k, v in stats.items() if k[2] == "online_sweep")
     out = {}
     for part, (file, func) in PARTS.items():
         out[part] = sum(v[3] for k, v in stats.items() if k[0].endswith(file) and k[2] == func)
@@ -83,19 +83,35 @@ def breakdown(tr, config, steps: int) -> dict:
     return {k: round(v, 3) for k, v in out.items()}
 
 
-def time_commit(rev: str, tr_path: Path, config: str, transition: str | None, mode: str,
-                threads: int) -> float:  # fmt: skip
+def time_commit(
+    rev: str, tr_path: Path, config: str, transition: str | None, mode: str, threads: int
+) -> float:
     """Wall seconds of ``pyro-slam slam`` at commit ``rev`` (a temporary worktree) on the saved
     traversal, from its ``metrics.json``."""
     with tempfile.TemporaryDirectory() as tmp:
         tree = Path(tmp) / "tree"
-        subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "-q", str(tree),
-                        rev], check=True)  # fmt: skip
+        subprocess.run(
+            ["git", "-C", str(REPO), "worktree", "add", "--detach", "-q", str(tree), rev],
+            check=True,
+        )
         try:
             out, cfg = Path(tmp) / "run", Path(tmp) / "config.json"
             cfg.write_text(config)  # (a file: long JSON strings are not always taken inline)
-            argv = [sys.executable, "-m", "pyro_slam.cli", "slam", str(tr_path), "--out",
-                    str(out), "--mode", mode, "--seed", "1", "--config", str(cfg)]  # fmt: skip
+            argv = [
+                sys.executable,
+                "-m",
+                "pyro_slam.cli",
+                "slam",
+                str(tr_path),
+                "--out",
+                str(out),
+                "--mode",
+                mode,
+                "--seed",
+                "1",
+                "--config",
+                str(cfg),
+            ]
             if transition:
                 argv += ["--transition", str(tree / transition)]
             env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": str(threads)}
@@ -104,8 +120,9 @@ def time_commit(rev: str, tr_path: Path, config: str, transition: str | None, mo
                 raise RuntimeError(f"{rev}: pyro-slam slam failed: {run.stderr.strip()[-500:]}")
             return float(json.loads((out / "metrics.json").read_text())["wall_time_s"])
         finally:
-            subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
-                           check=False)  # fmt: skip
+            subprocess.run(
+                ["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], check=False
+            )
 
 
 def parse(argv):
@@ -116,15 +133,24 @@ def parse(argv):
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--profile-steps", type=int, default=300)
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--smc", action="store_true",
-                   help="also time the online run with Pyro's SMCFilter as the filter (the same "
-                   "model, proposal and weights)")  # fmt: skip
+    p.add_argument(
+        "--smc",
+        action="store_true",
+        help="also time the online run with Pyro's SMCFilter as the filter (the same "
+        "model, proposal and weights)",
+    )
     p.add_argument("--against", metavar="REV", help="also time this commit's code")
-    p.add_argument("--against-config", default="{}", metavar="JSON",
-                   help="the preset's settings in that commit's --config format")  # fmt: skip
-    p.add_argument("--against-transition", metavar="PATH",
-                   help="its learned transition file (relative to its tree), if the preset "
-                   "uses one")  # fmt: skip
+    p.add_argument(
+        "--against-config",
+        default="{}",
+        metavar="JSON",
+        help="the preset's settings in that commit's --config format",
+    )
+    p.add_argument(
+        "--against-transition",
+        metavar="PATH",
+        help="its learned transition file (relative to its tree), if the preset uses one",
+    )
     args = p.parse_args(argv)
     names = [n for n in args.presets.split(",") if n]
     if unknown := [n for n in names if n not in presets.PRESETS]:
@@ -135,8 +161,6 @@ def parse(argv):
     if args.steps < 2 or args.profile_steps < 2 or args.threads < 1:
         p.error("--steps and --profile-steps must be >= 2, --threads >= 1")
     configs = {n: slam_config(p, n, args.config) for n in names}
-    if args.smc and (on := [n for n in names if configs[n].heading is not None]):
-        p.error(f"--smc: Pyro's SMCFilter does not take the heading observation ({on})")
     return args, names, modes, configs
 
 
@@ -144,8 +168,13 @@ def main(argv=None) -> int:
     args, names, modes, configs = parse(argv)
     torch.set_num_threads(args.threads)
     tr = traversal(args.steps)
-    summary = {"maze": MAZE, "driver_seed": DRIVER_SEED, "steps": args.steps,
-               "threads": args.threads, "presets": {}}  # fmt: skip
+    summary = {
+        "maze": MAZE,
+        "driver_seed": DRIVER_SEED,
+        "steps": args.steps,
+        "threads": args.threads,
+        "presets": {},
+    }
     for name in names:
         row = {}
         cfg = configs[name]
@@ -154,10 +183,16 @@ def main(argv=None) -> int:
             runs += [("online_smc", "online", cfg, True)]
         for key, mode, config, smc in runs:
             wall, err = time_run(tr, config, mode, smc)
-            row[key] = {"wall_s": round(wall, 1), "steps_per_s": round(args.steps / wall, 2),
-                        "final_error": round(err, 4)}  # fmt: skip
-            print(f"{name} {key}: {wall:.1f} s, {args.steps / wall:.1f} steps/s, "
-                  f"final error {err:.4f}", flush=True)  # fmt: skip
+            row[key] = {
+                "wall_s": round(wall, 1),
+                "steps_per_s": round(args.steps / wall, 2),
+                "final_error": round(err, 4),
+            }
+            print(
+                f"{name} {key}: {wall:.1f} s, {args.steps / wall:.1f} steps/s, "
+                f"final error {err:.4f}",
+                flush=True,
+            )
         row["breakdown_online"] = breakdown(tr, configs[name], min(args.profile_steps, args.steps))
         print(f"{name} online breakdown: {row['breakdown_online']}", flush=True)
         summary["presets"][name] = row
@@ -165,12 +200,20 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             path = tr.save(Path(tmp) / "traversal.npz")
             for mode in modes:
-                wall = time_commit(args.against, path, args.against_config,
-                                   args.against_transition, mode, args.threads)  # fmt: skip
+                wall = time_commit(
+                    args.against,
+                    path,
+                    args.against_config,
+                    args.against_transition,
+                    mode,
+                    args.threads,
+                )
                 ours = summary["presets"][names[0]][mode]["wall_s"]
                 summary.setdefault("against", {"rev": args.against, "preset": names[0]})[mode] = {
-                    "wall_s": round(wall, 1), "steps_per_s": round(args.steps / wall, 2),
-                    "speedup": round(wall / ours, 2)}  # fmt: skip
+                    "wall_s": round(wall, 1),
+                    "steps_per_s": round(args.steps / wall, 2),
+                    "speedup": round(wall / ours, 2),
+                }
                 print(f"{args.against} {mode}: {wall:.1f} s ({wall / ours:.2f}x ours)", flush=True)
     print(json.dumps(summary))
     return 0

@@ -234,9 +234,10 @@ def configure(
     """The one way the command line and the benchmarks choose a configuration: the preset
     ``name`` (default: ``real`` for a real log, else the default preset) adapted to
     ``traversal`` (``odometry_noise``: the real-log adaptation's odometry noise fraction), then
-    the nested ``overrides`` (a dict, a JSON object's text, or the path of a JSON file; see
-    :func:`~pyro_slam.slam.config.with_overrides`). Returns ``(name, config)``; a bad name or
-    override raises :class:`~pyro_slam.slam.config.ConfigError` naming it."""
+    the nested ``overrides`` (a dict, a JSON object's text, the path of a JSON file, or a list of
+    those applied in turn; see :func:`~pyro_slam.slam.config.with_overrides`). Returns
+    ``(name, config)``; a bad name or override raises
+    :class:`~pyro_slam.slam.config.ConfigError` naming it."""
     if name is None:
         name = "real" if traversal is not None and is_real_log(traversal) else DEFAULT
     try:
@@ -247,9 +248,10 @@ def configure(
         config = adapt_real_log(traversal, preset.config, odometry_noise=odometry_noise)
     else:
         config = preset.for_traversal(traversal)
-    if overrides is not None:
-        changes = parse_overrides(overrides) if isinstance(overrides, str) else overrides
-        config = with_overrides(config, changes)
+    for changes in overrides if isinstance(overrides, (list, tuple)) else [overrides]:
+        if changes is not None:
+            parsed = parse_overrides(changes) if isinstance(changes, str) else changes
+            config = with_overrides(config, parsed)
     return name, config
 
 
