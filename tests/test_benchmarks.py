@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pyro_slam.slam import presets
+
 REPO = Path(__file__).resolve().parents[1]
 # every benchmark script (benchmarks/NAME.py, run as python -m benchmarks.NAME)
 SCRIPTS = ("aliasing", "compare_runs", "exploration", "filter_speed", "navigation", "pfnet_table",
@@ -184,6 +186,30 @@ def test_slam_accuracy_names_a_bad_preset_or_configuration_and_exits_2(tmp_path)
     err = bench("slam_accuracy", "--preset", "visual", *out, timeout=60)
     assert err.returncode == 2 and "--preset visual: a camera emission" in err.stderr
     assert not (tmp_path / "runs").exists()  # nothing was started
+
+
+@pytest.mark.parametrize(
+    "preset", [p.name for p in presets.PRESETS.values() if p.adapt is None]
+)
+def test_the_cli_and_the_benchmarks_choose_configurations_alike(preset):
+    """One way to choose a configuration: the preset, a benchmark's own overrides, then the
+    user's JSON; ``--preset X --config Y`` gives the CLI and the benchmarks the same model."""
+    import argparse
+
+    from benchmarks._common import slam_config
+    from pyro_slam import cli
+    from simulators import simulate_traversal
+
+    text = '{"filter": {"particles": 7}, "emission": {"sigma": 0.07}}'
+    tr = simulate_traversal("simple-small", steps=5, seed=0)
+    args = argparse.Namespace(preset=preset, config=text, odometry_noise=None)
+    name, config = cli._config(args, tr)
+    assert name == preset
+    assert config == slam_config(argparse.ArgumentParser(), preset, text)
+    assert config.filter.particles == 7 and config.emission.sigma == 0.07
+    base = {"filter": {"particles": 3, "lag": 5}}
+    assert slam_config(argparse.ArgumentParser(), preset, text, base=base).filter.lag == 5
+    assert slam_config(argparse.ArgumentParser(), preset, text, base=base).filter.particles == 7
 
 
 def test_pin_cache_learns_the_map_at_the_given_poses_and_writes_the_scans_there():

@@ -316,7 +316,7 @@ def with_overrides(config: SLAMConfig, changes: dict) -> SLAMConfig:
 def parse_overrides(text: str) -> dict:
     """Nested configuration changes from a JSON object's text, or from the JSON file at the path
     ``text``; :class:`ConfigError` naming the problem otherwise."""
-    if not text.lstrip().startswith("{"):  # a file of JSON
+    if text.lstrip()[:1] not in ("{", "["):  # a file of JSON
         try:
             text = Path(text).read_text()
         except (OSError, UnicodeDecodeError) as e:
@@ -325,7 +325,7 @@ def parse_overrides(text: str) -> dict:
     try:
         changes = json.loads(text)
     except json.JSONDecodeError as e:
-        raise ConfigError(f"not a JSON object or file: {e}") from e
+        raise ConfigError(f"not JSON ({e})") from None
     if not isinstance(changes, dict):
         raise ConfigError(f"the configuration must be a JSON object, got {changes!r}")
     return changes

@@ -17,7 +17,7 @@ import pytest
 from pyro_slam import cli, pretrained
 from pyro_slam.data import load
 from pyro_slam.runtime import package_version
-from pyro_slam.slam import SLAM
+from pyro_slam.slam import SLAM, SLAMConfig
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = json.dumps(
@@ -146,14 +146,15 @@ def test_slam_help_lists_the_presets(capsys):
 
 
 def test_paper_preset_runs_the_pretrained_emission_mlp(traversal, tmp_path):
-    """``--preset paper``: the shipped emission MLP (a D_m = 10 chart map), the shipped learned
-    transition scaled as the preset says."""
+    """``--preset paper``: the shipped emission MLP (a D_m = 10 chart map) and the shipped learned
+    transition, with the one ``sigma_T`` scale the model has everywhere (training and filtering)."""
     out = tmp_path / "run"
     args = ["slam", str(traversal), "--out", str(out), "--preset", "paper", "--config", TINY]
     assert cli.main(args) == 0
     report = json.loads((out / "metrics.json").read_text())
     assert report["preset"] == "paper" and report["config"]["emission"]["kind"] == "mlp"
-    assert report["config"]["transition"]["scale"] == [3.0, 3.0, 0.2]
+    assert report["config"]["transition"]["kind"] == "learned"
+    assert report["config"]["transition"]["scale"] == list(SLAMConfig().transition.scale)
     assert np.load(out / "posterior.npz")["map_loc"].shape[-1] == 10
     assert 0 <= report["slam"]["final_error"] < 0.2
 
