@@ -75,8 +75,13 @@ class PoseProposal(TorchDistribution):
 
     def squeeze_particle(self):
         """The same distribution without its last batch dimension (of size 1)."""
-        return PoseProposal(self.loc[..., 0, :], self.scale[..., 0, :], self.alt_loc[..., 0],
-                            self.alt_scale[..., 0], self.alt_weight[..., 0])  # fmt: skip
+        return PoseProposal(
+            self.loc[..., 0, :],
+            self.scale[..., 0, :],
+            self.alt_loc[..., 0],
+            self.alt_scale[..., 0],
+            self.alt_weight[..., 0],
+        )
 
     def log_prob(self, z: torch.Tensor) -> torch.Tensor:
         xy = _normal_log_prob(z[..., :2], self.loc[..., :2], self.scale[..., :2]).sum(-1)
@@ -183,14 +188,24 @@ class MatchedProposal(TorchDistribution):
     def squeeze_particle(self):
         """The same distribution without its last batch dimension (of size 1)."""
         cov = self.tril @ self.tril.transpose(-1, -2)
-        return MatchedProposal(self.loc[..., 0, :], self.scale[..., 0, :], self.mu[..., 0, :],
-                               cov[..., 0, :, :], self.defensive)  # fmt: skip
+        return MatchedProposal(
+            self.loc[..., 0, :],
+            self.scale[..., 0, :],
+            self.mu[..., 0, :],
+            cov[..., 0, :, :],
+            self.defensive,
+        )
 
     def expand(self, batch_shape, _instance=None):
         e3, e33 = torch.Size(batch_shape) + (3,), torch.Size(batch_shape) + (3, 3)
         cov = self.tril @ self.tril.transpose(-1, -2)
-        return MatchedProposal(self.loc.expand(e3), self.scale.expand(e3), self.mu.expand(e3),
-                               cov.expand(e33), self.defensive)  # fmt: skip
+        return MatchedProposal(
+            self.loc.expand(e3),
+            self.scale.expand(e3),
+            self.mu.expand(e3),
+            cov.expand(e33),
+            self.defensive,
+        )
 
     def log_prob(self, z: torch.Tensor) -> torch.Tensor:
         lt = _normal_log_prob(z, self.loc, self.scale).sum(-1)
@@ -251,8 +266,16 @@ class ScanMatchProposal(Proposal):
         if x is None or M is None:
             return PoseProposal(loc, scale)
         if loc.dim() == 1:  # a single pose (a Pyro guide's): a cloud of one
-            q = self.dist(model, z[None], None if scan is None else scan[None], u, x=x,
-                          mask=mask, M=M, heading=heading)  # fmt: skip
+            q = self.dist(
+                model,
+                z[None],
+                None if scan is None else scan[None],
+                u,
+                x=x,
+                mask=mask,
+                M=M,
+                heading=heading,
+            )
             return q.squeeze_particle()
         centre = _cloud_centre(loc.reshape(-1, *loc.shape[-2:])).reshape(*loc.shape[:-2], 3)
         prior = (scale**-2).mean(-2)  # [..., 3] the transition's precision at the centre
@@ -278,8 +301,9 @@ def _squeeze_particles(heading: HeadingEvidence, dim: int) -> HeadingEvidence:
     def sq(v):
         return v.squeeze(-1) if torch.is_tensor(v) and v.dim() >= dim - 1 else v
 
-    return HeadingEvidence(sq(heading.direction), sq(heading.sigma), sq(heading.frame),
-                           sq(heading.frame_var))  # fmt: skip
+    return HeadingEvidence(
+        sq(heading.direction), sq(heading.sigma), sq(heading.frame), sq(heading.frame_var)
+    )
 
 
 def _readings(model, M, z, x, mask):

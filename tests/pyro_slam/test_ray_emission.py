@@ -128,8 +128,9 @@ def test_marginal_emission_knows_beams_that_end_on_mapped_walls():
     first, 1 on the second; a chart emission has one per particle."""
     grid, walls = _wall_grid()
     em = RayEmission(torch.tensor([0.0, math.pi]), max_range=0.5, samples=100)
-    model = DVBFLM(grid, em, KinematicTransition((1e-3, 1e-3, 1e-3)), outlier_prob=0.1,
-                   outlier_range=0.5)  # fmt: skip
+    model = DVBFLM(
+        grid, em, KinematicTransition((1e-3, 1e-3, 1e-3)), outlier_prob=0.1, outlier_range=0.5
+    )
     loc = RayEmission.wall_map(grid, walls)
     scale = torch.full_like(loc, 1.0)
     scale[12:30] = 0.05  # mapped: x in [0.3, 0.725], the wall at x = 0.6 included
@@ -197,8 +198,9 @@ def test_beam_mixture_weights_bound_one_wild_beam():
     # a near miss still ranks below a match: the mixture keeps the Gaussian's sharpness
     assert lp[0] > lp[2] > lp[1]
     with pytest.raises(ValueError, match="outlier_prob"):
-        DVBFLM(MapGrid((5, 5), 1), RayEmission([0.0], 1.0), KinematicTransition(1e-3),
-               outlier_prob=1.0)  # fmt: skip
+        DVBFLM(
+            MapGrid((5, 5), 1), RayEmission([0.0], 1.0), KinematicTransition(1e-3), outlier_prob=1.0
+        )
 
 
 def test_scan_insertion_writes_scan_hits_as_walls_once(small_traversal):
@@ -325,8 +327,9 @@ def test_manhattan_frame_is_found_in_a_rotated_world_with_a_noisy_lidar():
         lidar = LidarConfig(range_noise=noise, short_prob=0.01, dropout_prob=0.01)
         errs = []
         for seed in range(1, 5):
-            tr = simulate_traversal("moderate-medium", steps=200, seed=seed, lidar=lidar,
-                                    rotation=0.3)  # fmt: skip
+            tr = simulate_traversal(
+                "moderate-medium", steps=200, seed=seed, lidar=lidar, rotation=0.3
+            )
             heading = SLAM(tr, cfg).heading
             errs.append(abs((heading.frame.mean - 0.3 + q / 2) % q - q / 2))
         # measured noise-free <= 2e-4; noisy 0.0047, 0.0005, 0.0009, 0.0026
