@@ -70,13 +70,7 @@ def simulate_traversal(
     agent = ExploringDriver(
         maze, lidar.beam_angles, seed=np.random.SeedSequence([seed, 1]), config=driver
     )
-    obs, poses, controls = [], [], []  # [T, B], [T, 3], [T-1, 2]
-    for t in range(steps):
-        poses.append(world.pose)
-        obs.append(world.lidar())
-        if t < steps - 1:
-            controls.append(agent.act(obs[t], poses[t]))
-            world.step(controls[t])
+    obs, poses, controls = _drive(world, agent, steps)
     toured = None
     if tour is not None:
         toured = _drive_tour(world, maze, tour, tour_skip, max_tour_steps, poses, obs, controls)
@@ -114,6 +108,19 @@ def simulate_traversal(
         images=frames,
         metadata=metadata,
     )
+
+
+def _drive(world: World, agent: ExploringDriver, steps: int):
+    """``steps`` steps of ``agent`` in ``world``: lists of scans ``[B]``, poses ``[3]`` and the
+    ``steps - 1`` controls ``[2]`` between them."""
+    obs, poses, controls = [], [], []  # [T, B], [T, 3], [T-1, 2]
+    for t in range(steps):
+        poses.append(world.pose)
+        obs.append(world.lidar())
+        if t < steps - 1:
+            controls.append(agent.act(obs[t], poses[t]))
+            world.step(controls[t])
+    return obs, poses, controls
 
 
 def _rotate(walls: np.ndarray, poses: np.ndarray, angle: float, centre: float):
