@@ -36,7 +36,8 @@ configuration into the same ``OUT`` stops with an error instead of mixing the tw
 errors over time each run holds the trajectories ``estimate``, ``truth`` and ``pi_poses``
 ``[T, 3]`` and the filter's posterior std ``std [T, 3]``; the summary adds the error averaged
 over time (less noisy than the final one) and ``std_over_error_median``, the filter's
-calibration (1: its position std matches its error).
+calibration (1: its position std matches its error), and ``std_over_aligned_error_median``, the
+same against the error left after a rigid alignment of the whole trajectory.
 """
 
 from __future__ import annotations
@@ -291,9 +292,11 @@ def _mode_summary(data: list, e: np.ndarray, dist: np.ndarray) -> dict:
     if all("frame_error" in d for d in data):  # the heading observation's frame
         out["frame_error_abs_max"] = float(max(abs(d["frame_error"]) for d in data))
     if all("std" in d for d in data):  # runs from before the std was saved lack it
-        # calibration: the filter's position std over its actual error (1: calibrated)
-        ratios = [metrics.std_over_error(d["std"], err) for d, err in zip(data, e)]
-        out["std_over_error_median"] = float(np.median(ratios))
+        # calibration: the filter's position std over its actual error (1: calibrated), raw
+        # and after the rigid alignment
+        cal = [metrics.calibration(d["std"], d["estimate"], d["truth"]) for d in data]
+        for key in cal[0] if cal else ():
+            out[f"{key}_median"] = float(np.median([c[key] for c in cal]))
     return out
 
 

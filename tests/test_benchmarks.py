@@ -113,6 +113,7 @@ def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path
         assert math.isclose(summary["online"]["time_avg_mean"], float(z["slam"].mean()))
         assert (z["std"] >= 0).all()
     assert summary["online"]["std_over_error_median"] > 0
+    assert summary["online"]["std_over_aligned_error_median"] > 0
     # diagnostic: the error left after a rigid alignment of each trajectory to the truth
     assert 0 <= summary["online"]["aligned_final_mean"] < 0.05
     assert 0 <= summary["online"]["aligning_rotation_abs_mean"] < 0.1
