@@ -337,7 +337,7 @@ class DVBFLM(nn.Module):
         (1 - v)``. ``cloud_logw [..., K]`` (poses ``z [..., K, 3]``): ``v`` is the cloud's
         weighted mean per entry, the same for every particle. Returns the predicted reading
         ``mean [..., N]`` and that outlier probability ``[..., N]`` (or broadcastable)."""
-        rel = belief.scale / self.prior_std()
+        rel = belief.scale if self.prior is None else belief.scale / self.prior_std()
         mean, v = self.emission.read_moments(self.grid, belief.loc, rel, z)
         if cloud_logw is not None:
             v = (cloud_logw.exp()[..., None] * v).sum(-2, keepdim=True)
