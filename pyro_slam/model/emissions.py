@@ -23,9 +23,9 @@ from torch import nn
 
 from .networks import EmissionMLP
 
-# the ray-cast emissions' march on one map: points per block, and the transmittance below which
-# a beam is dropped
-BLOCK, TOLERANCE = 32, 1e-4
+# the ray-cast emissions' march on one map: points per block (longer where fewer than SMALL / BLOCK
+# beams are marched), and the transmittance below which a beam is dropped
+BLOCK, SMALL, TOLERANCE = 32, 16384, 1e-4
 
 
 def rotate_scan(
@@ -243,25 +243,36 @@ class RayEmission(Emission):
         image = self._logit_image(M)  # [1, 1, h, w]
         step = self.max_range / self.samples
         c, dist = self.density * step, self.dist.to(z.dtype)
-        total = z.new_zeros(o.shape[0])  # sum of the transmittances
-        depth = z.new_zeros(o.shape[0])  # optical depth so far
-        last = z.new_zeros(o.shape[0])  # transmittance past the last point
         live = torch.arange(o.shape[0])
-        for s0 in range(0, self.samples, BLOCK):
-            d = dist[s0 : s0 + BLOCK]
-            pts = o[live, None] + d[:, None] * du[live, None]  # [A, L, 2]
+        depth = z.new_zeros(o.shape[0])  # optical depth so far, of the live beams
+        total = z.new_zeros(o.shape[0])  # their sum of transmittances so far
+        done, sums = [], []  # the beams dropped and their sums
+        T = None
+        block = max(BLOCK, SMALL // len(live))  # few beams: fewer, longer blocks
+        for s0 in range(0, self.samples, block):
+            pts = torch.addcmul(o[:, None], dist[s0 : s0 + block, None], du[:, None])  # [A, L, 2]
             logit = nn.functional.grid_sample(
                 image, pts[None].to(image.dtype), align_corners=True, padding_mode="border"
             )[0, 0]  # [A, L]
-            cum = depth[live, None] + c * nn.functional.softplus(logit).cumsum(-1)
+            cum = depth[:, None] + c * nn.functional.softplus(logit).cumsum(-1)
             T = torch.exp(-cum)
-            total = total.index_add(0, live, T.sum(-1))
-            depth = depth.index_copy(0, live, cum[:, -1])
-            if s0 + BLOCK >= self.samples:
-                last = last.index_copy(0, live, T[:, -1])
-            live = live[T[:, -1].detach() > TOLERANCE]
-            if not len(live):
+            total, depth = total + T.sum(-1), cum[:, -1]
+            if s0 + block >= self.samples:
                 break
+            keep = T[:, -1].detach() > TOLERANCE
+            if not bool(keep.all()):
+                done.append(live[~keep])
+                sums.append(total[~keep])
+                live, o, du, depth, total = live[keep], o[keep], du[keep], depth[keep], total[keep]
+                if not len(live):
+                    break
+        last = z.new_zeros(u.shape[:-1].numel())
+        if len(live):
+            done.append(live)
+            sums.append(total)
+            last = last.index_copy(0, live, T[:, -1])
+        order = torch.cat(done)
+        total = torch.zeros_like(last).index_copy(0, order, torch.cat(sums))
         rng = step * (0.5 + total - 0.5 * last)
         return rng.reshape(u.shape[:-1]), last.reshape(u.shape[:-1])
 

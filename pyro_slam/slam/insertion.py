@@ -124,7 +124,7 @@ class ScanInserter:
         """Grid points near the walls and their signed distances: ``(flat index [P], d [P])``,
         one per grid point (the nearest wall's)."""
         w, h = self.model.grid.cells
-        r = int(math.ceil(BAND)) + 1
+        r = int(math.ceil(BAND + 0.5))  # (the walls are sampled at grid points)
         steps = int(math.ceil(self.cfg.gap / self.spacing)) * 2 + 1
         f = torch.linspace(0, 1, steps, dtype=a.dtype)[:, None, None]  # [s, 1, 1]
         on = (a + f * (b - a)).round()  # [s, W, 2] grid points along each wall
