@@ -16,11 +16,16 @@ Geometric alternatives (not the paper's) read the map along rays instead of at t
 from __future__ import annotations
 
 import math
+import weakref
 
 import torch
 from torch import nn
 
 from .networks import EmissionMLP
+
+# the ray-cast emissions' march on one map: points per block (longer where fewer than SMALL / BLOCK
+# beams are marched), and the transmittance below which a beam is dropped
+BLOCK, SMALL, TOLERANCE = 32, 16384, 1e-4
 
 
 def rotate_scan(
@@ -204,9 +209,72 @@ class RayEmission(Emission):
         return pts, stop, torch.exp(-cum[..., -1])
 
     def _range(self, grid, M: torch.Tensor, z: torch.Tensor):
-        """Each beam's expected range and the probability that it passes, both ``[..., B]``."""
+        """Each beam's expected range and the probability that it passes, both ``[..., B]``:
+        :meth:`_march` on one map, the full march (:meth:`_stops`) on a batch of maps."""
+        if M.dim() == 3:
+            return self._march(grid, M, z)
         _, stop, passes = self._stops(grid, M, z)
         return (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range, passes
+
+    def _logit_image(self, M: torch.Tensor) -> torch.Tensor:
+        """The occupancy logit ``gain * M + offset`` of a map ``[w, h, D]`` as an image ``[1,
+        1, h, w]`` (bilinear reads of it are those of ``M``, mapped); kept for the next call
+        on the same, unchanged map where no gradient is needed (a filter step reads its map
+        belief many times)."""
+        cached = getattr(self, "_image_cache", None)
+        if cached is not None and cached[0]() is M and cached[1] == M._version:
+            return cached[2]
+        image = (self.gain * M[..., 0] + self.offset).transpose(0, 1)[None, None]
+        if not image.requires_grad:
+            self._image_cache = (weakref.ref(M), M._version, image)
+        return image
+
+    def _march(self, grid, M: torch.Tensor, z: torch.Tensor):
+        """:meth:`_range` on one map ``M [w, h, D]`` in blocks of ``BLOCK`` points, each beam
+        dropped once its transmittance is below ``TOLERANCE`` (the rest of the sum changes its
+        range by less than ``TOLERANCE * max_range``). With ``T_s`` the transmittance past
+        point ``s`` and ``step`` the points' spacing, the expected range is ``sum_s P(stop in
+        s) d_s + T_last max_range = step (1/2 + sum_{s < last} T_s + T_last / 2)``."""
+        ang = z[..., 2:3] + self.beam_angles.to(z.dtype)  # [..., B]
+        u = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # [..., B, 2]
+        k = z.new_tensor([2 / grid.size[0], 2 / grid.size[1]])  # to grid_sample's [-1, 1]
+        o = ((z[..., None, :2] - z.new_tensor(grid.origin)) * k - 1).expand(u.shape)
+        o, du = o.reshape(-1, 2), (u * k).reshape(-1, 2)  # [N, 2] each
+        image = self._logit_image(M)  # [1, 1, h, w]
+        step = self.max_range / self.samples
+        c, dist = self.density * step, self.dist.to(z.dtype)
+        live = torch.arange(o.shape[0])
+        depth = z.new_zeros(o.shape[0])  # optical depth so far, of the live beams
+        total = z.new_zeros(o.shape[0])  # their sum of transmittances so far
+        done, sums = [], []  # the beams dropped and their sums
+        T = None
+        block = max(BLOCK, SMALL // len(live))  # few beams: fewer, longer blocks
+        for s0 in range(0, self.samples, block):
+            pts = torch.addcmul(o[:, None], dist[s0 : s0 + block, None], du[:, None])  # [A, L, 2]
+            logit = nn.functional.grid_sample(
+                image, pts[None].to(image.dtype), align_corners=True, padding_mode="border"
+            )[0, 0]  # [A, L]
+            cum = depth[:, None] + c * nn.functional.softplus(logit).cumsum(-1)
+            T = torch.exp(-cum)
+            total, depth = total + T.sum(-1), cum[:, -1]
+            if s0 + block >= self.samples:
+                break
+            keep = T[:, -1].detach() > TOLERANCE
+            if not bool(keep.all()):
+                done.append(live[~keep])
+                sums.append(total[~keep])
+                live, o, du, depth, total = live[keep], o[keep], du[keep], depth[keep], total[keep]
+                if not len(live):
+                    break
+        last = z.new_zeros(u.shape[:-1].numel())
+        if len(live):
+            done.append(live)
+            sums.append(total)
+            last = last.index_copy(0, live, T[:, -1])
+        order = torch.cat(done)
+        total = torch.zeros_like(last).index_copy(0, order, torch.cat(sums))
+        rng = step * (0.5 + total - 0.5 * last)
+        return rng.reshape(u.shape[:-1]), last.reshape(u.shape[:-1])
 
     def expected_range(self, grid, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """Each beam's expected range ``[..., B]`` (the LiDAR reading)."""
@@ -220,15 +288,32 @@ class RayEmission(Emission):
         return self.max_range
 
     def read_moments(self, grid, loc, scale, z):
-        """Each beam's expected range under ``loc`` and how unknown it is, both ``[..., B]``,
-        from one march along the beams: the occupancy's variance relative to the prior's
-        (``scale``) where the ray stops under ``loc``, averaged over the stopping point
-        (passing rays: the last point). A beam that ends on a mapped wall is known even where
-        the pose is new; one that runs into unmapped space is not."""
-        pts, stop, passes = self._stops(grid, loc, z)  # [..., B, S, 2], [..., B, S], [..., B]
-        var = grid.relative_variance(scale[..., :1], pts)[..., 0]  # [..., B, S] occupancy's
-        rng = (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range
-        return rng, (stop * var).sum(-1) + passes * var[..., -1]
+        """Each beam's expected range under ``loc`` and how unknown it is, both ``[..., B]``:
+        the occupancy's variance relative to the prior's (``scale``) at the expected range
+        under ``loc`` (passing rays: the last point). A beam that ends on a mapped wall is
+        known even where the pose is new; one that runs into unmapped space is not."""
+        rng, _ = self._range(grid, loc, z)  # [..., B]
+        ang = z[..., 2:3] + self.beam_angles.to(z.dtype)
+        reach = rng.clamp(max=float(self.dist[-1]))
+        end = z[..., None, :2] + reach[..., None] * torch.stack([ang.cos(), ang.sin()], -1)
+        return rng, _relative_variance(grid, scale[..., 0], end)
+
+
+def _relative_variance(grid, scale: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+    """:meth:`~pyro_slam.model.MapGrid.relative_variance` of one feature ``scale [w, h]`` at
+    positions ``xy [..., 2]`` (``sum a_i^2 s_i^2 / sum a_i^2`` over the four grid points),
+    reading only those grid points."""
+    w, h = grid.cells
+    gx = ((xy[..., 0] - grid.origin[0]) * ((w - 1) / grid.size[0])).clamp(0, w - 1)
+    gy = ((xy[..., 1] - grid.origin[1]) * ((h - 1) / grid.size[1])).clamp(0, h - 1)
+    i0, j0 = gx.floor().clamp(max=w - 2), gy.floor().clamp(max=h - 2)
+    a, b = gx - i0, gy - j0
+    i0, j0 = i0.long(), j0.long()
+    s = scale.reshape(-1)
+    c = [s[(i0 + di) * h + j0 + dj] ** 2 for di in (0, 1) for dj in (0, 1)]
+    wa, wb = ((1 - a) ** 2, a**2), ((1 - b) ** 2, b**2)
+    num = wa[0] * (wb[0] * c[0] + wb[1] * c[1]) + wa[1] * (wb[0] * c[2] + wb[1] * c[3])
+    return num / ((wa[0] + wa[1]) * (wb[0] + wb[1]))
 
 
 class ImageEmission(Emission):

@@ -336,7 +336,7 @@ class DVBFLM(nn.Module):
         the model's own emission at the map mean with the outlier probability ``1 - (1 - eps)
         (1 - v)``. Returns the predicted reading ``mean [..., N]`` and that outlier probability
         ``[..., N]`` (or broadcastable)."""
-        rel = belief.scale / self.prior_std()
+        rel = belief.scale if self.prior is None else belief.scale / self.prior_std()
         mean, v = self.emission.read_moments(self.grid, belief.loc, rel, z)
         return mean, 1 - (1 - self.outlier_prob) * (1 - v.clamp(0, 1))
 

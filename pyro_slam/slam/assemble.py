@@ -27,7 +27,7 @@ from ..model.guide import map_param_leaves
 from .build import build_model
 from .components import emission_kind
 from .heading import ManhattanHeading
-from .insertion import ScanInserter
+from .insertion import ScanInserter, make_inserter
 
 
 def assemble(run, transition, emission, learn_emission, guide, prior, noise, smc: bool):
@@ -101,7 +101,7 @@ def inserter(run) -> ScanInserter | None:
             stacklevel=4,
         )
         return None
-    return ScanInserter(run.cfg.emission.insert, run.model, leaves)
+    return make_inserter(run.cfg.emission.insert, run.model, leaves)
 
 
 def create_guide_params(map_guide) -> None:

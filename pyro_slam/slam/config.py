@@ -25,6 +25,7 @@ from .components import EMISSIONS
 TRANSITIONS = ("kinematic", "learned")
 PROPOSALS = ("transition", "scan-match")
 ESTIMATES = ("forward", "cache")
+INSERTION_KINDS = ("occupancy", "fusion")
 
 
 class ConfigError(ValueError):
@@ -66,25 +67,24 @@ def _triple(name: str, value, optional: bool = False, positive: bool = True) -> 
 
 @dataclass(frozen=True)
 class ScanInsertionConfig:
-    """Occupancy-grid scan insertion (ray-cast LiDAR only): each online scan's hits, placed from
-    the cloud's mean pose and joined into a polyline (neighbouring hits closer than ``gap``
-    form one wall), set ``q(M)``'s mean to ``occupancy`` and its scale to ``scale`` at grid
-    points no earlier scan hit; with ``free`` (not None), the grid points its beams cross short
-    of their returns, where nothing was written yet, get the mean ``free`` and the same scale
-    (known free space); SVI then refines the map (:mod:`pyro_slam.slam.insertion`)."""
+    """Scan insertion (ray-cast LiDAR only): each online scan, placed from the cloud's mean
+    pose, is written into ``q(M)`` (:mod:`pyro_slam.slam.insertion`), SVI then refines the map.
+    ``kind`` ``"occupancy"``: its hits, joined into a polyline (neighbouring hits closer than
+    ``gap`` form one wall), set the mean to ``occupancy`` and the scale to ``scale`` at grid
+    points no earlier scan hit, and the points its beams cross short of their returns, where
+    nothing was written yet, get the free mean ``-occupancy / 2`` (walls without thickness, as
+    in the simulated mazes); ``"fusion"``: a truncated signed distance fused over the scans
+    sets the mean on a ramp from free to ``occupancy`` across each wall, the scale ``scale /
+    sqrt(scans)`` (real walls, with a back side no beam sees)."""
 
+    kind: str = "occupancy"
     occupancy: float = 2.0
     scale: float = 0.3
     gap: float = 0.05
-    free: float | None = -1.0
 
     def __post_init__(self):
-        for name in ("occupancy", "free"):
-            v = getattr(self, name)
-            if v is None and name == "free":
-                continue
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
-                raise ConfigError(f"emission.insert.{name} must be a number, got {v!r}")
+        _choice("emission.insert.kind", self.kind, INSERTION_KINDS)
+        _positive("emission.insert.occupancy", self.occupancy)
         _positive("emission.insert.scale", self.scale)
         _positive("emission.insert.gap", self.gap)
 

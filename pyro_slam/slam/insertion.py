@@ -1,12 +1,37 @@
-"""Occupancy-grid scan insertion: a warm start of ``q(M)`` for the ray-cast LiDAR emission.
+"""Scan insertion: a warm start of ``q(M)`` for the ray-cast LiDAR emission.
 
-Each online scan's hits, placed from the pose estimate, are joined into a polyline (hits of
-neighbouring beams closer than ``gap`` are one wall, sampled at half a grid spacing) and the
-grid points nearest to it that no earlier scan hit get the mean ``occupancy`` and the scale
-``scale`` in ``q(M)``. The grid points each beam crosses up to a grid spacing short of its return
-(up to the range for a miss), where nothing was written yet, get the mean ``free`` and the same
-scale: known free space, which a later hit may still overwrite. SVI then refines the map.
-Readings at the sensor's range are misses and write no wall.
+Each online scan, placed from the pose estimate, is written into the map guide's mean and
+scale; SVI then refines the map. Readings at the sensor's range are misses and write no wall.
+Two ways (``emission.insert.kind``):
+
+``"occupancy"`` (:class:`OccupancyInserter`)
+    the hits, joined into a polyline (hits of neighbouring beams closer than ``gap`` are one
+    wall, sampled at half a grid spacing), set the grid points nearest to it that no earlier
+    scan hit to the mean ``occupancy`` and the scale ``scale``; the grid points each beam
+    crosses up to a grid spacing short of its return (up to the range for a miss), where
+    nothing was written yet, get the free mean ``-occupancy / 2`` and the same scale: known
+    free space, which a later hit may still overwrite. Each grid point is written once. For
+    walls without thickness (the simulated mazes).
+``"fusion"`` (:class:`FusionInserter`)
+    a truncated signed distance (TSDF; Curless and Levoy 1996) per grid point, in grid
+    spacings, positive behind a surface:
+
+    * near each **surface**, the grid points within ``BAND`` spacings of the scan's walls get
+      their signed distance to them: the hits of neighbouring beams closer than ``gap`` are one
+      wall (a segment, its normal pointing away from the sensor); an isolated hit is a wall
+      across its beam, read along the beam;
+    * along each beam, the grid points the beam **passed** before reaching ``BAND`` spacings of
+      its hit (all of it for a reading at the range clip) are free: distance ``-BAND``;
+    * each grid point keeps the running mean of what the scans said (at most ``MAX_WEIGHT``
+      scans weigh, so that the map follows a changed pose estimate).
+
+    A fused grid point gets ``q(M)``'s mean from a linear ramp in its distance, from the free
+    value (``-occupancy / 2``, a logit that stops no ray) at ``-RAMP`` to ``occupancy`` at
+    ``+RAMP``, shifted (by at most ``SHIFT``) so that the emission's expected range at a wall
+    seen head-on is the wall's distance (:func:`surface_offset`); bilinear interpolation
+    reproduces a linear ramp exactly, so the ray stops at the wall to within a fraction of a
+    grid spacing whatever the wall's position in its cell. Its scale is ``scale /
+    sqrt(scans)``. For real walls, which have a back side no beam sees.
 """
 
 from __future__ import annotations
@@ -15,11 +40,43 @@ import math
 
 import torch
 
+from ..model.model import MapGrid
 from .config import ScanInsertionConfig
+
+RAMP = 1.5  # half the width of the wall's ramp in q(M)'s mean (grid spacings)
+SHIFT = 1.0  # the most the ramp may shift to put the expected range on the wall
+BAND = RAMP + SHIFT  # grid spacings either side of a surface that carry its signed distance
+MAX_WEIGHT = 10.0  # scans that weigh in a grid point's running mean
+
+
+def surface_offset(emission, ramp, spacing: float, phases: int = 8) -> float:
+    """The shift ``delta`` (grid spacings) of the ramp ``ramp(d)`` (loc at signed distance
+    ``d``) for which the emission's expected range at a wall seen head-on equals the wall's
+    distance, averaged over the wall's position in its cell: ``ramp(d + delta)`` is written."""
+    n = int(math.ceil(emission.max_range / spacing)) + 8
+    grid = MapGrid((n, 3), 1, (-4 * spacing, -spacing), ((n - 1) * spacing, 2 * spacing))
+    xs = grid.origin[0] + torch.arange(n, dtype=torch.float64) * spacing
+    ang = emission.beam_angles.double()
+    dist = 0.5 * emission.max_range + spacing * (torch.arange(phases) + 0.5) / phases  # walls
+    z = torch.stack([torch.zeros_like(dist), torch.zeros_like(dist), -ang[0].expand_as(dist)], -1)
+
+    def bias(delta: float) -> float:
+        d = (xs[None, :] - dist[:, None]) / spacing + delta  # [P, n] signed distances
+        M = ramp(d)[:, :, None, None].expand(-1, -1, 3, 1)  # [P, n, 3, 1] a map per wall
+        with torch.no_grad():
+            r = emission.read(grid, M.float(), z.float())[:, 0]  # [P] beam 0
+        return float((r.double() - dist).mean()) / spacing
+
+    lo, hi = -SHIFT, SHIFT  # the bias falls as delta grows: bisect for zero
+    for _ in range(20):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if bias(mid) > 0 else (lo, mid)
+    return 0.5 * (lo + hi)
 
 
 class ScanInserter:
-    """Writes scans into a map guide's mean and scale.
+    """Writes scans into a map guide's mean and scale (module doc); :func:`make_inserter`
+    builds the configured kind.
 
     Args:
         config: the :class:`~pyro_slam.slam.config.ScanInsertionConfig`.
@@ -31,67 +88,215 @@ class ScanInserter:
     def __init__(self, config: ScanInsertionConfig, model, leaves):
         self.cfg, self.model = config, model
         self.loc, self.raw_scale, self.to_raw = leaves
-        w, h, _ = model.grid.shape
-        self.inserted = torch.zeros((w, h), dtype=torch.bool)  # [w, h] hit by a scan
+        g = model.grid
+        w, h, _ = g.shape
+        self.spacing = min(g.size[0] / (w - 1), g.size[1] / (h - 1))
+        self.free = -0.5 * config.occupancy  # the mean of known free space
+
+    @property
+    def inserted(self) -> torch.Tensor:
+        """``[w, h]`` bool: grid points some scan wrote a wall or a distance into."""
+        raise NotImplementedError
+
+    def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor) -> None:
+        """Write scan ``x [B]`` (``valid [B]`` bool) placed from pose ``z [3]``."""
+        raise NotImplementedError
+
+    def _to_grid(self, p: torch.Tensor) -> torch.Tensor:
+        """Positions ``[..., 2]`` in grid coordinates (spacings from the origin)."""
+        g = self.model.grid
+        w, h, _ = g.shape
+        scale = p.new_tensor([(w - 1) / g.size[0], (h - 1) / g.size[1]])
+        return (p - p.new_tensor(g.origin)) * scale
+
+    def _nearest(self, p: torch.Tensor):
+        """The grid points ``(i [P], j [P])`` nearest to positions ``p [P, 2]`` (clamped)."""
+        w, h = self.model.grid.cells
+        c = self._to_grid(p).round().long()
+        return c[:, 0].clamp(0, w - 1), c[:, 1].clamp(0, h - 1)
+
+    def _write(self, i, j, loc, scale) -> None:
+        """``q(M)``'s mean ``loc`` and scale ``scale`` (numbers or ``[P]``) at ``(i, j)``."""
+        with torch.no_grad():
+            self.loc[i, j, 0] = torch.as_tensor(loc, dtype=self.loc.dtype)
+            # the store keeps the scale unconstrained
+            raw = self.to_raw(torch.as_tensor(scale, dtype=self.raw_scale.dtype))
+            self.raw_scale[i, j, 0] = raw
+
+
+class OccupancyInserter(ScanInserter):
+    """Walls and free space written once per grid point (module doc, ``"occupancy"``)."""
+
+    def __init__(self, config: ScanInsertionConfig, model, leaves):
+        super().__init__(config, model, leaves)
+        w, h = model.grid.cells
+        self.walls = torch.zeros((w, h), dtype=torch.bool)  # [w, h] hit by a scan
         self.freed = torch.zeros((w, h), dtype=torch.bool)  # [w, h] crossed by a beam
+
+    @property
+    def inserted(self) -> torch.Tensor:
+        return self.walls
 
     def hit_cells(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor):
         """Grid points ``(i [P], j [P])`` nearest to the polyline of the hits of scan
         ``x [B]`` (``valid [B]`` bool) placed from pose ``z [3]``."""
-        em, g = self.model.emission, self.model.grid
+        em = self.model.emission
         hit = (x < em.max_range * (1 - 1e-3)) & valid  # [B]
         ang = z[2] + em.beam_angles.to(x.dtype)  # [B]
         pts = z[:2] + x[:, None] * torch.stack([ang.cos(), ang.sin()], -1)  # [B, 2]
-        w, h, _ = g.shape
-        spacing = min(g.size[0] / (w - 1), g.size[1] / (h - 1))
         nxt = torch.roll(torch.arange(x.shape[0]), -1)  # [B] the neighbouring beam
         seg = hit & hit[nxt] & ((pts[nxt] - pts).norm(dim=-1) < self.cfg.gap)  # [B]
-        n = int(math.ceil(self.cfg.gap / (0.5 * spacing))) + 1
+        n = int(math.ceil(self.cfg.gap / (0.5 * self.spacing))) + 1
         f = torch.linspace(0, 1, n, dtype=x.dtype)[:, None, None]  # [n, 1, 1]
         on = pts[seg] + f * (pts[nxt][seg] - pts[seg])  # [n, S, 2] along joined pairs
-        p = torch.cat([pts[hit], on.reshape(-1, 2)])  # [P, 2]
-        c = [(p[:, k] - g.origin[k]) * ((m - 1) / g.size[k]) for k, m in enumerate((w, h))]
-        return tuple(ck.round().long().clamp(0, m - 1) for ck, m in zip(c, (w, h)))
+        return self._nearest(torch.cat([pts[hit], on.reshape(-1, 2)]))
 
     def free_cells(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor):
         """Grid points ``(i [P], j [P])`` the beams of scan ``x [B]`` (``valid [B]``) cross from
         pose ``z [3]`` up to a grid spacing short of their returns (up to the range where they
         miss), sampled at half a spacing."""
-        em, g = self.model.emission, self.model.grid
-        w, h, _ = g.shape
-        spacing = min(g.size[0] / (w - 1), g.size[1] / (h - 1))
+        em = self.model.emission
         hit = x < em.max_range * (1 - 1e-3)
-        reach = torch.where(hit, x - spacing, x.new_tensor(em.max_range)).clamp_min(0)[valid]
+        reach = torch.where(hit, x - self.spacing, x.new_tensor(em.max_range)).clamp_min(0)
         ang = z[2] + em.beam_angles.to(x.dtype)[valid]  # [V]
-        n = int(math.ceil(em.max_range / (0.5 * spacing))) + 1
-        d = torch.linspace(0, 1, n, dtype=x.dtype)[:, None] * reach  # [n, V]
+        n = int(math.ceil(em.max_range / (0.5 * self.spacing))) + 1
+        d = torch.linspace(0, 1, n, dtype=x.dtype)[:, None] * reach[valid]  # [n, V]
         p = z[:2] + d[..., None] * torch.stack([ang.cos(), ang.sin()], -1)  # [n, V, 2]
-        p = p.reshape(-1, 2)
-        c = [(p[:, k] - g.origin[k]) * ((m - 1) / g.size[k]) for k, m in enumerate((w, h))]
-        return tuple(ck.round().long().clamp(0, m - 1) for ck, m in zip(c, (w, h)))
+        return self._nearest(p.reshape(-1, 2))
 
     def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor) -> None:
         """Write scan ``x [B]`` (``valid [B]``) placed from pose ``z [3]``: its walls where no
-        scan hit yet, then (with ``free``) its free space where nothing was written yet."""
-        scale = self.to_raw(self.raw_scale.new_tensor(self.cfg.scale))  # the store's unconstrained
+        scan hit yet, then its free space where nothing was written yet."""
         i, j = self.hit_cells(x, valid, z)
-        new = ~self.inserted[i, j]  # [P]
-        self._write(i[new], j[new], self.cfg.occupancy, scale)
-        self.inserted[i[new], j[new]] = True
-        if self.cfg.free is not None:
-            i, j = self.free_cells(x, valid, z)
-            new = ~(self.inserted[i, j] | self.freed[i, j])
-            self._write(i[new], j[new], self.cfg.free, scale)
-            self.freed[i[new], j[new]] = True
-
-    def _write(self, i, j, value: float, raw_scale) -> None:
-        with torch.no_grad():
-            self.loc[i, j, 0] = value
-            self.raw_scale[i, j, 0] = raw_scale
+        new = ~self.walls[i, j]  # [P]
+        self._write(i[new], j[new], self.cfg.occupancy, self.cfg.scale)
+        self.walls[i[new], j[new]] = True
+        i, j = self.free_cells(x, valid, z)
+        new = ~(self.walls[i, j] | self.freed[i, j])
+        self._write(i[new], j[new], self.free, self.cfg.scale)
+        self.freed[i[new], j[new]] = True
 
     def state_dict(self) -> dict:
-        return {"inserted": self.inserted.clone(), "freed": self.freed.clone()}
+        return {"walls": self.walls.clone(), "freed": self.freed.clone()}
 
     def load_state_dict(self, d: dict) -> None:
-        self.inserted.copy_(d["inserted"])
+        self.walls.copy_(d["walls"])
         self.freed.copy_(d["freed"])
+
+
+class FusionInserter(ScanInserter):
+    """A truncated signed distance fused over scans (module doc, ``"fusion"``)."""
+
+    def __init__(self, config: ScanInsertionConfig, model, leaves):
+        super().__init__(config, model, leaves)
+        w, h = model.grid.cells
+        self.sdf = torch.zeros((w, h), dtype=torch.float64)  # weighted sum of distances
+        self.weight = torch.zeros((w, h), dtype=torch.float64)  # scans fused
+        self.delta = surface_offset(model.emission, self.ramp, self.spacing)
+
+    @property
+    def inserted(self) -> torch.Tensor:
+        return self.weight > 0
+
+    def ramp(self, d: torch.Tensor) -> torch.Tensor:
+        """``q(M)``'s loc at signed distance ``d`` (grid spacings): linear from the free value
+        at ``-RAMP`` to the wall's at ``RAMP``, constant beyond."""
+        wall, free = self.cfg.occupancy, self.free
+        f = ((d + RAMP) / (2 * RAMP)).clamp(0, 1)
+        return free + f * (wall - free)
+
+    def surfaces(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor):
+        """The scan's walls: ``a, b [W, 2]`` (grid coordinates) and their unit normals ``n [W,
+        2]`` pointing away from the sensor; an isolated hit is ``a == b`` with ``n`` its beam."""
+        em = self.model.emission
+        hit = (x < em.max_range * (1 - 1e-3)) & valid  # [B]
+        ang = z[2] + em.beam_angles.to(x.dtype)  # [B]
+        u = torch.stack([ang.cos(), ang.sin()], -1)  # [B, 2]
+        pts = self._to_grid(z[:2] + x[:, None] * u)  # [B, 2]
+        nxt = torch.roll(torch.arange(x.shape[0]), -1)
+        gap = self.cfg.gap / self.spacing
+        seg = hit & hit[nxt] & ((pts[nxt] - pts).norm(dim=-1) < gap)  # [B]
+        lone = hit & ~seg & ~torch.roll(seg, 1)  # [B] a hit on no segment
+        a = torch.cat([pts[seg], pts[lone]])
+        b = torch.cat([pts[nxt][seg], pts[lone]])
+        t = b[: int(seg.sum())] - a[: int(seg.sum())]
+        n = torch.stack([t[:, 1], -t[:, 0]], -1) / t.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        mid = 0.5 * (a[: len(t)] + b[: len(t)]) - self._to_grid(z[:2])
+        n = torch.where((n * mid).sum(-1, keepdim=True) < 0, -n, n)
+        return a, b, torch.cat([n, u[lone]])
+
+    def surface_points(self, a, b, n):
+        """Grid points near the walls and their signed distances: ``(flat index [P], d [P])``,
+        one per grid point (the nearest wall's)."""
+        w, h = self.model.grid.cells
+        r = int(math.ceil(BAND + 0.5))  # (the walls are sampled at grid points)
+        steps = int(math.ceil(self.cfg.gap / self.spacing)) * 2 + 1
+        f = torch.linspace(0, 1, steps, dtype=a.dtype)[:, None, None]  # [s, 1, 1]
+        on = (a + f * (b - a)).round()  # [s, W, 2] grid points along each wall
+        off = torch.stack(torch.meshgrid(*[torch.arange(-r, r + 1)] * 2, indexing="ij"), -1)
+        g = on[:, :, None, :] + off.reshape(1, 1, -1, 2).to(a.dtype)  # [s, W, o, 2]
+        ab = (b - a)[None, :, None, :]
+        t = (((g - a[None, :, None]) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-9)).clamp(0, 1)
+        e = g - (a[None, :, None] + t[..., None] * ab)  # [s, W, o, 2] from the wall
+        d = (e * n[None, :, None]).sum(-1)  # signed distance along the normal
+        lateral = (e - d[..., None] * n[None, :, None]).norm(dim=-1)
+        keep = (d.abs() <= BAND) & (lateral <= 0.5)
+        inside = (g[..., 0] >= 0) & (g[..., 0] <= w - 1) & (g[..., 1] >= 0) & (g[..., 1] <= h - 1)
+        keep &= inside
+        idx = (g[..., 0] * h + g[..., 1]).long()[keep]
+        d = d[keep]
+        best = torch.full((w * h,), math.inf, dtype=d.dtype).scatter_reduce(0, idx, d.abs(), "amin")
+        first = d.abs() <= best[idx]
+        idx, d = idx[first], d[first]
+        order = torch.argsort(idx, stable=True)
+        idx, d = idx[order], d[order]
+        uniq = torch.ones_like(idx, dtype=torch.bool)
+        uniq[1:] = idx[1:] != idx[:-1]
+        return idx[uniq], d[uniq]
+
+    def free_points(self, x, valid, z) -> torch.Tensor:
+        """Flat indices of the grid points the beams passed (up to ``BAND`` spacings before a
+        hit; the whole clip for a reading at it), without repeats."""
+        em = self.model.emission
+        w, h = self.model.grid.cells
+        ang = z[2] + em.beam_angles.to(x.dtype)
+        u = torch.stack([ang.cos(), ang.sin()], -1)  # [B, 2]
+        hit = x < em.max_range * (1 - 1e-3)
+        reach = torch.where(hit, x - (BAND + 0.5) * self.spacing, x)  # [B]
+        n = int(math.ceil(em.max_range / (0.5 * self.spacing))) + 1
+        s = torch.arange(n, dtype=x.dtype) * (0.5 * self.spacing)  # [n]
+        on = (s[None, :] <= reach[:, None]) & valid[:, None]  # [B, n]
+        g = self._to_grid(z[:2] + s[None, :, None] * u[:, None, :]).round()[on]  # [P, 2]
+        ok = (g[:, 0] >= 0) & (g[:, 0] <= w - 1) & (g[:, 1] >= 0) & (g[:, 1] <= h - 1)
+        return torch.unique((g[ok, 0] * h + g[ok, 1]).long())
+
+    def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor) -> None:
+        """Fuse scan ``x [B]`` (``valid [B]``) placed from pose ``z [3]`` and write the fused
+        grid points into ``q(M)``."""
+        idx, d = self.surface_points(*self.surfaces(x, valid, z))
+        free = self.free_points(x, valid, z)
+        free = free[~torch.isin(free, idx)]
+        idx = torch.cat([idx, free])
+        d = torch.cat([d.double(), torch.full((len(free),), -BAND, dtype=torch.float64)])
+        sdf, weight = self.sdf.view(-1), self.weight.view(-1)
+        keep = ((MAX_WEIGHT - 1) / weight[idx].clamp_min(1e-9)).clamp(max=1)  # cap the weight
+        sdf[idx] = sdf[idx] * keep + d
+        weight[idx] = weight[idx] * keep + 1
+        loc = self.ramp(sdf[idx] / weight[idx] + self.delta)
+        h = self.model.grid.cells[1]
+        self._write(idx // h, idx % h, loc, self.cfg.scale / weight[idx].sqrt())
+
+    def state_dict(self) -> dict:
+        return {"sdf": self.sdf.clone(), "weight": self.weight.clone()}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.sdf.copy_(d["sdf"])
+        self.weight.copy_(d["weight"])
+
+
+INSERTERS = {"occupancy": OccupancyInserter, "fusion": FusionInserter}
+
+
+def make_inserter(config: ScanInsertionConfig, model, leaves) -> ScanInserter:
+    """The scan inserter of ``config.kind`` (module doc) for ``model``'s map guide leaves."""
+    return INSERTERS[config.kind](config, model, leaves)

@@ -138,16 +138,27 @@ VISUAL_RAYCAST = replace(
 )
 VISUAL_MANHATTAN = replace(VISUAL_RAYCAST, heading=HeadingConfig())
 # real logs (metres): the ray-cast emission on a 0.1 m grid with scan insertion (hits farther
-# apart than 0.5 m are separate walls), the beam mixture, the kinematic odometry transition
-# (its noise read from the log), and the heading factor in the walls' frame estimated from the
-# log, which switches itself off where the walls do not support it
+# apart than 0.5 m are separate walls) fused as a signed distance (real walls have a back side
+# no beam sees), two points per grid spacing along each ray (the walls' ramp in q(M) spans
+# three spacings: the expected range then varies smoothly with the pose), sigma_E 0.05 m (the
+# residuals of laser ranges against a fused map at reference poses have median |r| 0.035 m,
+# 0.67 sigma for a Gaussian), the beam mixture, the kinematic odometry transition (its noise
+# read from the log), and the heading factor in the walls' frame estimated from the log, which
+# switches itself off where the walls do not support it. Insertion fuses every scan into the
+# map, so SVI refines it on a light schedule (4 chunks of 8 particles every 32 steps), and the
+# filter's 64 particles, drawn by the heading-conditioned transition against that map, are as
+# accurate as 128
 REAL = SLAMConfig(
     emission=EmissionConfig(
-        resolution=0.1, margin=0.0, sigma=0.1, insert=ScanInsertionConfig(gap=0.5)
+        resolution=0.1,
+        margin=0.0,
+        sigma=0.05,
+        insert=ScanInsertionConfig(kind="fusion", gap=0.5),
+        ray_spacing=0.5,
     ),
     transition=TransitionConfig("kinematic", scale=(1.0, 1.0, 1.0)),
-    filter=FilterConfig(proposal="transition"),
-    training=TrainingConfig(chunks=8, every=4),
+    filter=FilterConfig(particles=64, proposal="transition"),
+    training=TrainingConfig(particles=8, chunks=4, every=32),
     offline=OfflineConfig(estimate="forward"),
 )
 

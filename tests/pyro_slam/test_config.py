@@ -160,9 +160,16 @@ def test_presets_differ_from_each_other_as_documented():
     )
     real = presets.get("real").config
     assert real.emission == EmissionConfig(
-        "raycast", resolution=0.1, margin=0.0, sigma=0.1, insert=ScanInsertionConfig(gap=0.5)
+        "raycast",
+        resolution=0.1,
+        margin=0.0,
+        sigma=0.05,
+        insert=ScanInsertionConfig(kind="fusion", gap=0.5),
+        ray_spacing=0.5,
     )
     assert real.transition.kind == "kinematic" and real.heading == HeadingConfig()
+    assert real.filter.particles == 64 and real.filter.proposal == "transition"
+    assert real.training.every == 32
 
 
 def test_unknown_preset_lists_the_names():
@@ -288,7 +295,8 @@ def test_bad_particle_counts_are_rejected_by_name(value):
         ),
         ({"emission": {"outlier_prob": 1.0}}, r"emission.outlier_prob must be in \[0, 1\)"),
         ({"emission": {"ray_spacing": 0}}, "emission.ray_spacing must be a positive number"),
-        ({"emission": {"insert": {"free": "low"}}}, "emission.insert.free must be a number"),
+        ({"emission": {"insert": {"kind": "tsdf"}}}, "emission.insert.kind must be one of"),
+        ({"emission": {"insert": {"occupancy": -2}}}, "emission.insert.occupancy must be a pos"),
         ({"emission": {"insert": {"scale": 0}}}, "emission.insert.scale must be a positive"),
         ({"emission": {"insert": {"occupancy": "high"}}}, "emission.insert.occupancy must be"),
         ({"transition": {"scale": [1, 1]}}, r"transition.scale must be 3 positive numbers"),
