@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from pyro_slam.slam import SLAMConfig
-from pyro_slam.slam.config import COMPONENTS, NESTED
+from pyro_slam.slam.config import COMPONENTS, component_fields
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [
@@ -28,7 +28,7 @@ def _is_field(name: str) -> bool:
     for part in name.split("."):
         if cls is None or part not in {f.name for f in fields(cls)}:
             return False
-        cls = COMPONENTS.get(part) if cls is SLAMConfig else NESTED.get(part)
+        cls = component_fields(cls).get(part, (None,))[0]
     return True
 
 
