@@ -29,7 +29,6 @@ import math
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -40,8 +39,9 @@ import torch
 from tqdm.auto import tqdm
 
 from pyro_slam.data import load_tensors
-from pyro_slam.planning.exploration import ExploreConfig, run_agent
+from pyro_slam.planning.exploration import ExploreConfig, run_agent, with_overrides
 from pyro_slam.planning.pema import ARSConfig, PEMAPolicy, train_pema
+from pyro_slam.slam.config import ConfigError
 from simulators import SCALES, make_maze
 
 AGENTS = ("mi", "pema", "random")
@@ -50,20 +50,21 @@ COLOURS = {"mi": "tab:blue", "pema": "tab:purple", "random": "tab:gray"}
 
 def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")  # the library's progress
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
     if args.merge:
         summary = merge(args.merge, Path(args.out))
         print(json.dumps(summary["final"], indent=1))
         return 0
     torch.set_num_threads(1)
     scales = list(SCALES) if args.scales == ["all"] else args.scales
-    cfg, (ars_cfg, n_mazes, ars_steps) = _configs(args)
+    cfg, (ars_cfg, n_mazes, ars_steps) = _configs(parser, args)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     per_job = ("out", "workers", "seeds", "first_seed", "scales")  # not in a run's settings
     settings = {k: str(v) for k, v in vars(args).items() if k not in per_job}
-    policy = PEMAPolicy(step_length=cfg.step_length, max_turn=cfg.max_turn)
+    policy = PEMAPolicy(step_length=cfg.motion.step_length, max_turn=cfg.motion.max_turn)
     ars_hist, t_ars = _trained_pema(policy, out / "pema.pt", settings, ars_cfg, n_mazes, ars_steps)
     jobs = _jobs(args, scales, cfg, policy)
     ars = {"ars_cfg": ars_cfg, "n_mazes": n_mazes, "ars_steps": ars_steps, "ars_hist": ars_hist}
@@ -106,12 +107,17 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
-def _configs(args) -> tuple[ExploreConfig, tuple[ARSConfig, int, int]]:
-    """The agents' configuration, and PEMA's ARS configuration, training mazes and steps."""
+def _configs(parser, args) -> tuple[ExploreConfig, tuple[ARSConfig, int, int]]:
+    """The agents' configuration, and PEMA's ARS configuration, training mazes and steps; a bad
+    ``--horizon`` or ``--execute-steps`` is a usage error (``parser.error``, exit 2)."""
     cfg = ExploreConfig() if args.paper else ExploreConfig.smoke()
-    cfg = replace(cfg, horizon=args.horizon)
+    plan = {"horizon": args.horizon}
     if args.execute_steps is not None:
-        cfg = replace(cfg, execute_steps=args.execute_steps)
+        plan["execute_steps"] = args.execute_steps
+    try:
+        cfg = with_overrides(cfg, {"plan": plan})
+    except ConfigError as e:
+        parser.error(f"--horizon / --execute-steps: {e}")
     if args.paper:
         return cfg, (ARSConfig(), 10, 1000)
     ars_cfg = ARSConfig(args.ars_iterations, args.ars_directions, args.ars_directions // 2)

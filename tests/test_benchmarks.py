@@ -244,9 +244,11 @@ def test_pin_cache_learns_the_map_at_the_given_poses_and_writes_the_scans_there(
 
 
 def test_exploration_benchmark_same_curves_serial_and_parallel(tmp_path):
-    args = ("--scales", "simple-small", "--seeds", "2", "--step-fraction", "0.02",
-            "--ars-iterations", "1", "--ars-directions", "2", "--ars-mazes", "1",
-            "--ars-steps", "10", "--horizon", "10")  # fmt: skip
+    args = (
+        *("--scales", "simple-small", "--seeds", "2", "--step-fraction", "0.02"),
+        *("--ars-iterations", "1", "--ars-directions", "2", "--ars-mazes", "1"),
+        *("--ars-steps", "10", "--horizon", "10"),
+    )
     out = {}
     for workers in (1, 2):
         d = tmp_path / f"w{workers}"
@@ -261,7 +263,8 @@ def test_exploration_benchmark_same_curves_serial_and_parallel(tmp_path):
     again = json.loads((tmp_path / "w1" / "exploration.json").read_text())
     assert again["curves"] == a["curves"] and again["final"] == a["final"]
     assert again["ars"]["seconds"] == a["ars"]["seconds"]
-    assert a["config"]["horizon"] == 10 and a["steps"] == {"simple-small": 30}
+    assert a["config"]["plan"]["horizon"] == 10 and a["steps"] == {"simple-small": 30}
+    assert a["config"]["plan"]["execute_steps"] == 25  # the reduced budget's
     assert a["curves"] == b["curves"]  # seeded agents: parallel runs change nothing
     for agent in ("mi", "pema", "random"):
         runs = a["curves"]["simple-small"][agent]
@@ -282,6 +285,17 @@ def test_exploration_benchmark_same_curves_serial_and_parallel(tmp_path):
         fa, fm = a["final"]["simple-small"][agent], m["final"]["simple-small"][agent]
         assert fm["ratio_mean"] == pytest.approx(fa["ratio_mean"]) and fm["seeds"] == 2
         assert fm["infogain_std"] == pytest.approx(fa["infogain_std"])
+
+
+def test_exploration_benchmark_plan_flags_are_checked(tmp_path):
+    for flags, field in (
+        (("--horizon", "1"), "horizon"),
+        (("--execute-steps", "-1"), "execute_steps"),
+    ):
+        err = bench("exploration", *flags, "--out", str(tmp_path), timeout=60)
+        assert err.returncode == 2, err.stderr[-2000:]
+        assert f"--horizon / --execute-steps: explore.plan.{field} must be" in err.stderr
+    assert not any(tmp_path.iterdir())
 
 
 def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(tmp_path):

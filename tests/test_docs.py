@@ -1,5 +1,5 @@
-"""The documentation names what exists: configuration fields that ``--config`` accepts, files
-of the repository, every notebook."""
+"""The documentation names what exists: configuration fields that ``--config`` accepts and
+those of the exploration configuration, files of the repository, every notebook."""
 
 from __future__ import annotations
 
@@ -9,8 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from pyro_slam.planning.exploration import ExploreConfig
 from pyro_slam.slam import SLAMConfig
-from pyro_slam.slam.config import COMPONENTS, NESTED
+from pyro_slam.slam.config import COMPONENTS, component_fields
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [
@@ -19,16 +20,17 @@ PAGES = [
     *sorted((ROOT / "docs").glob("*.md")),
 ]
 CONFIG_NAME = re.compile(r"`((?:" + "|".join(COMPONENTS) + r")\.[a-z_.]+)`")
+EXPLORE_NAME = re.compile(r"`ExploreConfig\.([A-Za-z_.]+)")
 REPO_PATH = re.compile(r"`((?:pyro_slam|simulators|benchmarks|notebooks|tests)/[\w/.-]*\w)`")
 
 
-def _is_field(name: str) -> bool:
-    """Whether ``--config`` knows the dotted field ``name`` (e.g. ``emission.insert.gap``)."""
-    cls = SLAMConfig
+def _is_field(name: str, cls=SLAMConfig) -> bool:
+    """Whether the configuration ``cls`` has the dotted field ``name`` (e.g.
+    ``emission.insert.gap``, as ``--config`` knows it)."""
     for part in name.split("."):
         if cls is None or part not in {f.name for f in fields(cls)}:
             return False
-        cls = COMPONENTS.get(part) if cls is SLAMConfig else NESTED.get(part)
+        cls = component_fields(cls).get(part, (None,))[0]
     return True
 
 
@@ -38,6 +40,11 @@ def test_configuration_names_in_the_docs_are_accepted_by_config(page):
         if name.endswith(".py"):  # a file (heading.py), not a field
             continue
         assert _is_field(name), f"{page.name}: `{name}` is not a configuration field"
+    for name in sorted(set(EXPLORE_NAME.findall(page.read_text()))):
+        if callable(getattr(ExploreConfig, name.split(".")[0], None)):  # a method: smoke()
+            continue
+        ok = _is_field(name.rstrip("."), ExploreConfig)
+        assert ok, f"{page.name}: `ExploreConfig.{name}` is not an exploration configuration field"
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.relative_to(ROOT).as_posix())

@@ -1,5 +1,7 @@
 """Active SLAM by mutual information (Mirchev et al. 2019, section VI, Appendices D and E).
 
+* :class:`ExploreConfig` -- the agents' configuration (the paper's values by default,
+  :meth:`ExploreConfig.smoke` the reduced budget; :func:`with_overrides` for nested changes).
 * :func:`knn_entropy` -- Kozachenko--Leonenko k-NN differential entropy estimator (scipy
   ``cKDTree`` neighbour search).
 * :class:`Mapper` -- DVBF-LM map learning from collected data: SVI on ``q(M)`` (and optionally
@@ -14,7 +16,7 @@
   turn regulariser (Appendix E).
 * :class:`KnownObstacles` -- observed laser end points as point obstacles: planner rollouts
   (MI, execution) stop moves into them, as the simulator stops moves into walls (not in the
-  paper; ``block_radius = 0`` turns it off).
+  paper; ``plan.block_radius = 0`` turns it off).
 * :func:`run_agent` -- Algorithm 1 (``policy="mi"``) and the same loop for the baselines
   (``"random"``, ``"pema"``): execute ``T`` steps, append data, train SVI, log metrics.
 
@@ -29,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import pyro
@@ -45,6 +47,14 @@ from simulators import SCALES, World, make_maze
 from ..model import DVBFLM, EmissionMLP, KinematicTransition, MapGrid, MapGuide, map_marginals
 from ..model.guide import ParamScope, map_kl, sample_maps
 from ..pretrained import EMISSION_FILE, PRETRAINED
+from ..slam.config import (
+    ConfigError,
+    _check_components,
+    _merge,
+    _non_negative,
+    _plain,
+    _positive,
+)
 
 log = logging.getLogger(__name__)
 
@@ -72,65 +82,190 @@ def knn_entropy(x, k: int = 1) -> float:
 # ----------------------------------------------------------------------------- config
 
 
-@dataclass
-class ExploreConfig:
-    """Paper values (Appendix D/E) by default; :meth:`smoke` gives a CPU-sized budget."""
+@dataclass(frozen=True)
+class PlanConfig:
+    """Plans of the MI agent (Algorithm 1): ``horizon`` steps ``T`` planned per plan, of which
+    the first ``execute_steps`` are executed before the next plan (0: the whole plan, the
+    paper); at most ``max_replans`` replans within one block of executed steps when the next
+    move is blocked; ``block_radius`` > 0: moves towards an observed laser end point closer
+    than this are blocked in the planner's rollouts (MI scoring, execution), 0: no blocking
+    (the paper)."""
 
-    horizon: int = 50  # T: steps planned (and, by default, executed) per plan
-    execute_steps: int = 0  # steps of each plan executed before the next (0: all, the paper)
-    candidates: int = 40  # F
-    cand_steps: int = 500  # Adam steps of candidate optimisation
-    cand_lr: float = 1e-3
-    turn_reg: float = 2.0  # L2 regulariser on the per-step heading changes
-    cand_pose_samples: int = 2  # pose rollouts per candidate in the obstacle expectation
-    cand_init_std: float = 0.3  # std of the random initial (pre-tanh) turn parameters
-    mi_L: int = 30  # samples of the marginal entropy term
-    mi_M: int = 40  # maps of the conditional entropy term
-    mi_K: int = 100  # samples per conditional entropy
+    horizon: int = 50
+    execute_steps: int = 0
+    max_replans: int = 0
+    block_radius: float = 0.0
+
+    def __post_init__(self):
+        h = self.horizon
+        if not (isinstance(h, int) and not isinstance(h, bool) and h >= 2):
+            raise ConfigError(f"explore.plan.horizon must be an integer >= 2, got {h!r}")
+        _non_negative("explore.plan.execute_steps", self.execute_steps, integer=True)
+        _non_negative("explore.plan.max_replans", self.max_replans, integer=True)
+        _non_negative("explore.plan.block_radius", self.block_radius)
+
+
+@dataclass(frozen=True)
+class CandidateConfig:
+    """Candidate generation (Algorithm 2, Appendix E): ``count`` control sequences (``F``)
+    optimised with ``steps`` Adam steps at learning rate ``lr`` on the obstacle penalty plus
+    ``turn_reg`` times the L2 norm of the per-step heading changes; the penalty's expectation
+    takes ``pose_samples`` pose rollouts per candidate; the (pre-tanh) turn parameters start
+    from ``N(0, init_std^2)``."""
+
+    count: int = 40
+    steps: int = 500
+    lr: float = 1e-3
+    turn_reg: float = 2.0
+    pose_samples: int = 2
+    init_std: float = 0.3
+
+    def __post_init__(self):
+        _positive("explore.candidates.count", self.count, integer=True)
+        _non_negative("explore.candidates.steps", self.steps, integer=True)
+        _positive("explore.candidates.lr", self.lr)
+        _non_negative("explore.candidates.turn_reg", self.turn_reg)
+        _positive("explore.candidates.pose_samples", self.pose_samples, integer=True)
+        _non_negative("explore.candidates.init_std", self.init_std)
+
+
+@dataclass(frozen=True)
+class MIConfig:
+    """The MI estimate ``H(X) - 1/M sum_m H(X^(m))`` (Appendix D): ``L`` samples of the
+    marginal, ``M`` maps of the conditional term with ``K`` samples each, k-NN entropies with
+    ``knn_k`` neighbours; every ``obs_stride``-th future scan enters the sample vectors."""
+
+    L: int = 30
+    M: int = 40
+    K: int = 100
     knn_k: int = 1
-    obs_stride: int = 1  # use every obs_stride-th future scan in the MI sample vectors
+    obs_stride: int = 1
+
+    def __post_init__(self):
+        for name in ("L", "M", "K", "knn_k", "obs_stride"):
+            _positive(f"explore.mi.{name}", getattr(self, name), integer=True)
+        for name in ("L", "K"):  # the k-NN estimator needs more than k samples
+            if getattr(self, name) <= self.knn_k:
+                raise ConfigError(
+                    f"explore.mi.{name} must exceed explore.mi.knn_k = {self.knn_k}, "
+                    f"got {getattr(self, name)!r}"
+                )
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """How every agent moves: ``step_length`` forward per step after a turn of at most
+    ``max_turn`` (rad); ``sigma_T``: the std of the known kinematic transition (the mapper's
+    pose noise and the planner's rollouts)."""
+
     sigma_T: float = 4e-4
-    sigma_E: float = 0.1
-    step_length: float = 0.01  # forward offset per step (all agents)
-    max_turn: float = math.pi / 4  # |rotation| per step (all agents)
-    train_steps: int = 500  # SVI steps after each executed plan
+    step_length: float = 0.01
+    max_turn: float = math.pi / 4
+
+    def __post_init__(self):
+        for name in ("sigma_T", "step_length", "max_turn"):
+            _positive(f"explore.motion.{name}", getattr(self, name))
+
+
+@dataclass(frozen=True)
+class MappingConfig:
+    """The mapper: DVBF-LM with ``map_dim`` map features (``D_m``; 10 fits the shipped
+    pretrained emission, the paper has 20), emission noise ``sigma_E``, the emission started
+    from the shipped pretrained one if ``pretrained_emission`` and learned along if
+    ``learn_emission``; ``train_steps`` SVI steps after each block of executed steps on
+    batches of ``batch`` steps, Adam learning rates ``lr_map`` (``q(M)``) and
+    ``lr_emission``."""
+
+    train_steps: int = 500
     batch: int = 128
     lr_map: float = 1e-3
     lr_emission: float = 1e-3
     learn_emission: bool = True
-    map_dim: int = 10  # D_m (10 = the shipped pretrained emission; paper: 20)
+    map_dim: int = 10
     pretrained_emission: bool = True
-    endpoint_poses: int = 2000  # at most this many past poses feed the obstacle histogram
-    hist_factor: int = 4  # obstacle histogram bins per side = hist_factor * map cells per side
-    endpoints: str = "predicted"  # obstacle histogram from "predicted" (paper) or "observed" scans
-    hist_blur: float = 1.0  # Gaussian blur of the histogram counts (bins; 0 = none)
-    max_replans: int = 0  # MI agent: replans within one block (blocked move ahead)
-    block_radius: float = 0.0  # >0: moves towards an observed laser end point closer than
-    # this are blocked in the planner's rollouts (MI, execution); 0 = paper (no blocking)
+    sigma_E: float = 0.1
+
+    def __post_init__(self):
+        _non_negative("explore.mapping.train_steps", self.train_steps, integer=True)
+        for name in ("batch", "map_dim"):
+            _positive(f"explore.mapping.{name}", getattr(self, name), integer=True)
+        for name in ("lr_map", "lr_emission", "sigma_E"):
+            _positive(f"explore.mapping.{name}", getattr(self, name))
+        for name in ("learn_emission", "pretrained_emission"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(
+                    f"explore.mapping.{name} must be true or false, got {getattr(self, name)!r}"
+                )
+
+
+@dataclass(frozen=True)
+class ObstacleConfig:
+    """The candidates' obstacle density: a histogram of the laser end points predicted from
+    the mean map at (at most ``endpoint_poses``) past poses, ``hist_factor`` bins per map cell
+    and side, counts blurred by a Gaussian of ``hist_blur`` bins (0: none)."""
+
+    endpoint_poses: int = 2000
+    hist_factor: int = 4
+    hist_blur: float = 1.0
+
+    def __post_init__(self):
+        _positive("explore.obstacles.endpoint_poses", self.endpoint_poses, integer=True)
+        _positive("explore.obstacles.hist_factor", self.hist_factor, integer=True)
+        _non_negative("explore.obstacles.hist_blur", self.hist_blur)
+
+
+@dataclass(frozen=True)
+class ExploreConfig:
+    """The exploration agents' configuration: one component per concern, plus the ``seed``
+    of the mapper, the planner and the simulator. ``ExploreConfig()`` holds the paper's values
+    (Appendices D and E); :meth:`smoke` is the reduced CPU budget; :func:`with_overrides`
+    applies a nested dict of changes, e.g. ``{"mi": {"K": 20}}``."""
+
+    plan: PlanConfig = field(default_factory=PlanConfig)
+    candidates: CandidateConfig = field(default_factory=CandidateConfig)
+    mi: MIConfig = field(default_factory=MIConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
     seed: int = 0
+
+    def __post_init__(self):
+        _check_components(self, "explore.")
+        _non_negative("explore.seed", self.seed, integer=True)
 
     @classmethod
     def smoke(cls, **over) -> ExploreConfig:
-        base = cls(
-            horizon=25,
-            execute_steps=25,  # with the benchmark's T = 50: replan after half of each plan
-            cand_init_std=0.05,
-            max_replans=1000,  # i.e. replan at every blocked move
-            block_radius=0.02,
-            candidates=8,
-            cand_steps=200,
-            cand_lr=2e-2,
-            mi_L=20,
-            mi_M=8,
-            mi_K=20,
-            obs_stride=5,
-            train_steps=60,
-            lr_map=2e-2,
-        )
-        return replace(base, **over)
+        """The reduced budget (:data:`SMOKE` applied to the paper's values), then the nested
+        changes ``over``, e.g. ``smoke(mi={"K": 5}, seed=1)``."""
+        return with_overrides(with_overrides(cls(), SMOKE), over)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """Plain nested dict (JSON-ready)."""
+        return _plain(asdict(self))
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ExploreConfig:
+        """The configuration written by :meth:`to_dict` (missing fields: the defaults)."""
+        return with_overrides(cls(), d)
+
+
+SMOKE = {
+    # receding horizon: with the benchmark's T = 50, replan after half of each plan; replan at
+    # every blocked move
+    "plan": {"horizon": 25, "execute_steps": 25, "max_replans": 1000, "block_radius": 0.02},
+    "candidates": {"count": 8, "steps": 200, "lr": 2e-2, "init_std": 0.05},
+    "mi": {"L": 20, "M": 8, "K": 20, "obs_stride": 5},
+    "mapping": {"train_steps": 60, "lr_map": 2e-2},
+}
+"""How :meth:`ExploreConfig.smoke` differs from the paper's values."""
+
+
+def with_overrides(config: ExploreConfig, changes: dict) -> ExploreConfig:
+    """``config`` with a nested dict of changes, e.g. ``{"plan": {"horizon": 10}, "seed": 3}``
+    (a component may also be given whole). Unknown fields and bad values raise
+    :class:`~pyro_slam.slam.config.ConfigError` naming the dotted field
+    (``explore.mi.K``)."""
+    return _merge(config, changes, ExploreConfig, "explore.")
 
 
 # ----------------------------------------------------------------------------- mapper
@@ -143,10 +278,11 @@ def scale_grid(scale, dim: int) -> MapGrid:
 
 
 def _emission(cfg: ExploreConfig, n_world: int, max_range: float) -> EmissionMLP:
-    em = EmissionMLP(cfg.map_dim, n_world, 256, 4, scale=max_range)
-    if cfg.pretrained_emission:
+    dim = cfg.mapping.map_dim
+    em = EmissionMLP(dim, n_world, 256, 4, scale=max_range)
+    if cfg.mapping.pretrained_emission:
         blob = torch.load(PRETRAINED / EMISSION_FILE, weights_only=True)
-        if blob["meta"].get("map_dim") == cfg.map_dim and blob["meta"]["n_world"] == n_world:
+        if blob["meta"].get("map_dim") == dim and blob["meta"]["n_world"] == n_world:
             em.load_state_dict(blob["state_dict"])
     return em
 
@@ -169,22 +305,33 @@ class Mapper:
     (:class:`~pyro_slam.model.guide.ParamScope`).
     """
 
-    def __init__(self, grid: MapGrid, beam_angles, max_range: float, cfg: ExploreConfig, *,
-                 prior=None, noise=None, guide=None):  # fmt: skip
+    def __init__(
+        self,
+        grid: MapGrid,
+        beam_angles,
+        max_range: float,
+        cfg: ExploreConfig,
+        *,
+        prior=None,
+        noise=None,
+        guide=None,
+    ):
         self.cfg = cfg
         self.scope = ParamScope()
         pyro.set_rng_seed(cfg.seed)  # SVI and rollout sampling use the global RNGs
         self.gen = torch.Generator().manual_seed(cfg.seed)
         em = _emission(cfg, max(len(beam_angles), 20), max_range)
-        trans = KinematicTransition(cfg.sigma_T)
-        self.model = DVBFLM(grid, em, trans, beam_angles, cfg.sigma_E, prior=prior, noise=noise)
-        self.model.learn_emission = cfg.learn_emission
+        trans = KinematicTransition(cfg.motion.sigma_T)
+        self.model = DVBFLM(
+            grid, em, trans, beam_angles, cfg.mapping.sigma_E, prior=prior, noise=noise
+        )
+        self.model.learn_emission = cfg.mapping.learn_emission
         self.max_range = float(max_range)
         self.beam_angles = np.asarray(beam_angles, dtype=np.float64)
-        lr = cfg
+        mapping = cfg.mapping
 
         def per_param(name, _p):
-            return {"lr": lr.lr_map if not name.startswith("emission") else lr.lr_emission}
+            return {"lr": mapping.lr_emission if name.startswith("emission") else mapping.lr_map}
 
         with self.scope():
             if guide is None:
@@ -195,8 +342,9 @@ class Mapper:
                 self.guide.params()
             else:
                 sample_maps(self.guide, 1)
-            self.svi = SVI(self.model.mapping_model, self.guide, Adam(per_param),
-                           TraceMeanField_ELBO())  # fmt: skip
+            self.svi = SVI(
+                self.model.mapping_model, self.guide, Adam(per_param), TraceMeanField_ELBO()
+            )
         self.poses: list[np.ndarray] = []
         self.obs: list[np.ndarray] = []
 
@@ -205,7 +353,7 @@ class Mapper:
         """Append true poses ``[n, 3]`` (noised by ``sigma_T``) and scans ``[n, B]``."""
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         noise = np.random.default_rng(len(self.poses) + self.cfg.seed).normal(size=poses.shape)
-        self.poses.append(poses + self.cfg.sigma_T * noise)
+        self.poses.append(poses + self.cfg.motion.sigma_T * noise)
         self.obs.append(np.asarray(scans, dtype=np.float64).reshape(poses.shape[0], -1))
 
     def tensors(self):
@@ -218,8 +366,9 @@ class Mapper:
         if not self.poses:
             return []
         z, x = self.tensors()
+        batch = self.cfg.mapping.batch
         with self.scope():
-            return [self.svi.step(z, x, None, self.cfg.batch) / len(z) for _ in range(steps)]
+            return [self.svi.step(z, x, None, batch) / len(z) for _ in range(steps)]
 
     def marginals(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The marginal mean and std of ``q(M)``, ``[w, h, D_m]`` (detached)."""
@@ -261,11 +410,11 @@ def mutual_information(mapper: Mapper, controls, init_pose, cfg: ExploreConfig) 
     ``X^(m)``: ``K`` rollouts under map ``m``, ``m = 1..M``.
     """
     init_pose = torch.as_tensor(init_pose, dtype=torch.get_default_dtype())
-    s = cfg.obs_stride
-    marg = mapper.sample_observations(controls, init_pose, cfg.mi_L, 1, s)[:, 0]
-    cond = mapper.sample_observations(controls, init_pose, cfg.mi_M, cfg.mi_K, s)
-    h_marg = knn_entropy(marg.numpy(), cfg.knn_k)
-    h_cond = np.mean([knn_entropy(c.numpy(), cfg.knn_k) for c in cond])
+    s = cfg.mi.obs_stride
+    marg = mapper.sample_observations(controls, init_pose, cfg.mi.L, 1, s)[:, 0]
+    cond = mapper.sample_observations(controls, init_pose, cfg.mi.M, cfg.mi.K, s)
+    h_marg = knn_entropy(marg.numpy(), cfg.mi.knn_k)
+    h_cond = np.mean([knn_entropy(c.numpy(), cfg.mi.knn_k) for c in cond])
     return float(h_marg - h_cond)
 
 
@@ -274,28 +423,25 @@ def mutual_information(mapper: Mapper, controls, init_pose, cfg: ExploreConfig) 
 
 def obstacle_log_density(mapper: Mapper):
     """Histogram of predicted laser end points (mean map, at past poses) on a grid of
-    ``hist_factor`` x the map cells, as a log density ``[W, H, 1]`` and the :class:`MapGrid`
-    that interpolates it bilinearly."""
+    ``obstacles.hist_factor`` x the map cells, as a log density ``[W, H, 1]`` and the
+    :class:`MapGrid` that interpolates it bilinearly."""
+    cfg = mapper.cfg.obstacles
     g = mapper.model.grid
     w, h, _ = g.shape
-    w, h = w * mapper.cfg.hist_factor, h * mapper.cfg.hist_factor
-    z, x = mapper.tensors()
-    if len(z) > mapper.cfg.endpoint_poses:
-        keep = torch.linspace(0, len(z) - 1, mapper.cfg.endpoint_poses).long()
-        z, x = z[keep], x[keep]
-    if mapper.cfg.endpoints == "observed":
-        scan = x
-    else:
-        with torch.no_grad():
-            scan = mapper.model.emission_mean(mapper.marginals()[0], z)  # [N, B]
+    w, h = w * cfg.hist_factor, h * cfg.hist_factor
+    z, _ = mapper.tensors()
+    if len(z) > cfg.endpoint_poses:
+        z = z[torch.linspace(0, len(z) - 1, cfg.endpoint_poses).long()]
+    with torch.no_grad():
+        scan = mapper.model.emission_mean(mapper.marginals()[0], z)  # [N, B]
     ang = z[:, 2:3] + mapper.model.beam_angles
     hit = scan < 0.95 * mapper.max_range  # beams that see something
     ex = (z[:, 0:1] + scan * torch.cos(ang))[hit].numpy()
     ey = (z[:, 1:2] + scan * torch.sin(ang))[hit].numpy()
     (x0, y0), (sx, sy) = g.origin, g.size
     counts, _, _ = np.histogram2d(ex, ey, bins=(w, h), range=((x0, x0 + sx), (y0, y0 + sy)))
-    if mapper.cfg.hist_blur > 0:
-        counts = gaussian_filter(counts, mapper.cfg.hist_blur, mode="constant")
+    if cfg.hist_blur > 0:
+        counts = gaussian_filter(counts, cfg.hist_blur, mode="constant")
     area = (sx / w) * (sy / h)
     dens = (counts + 0.1) / (counts.sum() + 0.1 * w * h) / area
     logd = torch.as_tensor(np.log(dens), dtype=torch.get_default_dtype())[..., None]
@@ -364,15 +510,15 @@ def known_obstacles(mapper: Mapper, extra=None) -> KnownObstacles:
     if extra is not None and len(extra[0]):
         more = observed_endpoints(*extra, mapper.beam_angles, mapper.max_range)
         pts = np.concatenate([pts, more])
-    return KnownObstacles(pts, mapper.cfg.block_radius)
+    return KnownObstacles(pts, mapper.cfg.plan.block_radius)
 
 
 def controls_from_params(p: torch.Tensor, cfg: ExploreConfig) -> torch.Tensor:
     """Unconstrained ``[..., T-1]`` -> controls ``[..., T-1, 2]`` (first turn up to pi)."""
-    lim = torch.full(p.shape[-1:], cfg.max_turn, dtype=p.dtype)
+    lim = torch.full(p.shape[-1:], cfg.motion.max_turn, dtype=p.dtype)
     lim[0] = math.pi
     rot = lim * torch.tanh(p)
-    return torch.stack([rot, torch.full_like(rot, cfg.step_length)], -1)
+    return torch.stack([rot, torch.full_like(rot, cfg.motion.step_length)], -1)
 
 
 def kinematic_rollout(z0: torch.Tensor, controls: torch.Tensor, sigma=0.0, generator=None):
@@ -401,24 +547,25 @@ def kinematic_rollout(z0: torch.Tensor, controls: torch.Tensor, sigma=0.0, gener
 def generate_candidates(mapper: Mapper, pose, cfg: ExploreConfig, generator=None):
     """Algorithm 2: ``F`` control sequences ``[F, T-1, 2]`` minimising the expected obstacle
     penalty along their predicted poses (+ turn regulariser, + leaving the map extent)."""
-    F, T = cfg.candidates, cfg.horizon
+    F, T = cfg.candidates.count, cfg.plan.horizon
     logd, centres = obstacle_log_density(mapper)
     z0 = torch.as_tensor(pose, dtype=torch.get_default_dtype())
-    p = cfg.cand_init_std * torch.randn(F, T - 1, generator=generator)
+    p = cfg.candidates.init_std * torch.randn(F, T - 1, generator=generator)
     p[:, 0] = 3.0 * torch.rand(F, generator=generator) - 1.5  # spread the initial turn
     p.requires_grad_(True)
-    opt = torch.optim.Adam([p], lr=cfg.cand_lr)
+    opt = torch.optim.Adam([p], lr=cfg.candidates.lr)
     g = mapper.model.grid
     lo = torch.tensor(g.origin) + 0.01
     hi = lo + torch.tensor(g.size) - 0.02
-    for _ in range(cfg.cand_steps):
+    for _ in range(cfg.candidates.steps):
         u = controls_from_params(p, cfg)
-        uu = u.unsqueeze(0).expand(cfg.cand_pose_samples, -1, -1, -1)
-        z = kinematic_rollout(z0, uu, cfg.sigma_T, generator)  # [S, F, T, 3]
+        uu = u.unsqueeze(0).expand(cfg.candidates.pose_samples, -1, -1, -1)
+        z = kinematic_rollout(z0, uu, cfg.motion.sigma_T, generator)  # [S, F, T, 3]
         xy = z[..., :2]
         pen = centres.attend(logd, xy.reshape(-1, 2)).reshape(xy.shape[:-1])  # [S, F, T]
         out = (torch.relu(lo - xy) + torch.relu(xy - hi)).pow(2).sum(-1) * 1e4
-        loss_f = (pen + out).mean(0).sum(-1) + cfg.turn_reg * u[..., 1:, 0].pow(2).sum(-1)
+        turn = cfg.candidates.turn_reg * u[..., 1:, 0].pow(2).sum(-1)
+        loss_f = (pen + out).mean(0).sum(-1) + turn
         opt.zero_grad()
         loss_f.sum().backward()
         opt.step()
@@ -445,9 +592,9 @@ class _Episode:
         self.scale = SCALES[scale_name]
         self.world = World(make_maze(scale_name, maze_seed), seed=maze_seed + 1000 * cfg.seed)
         lid = self.world.lidar_config
-        grid = scale_grid(self.scale, cfg.map_dim)
-        self.mapper = Mapper(grid, lid.beam_angles, lid.max_range,
-                             replace(cfg, seed=cfg.seed + maze_seed))  # fmt: skip
+        grid = scale_grid(self.scale, cfg.mapping.map_dim)
+        own = replace(cfg, seed=cfg.seed + maze_seed)
+        self.mapper = Mapper(grid, lid.beam_angles, lid.max_range, own)
         self.gen = torch.Generator().manual_seed(cfg.seed * 7919 + maze_seed)
         self.rng = np.random.default_rng(cfg.seed * 7919 + maze_seed)
         self.state = pema.initial_state() if policy == "pema" else None
@@ -477,15 +624,17 @@ class _Episode:
 
     def _mi_control(self) -> np.ndarray:
         cfg = self.cfg
-        u = self.ctl[self.k] if self.k < len(self.ctl) else np.array([0.0, cfg.step_length])
+        u = self.ctl[self.k] if self.k < len(self.ctl) else np.array([0.0, cfg.motion.step_length])
         self.k += 1
-        if cfg.block_radius > 0 and self.replans < cfg.max_replans:
+        if cfg.plan.block_radius > 0 and self.replans < cfg.plan.max_replans:
             # the next planned move runs into an observed obstacle (the current scan included):
             # the rest of this open-loop plan is void, replan from here
             scan = self.scans[-1] if self.scans else self.world.lidar()
-            pts = observed_endpoints(np.array([self.world.pose]), np.array([scan]),
-                                     self.mapper.beam_angles, self.mapper.max_range)  # fmt: skip
-            _, b = KnownObstacles(pts, cfg.block_radius).effective_controls(
+            beams, max_range = self.mapper.beam_angles, self.mapper.max_range
+            pts = observed_endpoints(
+                np.array([self.world.pose]), np.array([scan]), beams, max_range
+            )
+            _, b = KnownObstacles(pts, cfg.plan.block_radius).effective_controls(
                 self.world.pose, u[None]
             )
             if b[0]:
@@ -499,8 +648,9 @@ class _Episode:
         if self.policy == "mi":
             return self._mi_control()
         if self.policy == "random":
-            return np.array([self.rng.uniform(-self.cfg.max_turn, self.cfg.max_turn),
-                             self.cfg.step_length])  # fmt: skip
+            motion = self.cfg.motion
+            turn = self.rng.uniform(-motion.max_turn, motion.max_turn)
+            return np.array([turn, motion.step_length])
         scan_now = self.scans[-1] if self.scans else self.world.lidar()
         u, self.state = self.pema.act(scan_now, self.state)
         return u
@@ -517,7 +667,7 @@ class _Episode:
             self.poses.append(self.world.pose)
             self.scans.append(self.world.lidar())
             blocked = self.world.collisions > hits
-            if self.policy == "mi" and blocked and self.replans < self.cfg.max_replans:
+            if self.policy == "mi" and blocked and self.replans < self.cfg.plan.max_replans:
                 # blocked: the rest of this open-loop plan is void; replan from here with the
                 # data so far (no SVI until the block ends)
                 self.flush()
@@ -538,11 +688,11 @@ def run_agent(
 
     ``policy``: ``"mi"`` (Algorithm 1), ``"random"`` (rotation ~ U(-max_turn, max_turn)) or
     ``"pema"`` (``pema_policy``, a :class:`~pyro_slam.planning.pema.PEMAPolicy` with its
-    weights). Every block of ``cfg.execute_steps`` steps (default ``cfg.horizon``: the whole
-    plan, as in Algorithm 1; fewer is receding-horizon control): append the executed data,
-    ``cfg.train_steps`` SVI steps, record infogain and exploration ratio. Returns curves and the
-    true path. ``progress``: ``True`` prints each block, a tqdm bar is advanced by the executed
-    steps.
+    weights). Every block of ``cfg.plan.execute_steps`` steps (0: ``cfg.plan.horizon``, the
+    whole plan, as in Algorithm 1; fewer is receding-horizon control): append the executed
+    data, ``cfg.mapping.train_steps`` SVI steps, record infogain and exploration ratio. Returns
+    curves and the true path. ``progress``: ``True`` prints each block, a tqdm bar is advanced
+    by the executed steps.
     """
     ep = _Episode(scale_name, policy, cfg, maze_seed, pema_policy)
     world, mapper, scale = ep.world, ep.mapper, ep.scale
@@ -552,11 +702,11 @@ def run_agent(
     curve = {"steps": [0], "infogain": [0.0], "ratio": [ratio0]}
     done = 0
     while done < steps:
-        n = min(cfg.execute_steps or cfg.horizon, cfg.horizon, steps - done)
+        n = min(cfg.plan.execute_steps or cfg.plan.horizon, cfg.plan.horizon, steps - done)
         path += ep.block(n)
         done += n
         ep.flush()
-        mapper.train(cfg.train_steps)
+        mapper.train(cfg.mapping.train_steps)
         curve["steps"].append(done)
         curve["infogain"].append(mapper.infogain())
         curve["ratio"].append(exploration_ratio(np.array(path), scale.side, scale.tiles))

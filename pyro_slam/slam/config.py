@@ -15,8 +15,10 @@ named configurations (:mod:`pyro_slam.slam.presets`) state how they differ from 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
+import typing
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -32,16 +34,23 @@ class ConfigError(ValueError):
     """A configuration value is out of range or of the wrong type; the message names it."""
 
 
+def _finite(value, integer: bool) -> bool:
+    """Whether ``value`` is a finite number (an ``int`` if ``integer``; never a bool)."""
+    types = int if integer else (int, float)
+    return isinstance(value, types) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def _positive(name: str, value, integer: bool = False, optional: bool = False) -> None:
     if value is None and optional:
         return
     kind = "a positive integer" if integer else "a positive number"
-    ok_type = (
-        isinstance(value, int) and not isinstance(value, bool)
-        if integer
-        else isinstance(value, (int, float)) and not isinstance(value, bool)
-    )
-    if not ok_type or not math.isfinite(value) or value <= 0:
+    if not _finite(value, integer) or value <= 0:
+        raise ConfigError(f"{name} must be {kind}, got {value!r}")
+
+
+def _non_negative(name: str, value, integer: bool = False) -> None:
+    kind = "an integer >= 0" if integer else "a number >= 0"
+    if not _finite(value, integer) or value < 0:
         raise ConfigError(f"{name} must be {kind}, got {value!r}")
 
 
@@ -116,8 +125,7 @@ class EmissionConfig:
         _choice("emission.kind", self.kind, EMISSIONS)
         kind = EMISSIONS[self.kind]
         _positive("emission.resolution", self.resolution)
-        if not (isinstance(self.margin, (int, float)) and 0 <= self.margin < math.inf):
-            raise ConfigError(f"emission.margin must be a number >= 0, got {self.margin!r}")
+        _non_negative("emission.margin", self.margin)
         _positive("emission.sigma", self.sigma)
         _probability("emission.outlier_prob", self.outlier_prob)
         _positive("emission.ray_spacing", self.ray_spacing, optional=True)
@@ -167,8 +175,7 @@ class FilterConfig:
     def __post_init__(self):
         _positive("filter.particles", self.particles, integer=True)
         _choice("filter.proposal", self.proposal, PROPOSALS)
-        if not (isinstance(self.lag, int) and not isinstance(self.lag, bool) and self.lag >= 0):
-            raise ConfigError(f"filter.lag must be an integer >= 0, got {self.lag!r}")
+        _non_negative("filter.lag", self.lag, integer=True)
 
 
 @dataclass(frozen=True)
@@ -208,9 +215,7 @@ class OfflineConfig:
 
     def __post_init__(self):
         for name in ("rounds", "svi_steps"):
-            v = getattr(self, name)
-            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
-                raise ConfigError(f"offline.{name} must be an integer >= 0, got {v!r}")
+            _non_negative(f"offline.{name}", getattr(self, name), integer=True)
         _choice("offline.estimate", self.estimate, ESTIMATES)
 
 
@@ -250,10 +255,7 @@ class SLAMConfig:
     range_clip: float | None = None
 
     def __post_init__(self):
-        for name, cls in COMPONENTS.items():
-            value = getattr(self, name)
-            if not isinstance(value, cls) and not (value is None and name == "heading"):
-                raise ConfigError(f"{name} must be a {cls.__name__}, got {value!r}")
+        _check_components(self, "")
         _positive("beam_stride", self.beam_stride, integer=True)
         _positive("range_clip", self.range_clip, optional=True)
 
@@ -262,15 +264,31 @@ class SLAMConfig:
         return _plain(dataclasses.asdict(self))
 
 
-COMPONENTS = {
-    "emission": EmissionConfig,
-    "transition": TransitionConfig,
-    "filter": FilterConfig,
-    "training": TrainingConfig,
-    "offline": OfflineConfig,
-    "heading": HeadingConfig,
-}
-NESTED = {"insert": ScanInsertionConfig}
+@functools.cache
+def component_fields(cls) -> dict[str, tuple[type, bool]]:
+    """The fields of the configuration dataclass ``cls`` that hold a configuration dataclass:
+    field name -> (that class, whether None is allowed), read from the annotations (e.g.
+    ``heading: HeadingConfig | None``)."""
+    hints = typing.get_type_hints(cls)
+    out = {}
+    for f in fields(cls):
+        kinds = typing.get_args(hints[f.name]) or (hints[f.name],)
+        for kind in kinds:
+            if dataclasses.is_dataclass(kind):
+                out[f.name] = (kind, type(None) in kinds)
+    return out
+
+
+def _check_components(config, where: str) -> None:
+    """Each component field of ``config`` holds its configuration class (or an allowed None);
+    :class:`ConfigError` naming the field (``where`` + name) otherwise."""
+    for name, (cls, optional) in component_fields(type(config)).items():
+        value = getattr(config, name)
+        if not isinstance(value, cls) and not (value is None and optional):
+            raise ConfigError(f"{where}{name} must be a {cls.__name__}, got {value!r}")
+
+
+COMPONENTS = {name: cls for name, (cls, _) in component_fields(SLAMConfig).items()}
 
 
 def _plain(v):
@@ -282,9 +300,13 @@ def _plain(v):
 
 
 def _merge(obj, changes: dict, cls, where: str):
-    """``obj`` (an instance of ``cls`` or None) with the nested ``changes`` applied."""
+    """``obj`` (an instance of the frozen configuration dataclass ``cls``, or None for its
+    defaults) with the nested ``changes`` applied: a dict given for a component field
+    (:func:`component_fields`) changes that component. Fields are named ``where`` + their dotted
+    path in errors."""
     if not isinstance(changes, dict):
-        raise ConfigError(f"{where or 'the configuration'} must be a JSON object, got {changes!r}")
+        shown = where.rstrip(".") or "the configuration"
+        raise ConfigError(f"{shown} must be a JSON object, got {changes!r}")
     names = {f.name for f in fields(cls)}
     if unknown := sorted(set(changes) - names):
         raise ConfigError(
@@ -295,14 +317,13 @@ def _merge(obj, changes: dict, cls, where: str):
     base = cls() if obj is None else obj
     kw = {}
     for k, v in changes.items():
-        sub = COMPONENTS.get(k) if cls is SLAMConfig else NESTED.get(k)
-        if sub is not None and isinstance(v, dict):
-            v = _merge(getattr(base, k), v, sub, f"{where}{k}.")
+        if k in component_fields(cls) and isinstance(v, dict):
+            v = _merge(getattr(base, k), v, component_fields(cls)[k][0], f"{where}{k}.")
         kw[k] = v
     try:
         return dataclasses.replace(base, **kw)
     except TypeError as e:
-        raise ConfigError(f"{where or 'configuration'}: {e}") from e
+        raise ConfigError(f"{where.rstrip('.') or 'configuration'}: {e}") from e
 
 
 def with_overrides(config: SLAMConfig, changes: dict) -> SLAMConfig:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -22,6 +21,7 @@ from pyro_slam.planning.exploration import (
     mutual_information,
     observed_endpoints,
     run_agent,
+    with_overrides,
 )
 from pyro_slam.planning.pema import ARSConfig, ars
 
@@ -41,9 +41,12 @@ def test_knn_entropy_matches_gaussian(d):
     assert abs(est - true) <= 0.05 * abs(true), (d, est, true)
 
 
+PRECISE_MI = {"L": 20, "M": 6, "K": 20, "obs_stride": 5}
+
+
 def _half_explored_mapper(cfg):
     """Unit square, 8 x 8 map: q(M) tight (scale 0.02) on x < 0.5, prior (scale 1) beyond."""
-    grid = MapGrid((8, 8), cfg.map_dim, (0.0, 0.0), (1.0, 1.0))
+    grid = MapGrid((8, 8), cfg.mapping.map_dim, (0.0, 0.0), (1.0, 1.0))
     beams = 2 * np.pi * np.arange(20) / 20
     mapper = Mapper(grid, beams, 0.53, cfg)
     with mapper.scope():  # q(M)'s leaves in the mapper's parameter store
@@ -60,7 +63,7 @@ def test_mi_unexplored_exceeds_explored():
     # a sensor precise enough (sigma_E 0.02) that the map's uncertainty, not the sensor noise,
     # dominates the predicted scans: the estimator's seed-to-seed spread (~5 nats) then sits
     # well inside the gap (~15 nats over 5 seeds)
-    cfg = ExploreConfig.smoke(mi_L=20, mi_M=6, mi_K=20, obs_stride=5, horizon=30, sigma_E=0.02)
+    cfg = ExploreConfig.smoke(mi=PRECISE_MI, plan={"horizon": 30}, mapping={"sigma_E": 0.02})
     mapper = _half_explored_mapper(cfg)
     start = [0.25, 0.5, 0.0]
     east = torch.tensor([[0.0, 0.02]] * 29)  # heads into x > 0.5 (unexplored)
@@ -78,11 +81,11 @@ def test_known_wall_blocks_rollout_and_lowers_mi():
     through and its MI (the unexplored half behind the wall) beats a detour around the wall.
     With belief-consistent blocking the straight candidate stops at the wall and scores below
     the detour. (A precise sensor, sigma_E 0.02, as in the test above.)"""
-    cfg = ExploreConfig.smoke(mi_L=20, mi_M=6, mi_K=20, obs_stride=5, horizon=30, sigma_E=0.02)
+    cfg = ExploreConfig.smoke(mi=PRECISE_MI, plan={"horizon": 30}, mapping={"sigma_E": 0.02})
     mapper = _half_explored_mapper(cfg)
     start = np.array([0.25, 0.5, 0.0])
     wall = np.stack([np.full(33, 0.355), np.linspace(0.3, 0.62, 33)], -1)
-    obst = KnownObstacles(wall, cfg.block_radius)
+    obst = KnownObstacles(wall, cfg.plan.block_radius)
     straight = np.array([[0.0, 0.02]] * 29)
     detour = np.array(
         [[np.pi / 2, 0.02]] + [[0.0, 0.02]] * 7 + [[-np.pi / 2, 0.02]] + [[0.0, 0.02]] * 20
@@ -113,13 +116,13 @@ def test_known_obstacles_from_scans():
 
 
 def test_candidates_shape_and_bounds():
-    cfg = ExploreConfig.smoke(candidates=4, cand_steps=5, horizon=10)
+    cfg = ExploreConfig.smoke(candidates={"count": 4, "steps": 5}, plan={"horizon": 10})
     mapper = _half_explored_mapper(cfg)
     mapper.add(np.array([[0.25, 0.5, 0.0]]), np.full((1, 20), 0.3))
     u = generate_candidates(mapper, [0.25, 0.5, 0.0], cfg, torch.Generator().manual_seed(0))
     assert u.shape == (4, 9, 2)
-    assert torch.all(u[:, 1:, 0].abs() <= cfg.max_turn + 1e-6)
-    assert torch.allclose(u[..., 1], torch.tensor(cfg.step_length))
+    assert torch.all(u[:, 1:, 0].abs() <= cfg.motion.max_turn + 1e-6)
+    assert torch.allclose(u[..., 1], torch.tensor(cfg.motion.step_length))
 
 
 def test_ars_improves_toy_objective():
@@ -140,13 +143,17 @@ def test_exploration_ratio():
 
 def test_run_agent_smoke():
     cfg = ExploreConfig.smoke(
-        candidates=2, cand_steps=3, mi_L=5, mi_M=2, mi_K=5, train_steps=3, horizon=10
+        candidates={"count": 2, "steps": 3},
+        mi={"L": 5, "M": 2, "K": 5},
+        mapping={"train_steps": 3},
+        plan={"horizon": 10},
     )
     c = run_agent("simple-small", "mi", 20, cfg)
     assert c["steps"] == [0, 10, 20] and len(c["mi"]) >= 2
     assert c["infogain"][-1] > 0 and 0 < c["ratio"][-1] <= 1
     # receding horizon: 10-step plans, 4 steps of each executed, then a new plan
-    c = run_agent("simple-small", "mi", 12, replace(cfg, execute_steps=4, max_replans=0))
+    receding = with_overrides(cfg, {"plan": {"execute_steps": 4, "max_replans": 0}})
+    c = run_agent("simple-small", "mi", 12, receding)
     assert c["steps"] == [0, 4, 8, 12] and len(c["mi"]) == 3
 
 

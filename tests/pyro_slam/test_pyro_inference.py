@@ -438,8 +438,12 @@ def test_swaps_reach_navigation_and_mi():
         errs[name] = float((env.scan(Z) - clean).abs().mean())
     assert errs["student"] < 0.92 * errs["normal"]  # measured 0.036 against 0.041
     # exploration: the MI of a path east into unexplored space, three mapper seeds each
-    cfg = ExploreConfig.smoke(mi_L=30, mi_M=8, mi_K=30, obs_stride=5, horizon=30, sigma_E=0.05)
-    grid = MapGrid((8, 8), cfg.map_dim, (0.0, 0.0), (1.0, 1.0))
+    cfg = ExploreConfig.smoke(
+        mi={"L": 30, "M": 8, "K": 30, "obs_stride": 5},
+        plan={"horizon": 30},
+        mapping={"sigma_E": 0.05},
+    )
+    grid = MapGrid((8, 8), cfg.mapping.map_dim, (0.0, 0.0), (1.0, 1.0))
     beams = 2 * np.pi * np.arange(20) / 20
     east = torch.tensor([[0.0, 0.02]] * 29)
     mi = {}
@@ -485,8 +489,8 @@ def test_an_autonormal_map_guide_runs_through_slam_navigation_and_mi():
         assert r.success
     env2, _, _ = learned_env(maze, tr, fit_steps=50, guide=guide)
     assert env2.scan(torch.as_tensor(tr.poses[:3], dtype=torch.float32)).shape == (3, 20)
-    cfg = ExploreConfig.smoke(mi_L=10, mi_M=4, mi_K=10, obs_stride=5, horizon=10)
-    grid = MapGrid((8, 8), cfg.map_dim, (0.0, 0.0), (1.0, 1.0))
+    cfg = ExploreConfig.smoke(mi={"L": 10, "M": 4, "K": 10, "obs_stride": 5}, plan={"horizon": 10})
+    grid = MapGrid((8, 8), cfg.mapping.map_dim, (0.0, 0.0), (1.0, 1.0))
     m = Mapper(grid, 2 * np.pi * np.arange(20) / 20, 0.53, cfg, guide=guide)
     m.add(tr.poses[:50] / 0.5, tr.observations[:50])
     losses = m.train(5)
