@@ -254,8 +254,8 @@ def test_occupancy_insertion_writes_walls_once_and_free_space_a_hit_may_overwrit
     """Occupancy: a scan's hits, joined where neighbouring beams hit close together, are
     written as walls from the given pose, and the grid points its beams cross short of their
     returns as free space (free mean, insertion scale), never a wall point; the map then
-    reproduces the scan at that pose to within a grid spacing; a wall point is written only once, and a later hit still
-    writes a wall over a free point."""
+    reproduces the scan at that pose to within a grid spacing; a wall point is written only
+    once, and a later hit still writes a wall over a free point."""
     tr = small_traversal
     slam = insertion_slam(tr, "occupancy")
     inserter = slam.inserter
