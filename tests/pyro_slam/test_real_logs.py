@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from synthetic_logs import room_log
 
 from pyro_slam import cli, metrics
 from pyro_slam.io import odometry_poses, read_any, read_map, write_carmen
@@ -24,8 +25,6 @@ from pyro_slam.slam.presets import odometry_sigma
 
 # a light filter and SVI batch for the short logs here
 SMALL = {"filter": {"particles": 16}, "training": {"particles": 4, "chunk_length": 4, "chunks": 2}}
-
-from synthetic_logs import room_log  # noqa: E402
 
 
 def test_subsample_beams_keeps_mask_and_angles():

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 
 import torch
-from test_filtering import S0, LinearGaussian, Q, kalman, simulate
+from linear_gaussian import S0, LinearGaussian, Q, kalman, simulate
 
 from pyro_slam.inference import ParticleFilter, ParticleHistory, Particles
 

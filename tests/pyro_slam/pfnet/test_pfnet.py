@@ -4,23 +4,18 @@ one check of the adapter to the pymunk simulator)."""
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from pfnet_standin import StandInWorld, make_maze
 from scipy import stats
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from pfnet_standin import StandInWorld, make_maze  # noqa: E402
-
-from pyro_slam import pfnet  # noqa: E402
-from pyro_slam.geometry import odometry_delta, wrap_angle  # noqa: E402
-from pyro_slam.inference import resampling  # noqa: E402
-from pyro_slam.pfnet import baselines as bl  # noqa: E402
-from pyro_slam.pfnet import data as pfnet_data  # noqa: E402
+from pyro_slam import pfnet
+from pyro_slam.geometry import odometry_delta, wrap_angle
+from pyro_slam.inference import resampling
+from pyro_slam.pfnet import baselines as bl
+from pyro_slam.pfnet import data as pfnet_data
 
 
 @pytest.fixture(autouse=True)

@@ -37,7 +37,7 @@ from pyro_slam.slam import (
 from simulators import simulate_traversal
 from simulators.world import LidarConfig
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 STEPS = 24
 CHUNK_LENGTH = 4
 CHECKPOINT_EVERY = 7
