@@ -16,9 +16,20 @@ from pyro_slam.slam import presets
 
 REPO = Path(__file__).resolve().parents[1]
 # every benchmark script (benchmarks/NAME.py, run as python -m benchmarks.NAME)
-SCRIPTS = ("aliasing", "compare_runs", "exploration", "filter_speed", "navigation", "pfnet_table",
-           "real_data", "reliability", "simulator", "slam_accuracy", "slam_speed",
-           "visual_slam")  # fmt: skip
+SCRIPTS = (
+    "aliasing",
+    "compare_runs",
+    "exploration",
+    "filter_speed",
+    "navigation",
+    "pfnet_table",
+    "real_data",
+    "reliability",
+    "simulator",
+    "slam_accuracy",
+    "slam_speed",
+    "visual_slam",
+)
 
 
 def bench(name: str, *args: str, timeout: float = 300) -> subprocess.CompletedProcess:
@@ -56,11 +67,15 @@ def test_maze_seeds_accept_test_and_tuning_mazes_and_name_the_others(capsys):
     p = argparse.ArgumentParser(prog="bench")
     assert parse_maze_seeds(p, "1002,991", (1001, 1002), (991,)) == [1002, 991]
     for text, test, tuning, msg in [
-        ("1002,7", (1002,), (991,), "--maze-seeds [7]: not test mazes (these are [1002]) or "
-         "tuning mazes [991]"),
+        (
+            "1002,7",
+            (1002,),
+            (991,),
+            "--maze-seeds [7]: not test mazes (these are [1002]) or tuning mazes [991]",
+        ),
         ("991", (1002,), (), "--maze-seeds [991]: not test mazes (these are [1002])"),
         ("1002,x", (1002,), (), "expected comma-separated integers, got '1002,x'"),
-    ]:  # fmt: skip
+    ]:
         with pytest.raises(SystemExit) as exc:
             parse_maze_seeds(p, text, test, tuning)
         assert exc.value.code == 2 and msg in capsys.readouterr().err
@@ -74,18 +89,31 @@ def test_simulator_benchmark_reports_lidar_steps_per_second():
 
 
 def test_filter_speed_benchmark_compares_with_smcfilter_and_reports_flat_memory():
-    out = last_json(run("filter_speed", "--particles", "50", "--steps", "20",
-                        "--long-steps", "100"))  # fmt: skip
+    out = last_json(
+        run("filter_speed", "--particles", "50", "--steps", "20", "--long-steps", "100")
+    )
     assert out["particles"] == 50 and out["long_run_steps"] == 100
-    for key in ("ours_steps_per_s", "smcfilter_steps_per_s", "ours_bf16_emission_steps_per_s",
-                "emission_only_steps_per_s", "emission_only_bf16_steps_per_s"):  # fmt: skip
+    for key in (
+        "ours_steps_per_s",
+        "smcfilter_steps_per_s",
+        "ours_bf16_emission_steps_per_s",
+        "emission_only_steps_per_s",
+        "emission_only_bf16_steps_per_s",
+    ):
         assert out[key] > 0, key
     # the ratios are those of the rates reported (up to their rounding)
-    assert math.isclose(out["speedup"], out["ours_steps_per_s"] / out["smcfilter_steps_per_s"],
-                        rel_tol=0.02, abs_tol=0.01)  # fmt: skip
-    assert math.isclose(out["ceiling_speedup"],
-                        out["emission_only_steps_per_s"] / out["smcfilter_steps_per_s"],
-                        rel_tol=0.02, abs_tol=0.01)  # fmt: skip
+    assert math.isclose(
+        out["speedup"],
+        out["ours_steps_per_s"] / out["smcfilter_steps_per_s"],
+        rel_tol=0.02,
+        abs_tol=0.01,
+    )
+    assert math.isclose(
+        out["ceiling_speedup"],
+        out["emission_only_steps_per_s"] / out["smcfilter_steps_per_s"],
+        rel_tol=0.02,
+        abs_tol=0.01,
+    )
     # flat memory: the long run keeps no per-step history
     assert out["peak_rss_mib_at_100"] <= 1.1 * out["peak_rss_mib_at_10"]
 
@@ -93,8 +121,20 @@ def test_filter_speed_benchmark_compares_with_smcfilter_and_reports_flat_memory(
 def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path):
     from pyro_slam.slam import presets
 
-    args = ("--mazes", "1", "--traversals", "1", "--steps", "40", "--modes", "online",
-            "--workers", "1", "--out", str(tmp_path))  # fmt: skip
+    args = (
+        "--mazes",
+        "1",
+        "--traversals",
+        "1",
+        "--steps",
+        "40",
+        "--modes",
+        "online",
+        "--workers",
+        "1",
+        "--out",
+        str(tmp_path),
+    )
     out = last_json(run("slam_accuracy", *args))
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert out == summary and summary["steps"] == 40 and summary["runs_per_mode"] == 1
@@ -299,18 +339,38 @@ def test_exploration_benchmark_plan_flags_are_checked(tmp_path):
 
 
 def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(tmp_path):
-    args = ("--mazes", "1", "--pairs-limit", "2", "--traversal-steps", "300",
-            "--emission-steps", "30", "--fit-steps", "30", "--sleep-steps", "30",
-            "--inverse-steps", "10", "--max-expansions", "60", "--out", str(tmp_path))  # fmt: skip
+    args = (
+        "--mazes",
+        "1",
+        "--pairs-limit",
+        "2",
+        "--traversal-steps",
+        "300",
+        "--emission-steps",
+        "30",
+        "--fit-steps",
+        "30",
+        "--sleep-steps",
+        "30",
+        "--inverse-steps",
+        "10",
+        "--max-expansions",
+        "60",
+        "--out",
+        str(tmp_path),
+    )
     out = last_json(run("navigation", *args))
     s = json.loads((tmp_path / "summary.json").read_text())
     assert "args" not in out and out["per_maze"] == s["per_maze"] and out["pairs"] == s["pairs"]
     # the headline figures come first, by name
     assert list(out)[:6] == [
-        "obs_failure_ratio_obs_space", "obs_failure_ratio_position_unaliased",
-        "unaliased_targets", "pose_success_ratio_known_pose_map", "pose_success_ratio_slam_map",
+        "obs_failure_ratio_obs_space",
+        "obs_failure_ratio_position_unaliased",
+        "unaliased_targets",
+        "pose_success_ratio_known_pose_map",
+        "pose_success_ratio_slam_map",
         "wall_s",
-    ]  # fmt: skip
+    ]
     assert s["pairs"] == 2 and s["budgets"][-1] == 60 and s["map_poses"] == "true"
     assert s["slam_preset"] is None and s["slam_config"] is None  # mapped at the true poses
     assert s["pose_success_ratio_slam_map"] is None and s["wall_s"] > 0
@@ -395,9 +455,24 @@ def test_navigation_benchmark_summarises_learned_truth_and_observation_targets(t
 def test_navigation_workers_give_the_rows_of_a_serial_run(tmp_path):
     """``--workers 2``: the mazes run in two processes, each maze's rows the same as when the
     mazes run one after the other in one process (the fits are seeded per maze)."""
-    args = ("--maze-seeds", "1002,1001", "--pairs-limit", "1", "--traversal-steps", "300",
-            "--emission-steps", "30", "--fit-steps", "30", "--sleep-steps", "30",
-            "--inverse-steps", "10", "--max-expansions", "60")  # fmt: skip
+    args = (
+        "--maze-seeds",
+        "1002,1001",
+        "--pairs-limit",
+        "1",
+        "--traversal-steps",
+        "300",
+        "--emission-steps",
+        "30",
+        "--fit-steps",
+        "30",
+        "--sleep-steps",
+        "30",
+        "--inverse-steps",
+        "10",
+        "--max-expansions",
+        "60",
+    )
     rows = {}
     for workers in ("1", "2"):
         out = tmp_path / workers
@@ -464,10 +539,29 @@ def test_navigation_headline_names_the_pose_ratio_by_the_map_planned_in():
 def test_navigation_benchmark_maps_at_slam_poses(tmp_path):
     # --map-poses slam: emission and q(M) are fitted at the pose means of online SLAM on the
     # mapping traversal; the SLAM run's error is reported per maze
-    args = ("--mazes", "1", "--pairs-limit", "1", "--traversal-steps", "200", "--no-cover-grid",
-            "--emission-steps", "20", "--fit-steps", "20", "--sleep-steps", "20",
-            "--inverse-steps", "5", "--max-expansions", "30", "--map-poses", "slam",
-            "--out", str(tmp_path))  # fmt: skip
+    args = (
+        "--mazes",
+        "1",
+        "--pairs-limit",
+        "1",
+        "--traversal-steps",
+        "200",
+        "--no-cover-grid",
+        "--emission-steps",
+        "20",
+        "--fit-steps",
+        "20",
+        "--sleep-steps",
+        "20",
+        "--inverse-steps",
+        "5",
+        "--max-expansions",
+        "30",
+        "--map-poses",
+        "slam",
+        "--out",
+        str(tmp_path),
+    )
     run("navigation", *args)
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["args"]["map_poses"] == "slam" and s["pairs"] == 1
@@ -502,8 +596,11 @@ def test_navigation_reuses_kept_slam_poses_only_for_the_same_run(tmp_path):
     key = {"slam_config": args.slam.to_dict(), "steps": 50, "seed": 1, "cover_grid": False}
     fake = np.full((50, 3), 0.25)
     f = tmp_path / "mazes" / "slam_m991.json"
-    f.write_text(json.dumps({"key": json.loads(json.dumps(key)), "poses": fake.tolist(),
-                             "summary": {"mean": -1.0}}))  # fmt: skip
+    f.write_text(
+        json.dumps(
+            {"key": json.loads(json.dumps(key)), "poses": fake.tolist(), "summary": {"mean": -1.0}}
+        )
+    )
     tr, poses, summary = _slam_poses(make_maze("moderate-medium", 991), 991, None, args)
     assert len(tr.poses) == 50 and np.array_equal(poses, fake) and summary == {"mean": -1.0}
 
@@ -511,9 +608,22 @@ def test_navigation_reuses_kept_slam_poses_only_for_the_same_run(tmp_path):
 def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
     from pyro_slam.metrics import localisation_error
 
-    args = ("--mazes", "2", "--steps", "60", "--pretrain-steps", "5", "--pretrain-traversal",
-            "100", "--workers", "2", "--config", '{"offline": {"svi_steps": 10}}', "--out",
-            str(tmp_path))  # fmt: skip
+    args = (
+        "--mazes",
+        "2",
+        "--steps",
+        "60",
+        "--pretrain-steps",
+        "5",
+        "--pretrain-traversal",
+        "100",
+        "--workers",
+        "2",
+        "--config",
+        '{"offline": {"svi_steps": 10}}',
+        "--out",
+        str(tmp_path),
+    )
     out = last_json(run("visual_slam", *args))
     s = json.loads((tmp_path / "summary.json").read_text())
     assert out == s and s["steps"] == 60 and s["mazes"] == [1001, 1002]
@@ -541,18 +651,32 @@ def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
     with np.load(runs[0]) as z:
         assert z["estimate"].shape == z["truth"].shape == z["pi_poses"].shape == (60, 3)
         assert z["sweep"].shape == (60, 3) and not np.allclose(z["sweep"], z["estimate"])
-        np.testing.assert_allclose(localisation_error(z["estimate"], z["truth"]), z["slam"],
-                                   atol=1e-5)  # fmt: skip
-        np.testing.assert_allclose(localisation_error(z["pi_poses"], z["truth"]), z["pi"],
-                                   atol=1e-5)  # fmt: skip
+        np.testing.assert_allclose(
+            localisation_error(z["estimate"], z["truth"]), z["slam"], atol=1e-5
+        )
+        np.testing.assert_allclose(
+            localisation_error(z["pi_poses"], z["truth"]), z["pi"], atol=1e-5
+        )
     run("visual_slam", *args)  # resumes: the finished runs are not recomputed
     assert [f.stat().st_mtime_ns for f in runs] == stamps
     assert json.loads((tmp_path / "summary.json").read_text())["offline"] == s["offline"]
     # the diagnostic: the map learned at the true poses, stored apart; the emission is reused;
     # --maze-seeds picks one maze (here a held-out tuning maze)
     # --odometry-scale: the traversal is driven with scaled actuation noise, stored apart
-    run("visual_slam", *args[:-2], "--maze-seeds", "997", "--map-poses", "true",
-        "--workers", "1", "--odometry-scale", "0.5", "--out", str(tmp_path))  # fmt: skip
+    run(
+        "visual_slam",
+        *args[:-2],
+        "--maze-seeds",
+        "997",
+        "--map-poses",
+        "true",
+        "--workers",
+        "1",
+        "--odometry-scale",
+        "0.5",
+        "--out",
+        str(tmp_path),
+    )
     o = json.loads((tmp_path / "summary.json").read_text())
     assert o["map_poses"] == "true" and s["map_poses"] == "filter" and o["mazes"] == [997]
     # the default: the paper's path-integration level (the calibrated scale), in the names
@@ -623,10 +747,14 @@ def test_compare_runs_pairs_the_runs_both_outputs_share(tmp_path):
         (tmp_path / out / "runs").mkdir(parents=True)
         for i, f in enumerate(finals):
             slam = np.linspace(0, f, T)
-            np.savez(tmp_path / out / "runs" / f"offline_m{1001 + i}_t1_T{T}.npz", slam=slam,
-                     pi=np.full(T, 0.07))  # fmt: skip
-    out = last_json(run("compare_runs", str(tmp_path / "a"), str(tmp_path / "b"), "--glob",
-                        "offline_*.npz"))  # fmt: skip
+            np.savez(
+                tmp_path / out / "runs" / f"offline_m{1001 + i}_t1_T{T}.npz",
+                slam=slam,
+                pi=np.full(T, 0.07),
+            )
+    out = last_json(
+        run("compare_runs", str(tmp_path / "a"), str(tmp_path / "b"), "--glob", "offline_*.npz")
+    )
     assert out["runs"] == 3 and out["a"]["all_runs"] == 3 and out["b"]["all_runs"] == 4
     assert out["a"]["final_mean"] == pytest.approx(0.16 / 3)
     assert out["a"]["runs_under_0.05"] == 2 and out["a"]["runs_beating_pi"] == 2
@@ -716,9 +844,22 @@ def test_slam_speed_times_presets_and_another_commit_side_by_side():
     """Steps per second per preset and mode, a profile breakdown that sums to one, and the same
     traversal timed with another commit's ``pyro-slam slam`` (here HEAD itself, through its
     --config format)."""
-    args = ["--presets", "raycast", "--modes", "online", "--steps", "40", "--profile-steps", "20",
-            "--threads", "1", "--against", "HEAD", "--against-config",
-            '{"filter": {"particles": 128}}']  # fmt: skip
+    args = [
+        "--presets",
+        "raycast",
+        "--modes",
+        "online",
+        "--steps",
+        "40",
+        "--profile-steps",
+        "20",
+        "--threads",
+        "1",
+        "--against",
+        "HEAD",
+        "--against-config",
+        '{"filter": {"particles": 128}}',
+    ]
     out = last_json(run("slam_speed", *args))
     row = out["presets"]["raycast"]
     assert out["steps"] == 40 and row["online"]["steps_per_s"] > 0
@@ -738,8 +879,19 @@ def test_slam_speed_times_pyros_smcfilter_on_the_same_run():
     """``--smc``: the online run with Pyro's SMCFilter as the filter (the same model, proposal
     and weights) next to ours, timed and scored alike (30 steps stay well within 0.1 of the
     truth), with the heading factor too."""
-    args = ["--presets", "manhattan", "--modes", "online", "--steps", "30", "--profile-steps",
-            "10", "--threads", "1", "--smc"]  # fmt: skip
+    args = [
+        "--presets",
+        "manhattan",
+        "--modes",
+        "online",
+        "--steps",
+        "30",
+        "--profile-steps",
+        "10",
+        "--threads",
+        "1",
+        "--smc",
+    ]
     row = last_json(run("slam_speed", *args))["presets"]["manhattan"]
     for key in ("online", "online_smc"):
         assert row[key]["steps_per_s"] > 0 and 0 <= row[key]["final_error"] < 0.1
