@@ -79,21 +79,11 @@ def simulate_traversal(
     controls = np.array(controls).reshape(-1, 2)
     frames = None
     if images:
-        frames = Camera(maze.walls, maze.corridor_width, world.distractor_segments, camera).render(
-            poses
-        )
-    metadata = _metadata(
-        maze,
-        world,
-        agent,
-        seed,
-        noise_seed,
-        lidar,
-        camera if images else None,
-        driver,
-        distractors,
-        toured,
-    )
+        cam = Camera(maze.walls, maze.corridor_width, world.distractor_segments, camera)
+        frames = cam.render(poses)
+    cam_cfg = camera if images else None
+    args = (maze, world, agent, seed, noise_seed, lidar, cam_cfg, driver, distractors, toured)
+    metadata = _metadata(*args)
     walls = maze.walls
     if rotation:
         walls, poses = _rotate(walls, poses, rotation, maze.side / 2)
