@@ -280,8 +280,7 @@ class ScanMatchProposal(Proposal):
         centre = _cloud_centre(loc.reshape(-1, *loc.shape[-2:])).reshape(*loc.shape[:-2], 3)
         prior = (scale**-2).mean(-2)  # [..., 3] the transition's precision at the centre
         h = None if heading is None else _squeeze_particles(heading, loc.dim())
-        start = centre if h is None else _heading_start(model, h, centre, prior[..., 2])
-        zm, H, b = _match(model, M, x, mask, h, centre, prior, self.iterations, start)
+        zm, H, b = _match(model, M, x, mask, h, centre, prior, self.iterations)
         if not (torch.isfinite(H).all() and torch.isfinite(zm).all()):
             return PoseProposal(loc, scale)
         zm = zm.unsqueeze(-2)  # [..., 1, 3], heading on each particle's branch
@@ -325,34 +324,16 @@ def _readings(model, M, z, x, mask):
     return r, e, w if mask is None else w * mask
 
 
-def _heading_start(model, heading: HeadingEvidence, centre, precision):
-    """Where the match starts: ``centre [..., 3]`` with its heading conditioned on the step's
-    wall direction as :class:`HeadingProposal` does (prior precision ``precision [...]``),
-    where one is seen and agrees with the centre more than an outlier would."""
-    if model.heading is None:
-        return centre
-    so = heading.std().to(centre.dtype)
-    value = torch.as_tensor(heading.frame, dtype=centre.dtype) - heading.direction.nan_to_num()
-    r = wrap_angle(centre[..., 2] - value, model.heading.period)
-    s2 = 1 / precision
-    v = s2 + so**2
-    eps = model.heading.outlier_prob
-    inlier = (1 - eps) * torch.exp(-0.5 * r**2 / v) / torch.sqrt(2 * math.pi * v)
-    use = heading.seen() & (inlier > eps / model.heading.period)
-    h = torch.where(use, centre[..., 2] - r * s2 / v, centre[..., 2])
-    return torch.cat([centre[..., :2], h.unsqueeze(-1)], -1)
-
-
-def _match(model, M, x, mask, heading, centre, prior, iterations: int, start=None):
-    """Gauss-Newton from ``start [..., 3]`` (default ``centre``) on the log-likelihood plus
-    the prior about ``centre [..., 3]`` of precision ``prior [..., 3]``; the linearisation
-    ``(z*, H [..., 3, 3], b [..., 3])`` of the log-likelihood at the match."""
+def _match(model, M, x, mask, heading, centre, prior, iterations: int):
+    """Gauss-Newton from ``centre [..., 3]`` on the log-likelihood plus the prior about it of
+    precision ``prior [..., 3]``; the linearisation ``(z*, H [..., 3, 3], b [..., 3])`` of the
+    log-likelihood at the match."""
     spacing = min(s / (c - 1) for s, c in zip(model.grid.size, model.grid.cells))
     delta = torch.tensor([0.2 * spacing, 0.2 * spacing, 0.2 * spacing / model.outlier_range])
     delta = delta.to(centre.dtype)
     offsets = torch.cat([torch.zeros(1, 3, dtype=centre.dtype), torch.diag(delta)])  # [4, 3]
     offsets = offsets.reshape(4, *([1] * (centre.dim() - 1)), 3)
-    z = centre if start is None else start
+    z = centre
     for i in range(iterations + 1):
         r, e, w = _readings(model, M, z.unsqueeze(0) + offsets, x, mask)
         J = ((r[1:] - r[:1]) / delta.reshape(3, *([1] * (r.dim() - 1)))).movedim(0, -1)
