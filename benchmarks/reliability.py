@@ -32,7 +32,7 @@ import torch
 
 from benchmarks._common import add_config_args, filter_run, filter_setup, slam_config
 from pyro_slam.data import load
-from pyro_slam.slam import SLAM, checkpoint
+from pyro_slam.slam import SLAM, checkpoint, presets
 from simulators import simulate_traversal
 
 REPO = Path(__file__).resolve().parents[1]
@@ -161,7 +161,7 @@ def main(argv=None) -> dict:
     )
     p.add_argument("--long-steps", type=int, default=100_000)
     p.add_argument("--particles", type=int, default=1000, help="of the memory run's filter")
-    add_config_args(p, "raycast")
+    add_config_args(p, presets.DEFAULT)
     args = p.parse_args(argv)
     config = slam_config(p, args.preset, args.config, base=SMALL)
     torch.set_num_threads(1)

@@ -1,12 +1,12 @@
 """SLAM accuracy (paper Section IV-A, Fig. 4): online / offline DVBF-LM vs path integration.
 
 6 test mazes (moderate-medium, maze seeds 1001-1006) x 4 traversals (driver seeds 1-4) of 3000
-steps. SLAM runs a preset of :mod:`pyro_slam.slam.presets` (``--preset``, default ``raycast``)
-with ``--config`` overrides; the ``paper`` preset is the paper's model, whose emission network
-and learned transition are the shipped ones (``pyro_slam/pretrained``, trained by ``pyro-slam
-pretrain`` on maze seed 100, never a test maze). Prints JSON with mean +- std over runs of the
-error at t = T and writes a Fig. 4-style plot (median, 50% and 80% bands) of error and error
-relative to distance travelled.
+steps. SLAM runs a preset of :mod:`pyro_slam.slam.presets` (``--preset``, default: the default
+preset) with ``--config`` overrides; the ``paper`` preset is the paper's model, whose emission
+network and learned transition are the shipped ones (``pyro_slam/pretrained``, trained by
+``pyro-slam pretrain`` on maze seed 100, never a test maze). Prints JSON with mean +- std over
+runs of the error at t = T and writes a Fig. 4-style plot (median, 50% and 80% bands) of error
+and error relative to distance travelled.
 
     python -m benchmarks.slam_accuracy --out out/slam_accuracy        # full: 24 runs x modes
     python -m benchmarks.slam_accuracy --mazes 2 --traversals 1 --steps 1000 --modes online
@@ -63,7 +63,7 @@ from benchmarks._common import (
 from benchmarks._diagnostics import pin_cache
 from pyro_slam import metrics
 from pyro_slam.plotting import plot_error_bands
-from pyro_slam.slam import SLAM, path_integration
+from pyro_slam.slam import SLAM, path_integration, presets
 from simulators import simulate_traversal
 from simulators.maze import make_maze
 from simulators.world import LidarConfig
@@ -185,7 +185,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--modes", default="online,offline")
-    add_config_args(p, "raycast")
+    add_config_args(p, presets.DEFAULT)
     _add_world_args(p)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument(

@@ -9,7 +9,7 @@ is one JSON object.
 
     python -m benchmarks.slam_speed                                   # the default preset
     python -m benchmarks.slam_speed --presets paper,raycast,manhattan --modes online,offline
-    python -m benchmarks.slam_speed --against 6b4d1e5 --against-config '{"lidar_emission": ...}'
+    python -m benchmarks.slam_speed --against REV --against-config '{"lidar_emission": ...}'
 
 ``--against REV`` checks out commit ``REV`` into a temporary git worktree and times its
 ``pyro-slam slam`` command on the same traversal, in the same run, so that the ratio is measured

@@ -138,9 +138,9 @@ def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path
     out = last_json(run("slam_accuracy", *args))
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert out == summary and summary["steps"] == 40 and summary["runs_per_mode"] == 1
-    # the preset (default: raycast) and the whole configuration it ran
-    raycast = json.loads(json.dumps(presets.get("raycast").config.to_dict()))
-    assert summary["preset"] == "raycast" and summary["config"] == raycast
+    # the preset (default: the default preset) and the whole configuration it ran
+    default = json.loads(json.dumps(presets.get(presets.DEFAULT).config.to_dict()))
+    assert summary["preset"] == presets.DEFAULT and summary["config"] == default
     assert 0 <= summary["online"]["final_mean"] < 0.05
     assert 0 <= summary["path_integration"]["final_mean"] < 0.05
     assert (tmp_path / "error_bands.png").stat().st_size > 10_000

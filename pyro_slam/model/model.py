@@ -236,7 +236,8 @@ class DVBFLM(nn.Module):
         init_scale: std of the initial-pose prior around the given start pose, ``[3]``.
         prior: the map prior ``p(M)``: a Pyro distribution over a cell's features (event
             ``[D_m]``, batch shape broadcastable to the grid ``[w, h]``) that exposes its
-            marginal ``variance`` (the filter's trust in the map compares with it); default
+            marginal ``variance`` (the map belief's variance relative to it is how unknown a
+            reading is, :meth:`marginal_emission`); default
             ``N(0, 1)``.
         noise: the emission noise, a callable ``noise(loc, scale)`` returning a distribution
             over each observation entry (batch shape that of ``loc``), e.g.
@@ -398,7 +399,7 @@ class DVBFLM(nn.Module):
         except NotImplementedError:
             raise ValueError(
                 f"the map prior {type(self.prior).__name__} must expose its marginal variance "
-                "(.variance): the filter's trust in the map compares the belief with it"
+                "(.variance): the marginal emission compares the belief's variance with it"
             ) from None
         return var.sqrt()
 

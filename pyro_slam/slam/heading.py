@@ -22,7 +22,7 @@ that:
 * with a noise-free sensor a straight run of hits gives its wall's direction exactly and the
   observation is Gaussian; where the scans show range noise a segment may be a false wall
   (clutter, people, glass), and the observation is a mixture with an outlier component (the
-  filter's ``outlier_prob``), so a scan whose walls disagree with the frame barely moves the
+  emission's ``outlier_prob``), so a scan whose walls disagree with the frame barely moves the
   particles.
 """
 
