@@ -813,7 +813,7 @@ def test_pfnet_table_smoke_prints_the_rmse_table_as_json(tmp_path):
 )
 def test_real_data_runs_the_real_preset_on_both_logs(tmp_path):
     args = ("--steps", "30", "--no-mrpt", "--img", str(tmp_path / "img"), "--out", str(tmp_path))
-    out = last_json(run("real_data", *args))
+    out = last_json(run("real_data", *args, "--config", '{"offline": {"svi_steps": 5}}'))
     assert out == json.loads((tmp_path / "real_data.json").read_text())
     assert out["preset"] == "real" and out["steps"] == 30
     # the preset is adapted per log: every k-th beam of the 361 (CARMEN) and 180 (Intel)
@@ -834,6 +834,12 @@ def test_real_data_runs_the_real_preset_on_both_logs(tmp_path):
     assert out["csail_path_ratio"] is None
     ratio = intel["DVBF-LM"]["path_length_m"] / intel["odometry"]["path_length_m"]
     assert out["intel_path_ratio"] == pytest.approx(ratio)
+    # offline SLAM on Intel, the log with reference poses
+    offline = intel["DVBF-LM offline"]
+    ratio = offline["path_length_m"] / intel["odometry"]["path_length_m"]
+    assert out["intel_offline_path_ratio"] == pytest.approx(ratio)
+    assert out["intel_offline_relation_error_trans_m"] == offline["relation_error"]["trans_mean"]
+    assert "DVBF-LM offline" not in csail
     per_scan = [out[log]["DVBF-LM"]["seconds_per_scan"] for log in ("intel", "mit-csail")]
     assert min(per_scan) <= out["ms_per_scan"] / 1000 <= max(per_scan)
     err = bench("real_data", *args, "--config", '{"filter": {"proposal": "best"}}', timeout=60)
