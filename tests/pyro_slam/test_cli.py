@@ -17,7 +17,7 @@ import pytest
 from pyro_slam import cli, pretrained
 from pyro_slam.data import load
 from pyro_slam.runtime import package_version
-from pyro_slam.slam import SLAM, SLAMConfig
+from pyro_slam.slam import SLAM, SLAMConfig, presets
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = json.dumps(
@@ -55,7 +55,7 @@ def test_slam_writes_outputs_and_metrics(traversal, tmp_path, capsys):
     assert report["seed"] == 1 and report["input"] == str(traversal.resolve())
     assert report["version"] == package_version() != "unknown"
     # the default preset, with the overrides applied
-    assert report["preset"] == "raycast" and report["config"]["filter"]["particles"] == 16
+    assert report["preset"] == presets.DEFAULT and report["config"]["filter"]["particles"] == 16
     assert report["config"]["emission"]["kind"] == "raycast"
     s, p = report["slam"], report["path_integration"]
     # a 30-step run cannot drift far: both errors are small and finite
