@@ -16,16 +16,11 @@ Geometric alternatives (not the paper's) read the map along rays instead of at t
 from __future__ import annotations
 
 import math
-import weakref
 
 import torch
 from torch import nn
 
 from .networks import EmissionMLP
-
-# the ray-cast emissions' march on one map: points per block (longer where fewer than SMALL / BLOCK
-# beams are marched), and the transmittance below which a beam is dropped
-BLOCK, SMALL, TOLERANCE = 32, 16384, 1e-4
 
 
 def rotate_scan(
@@ -209,75 +204,9 @@ class RayEmission(Emission):
         return pts, stop, torch.exp(-cum[..., -1])
 
     def _range(self, grid, M: torch.Tensor, z: torch.Tensor):
-        """Each beam's expected range and the probability that it passes, both ``[..., B]``:
-        :meth:`_march` on one map, the full march (:meth:`_stops`) on a batch of maps."""
-        if M.dim() == 3:
-            return self._march(grid, M, z)[:2]
+        """Each beam's expected range and the probability that it passes, both ``[..., B]``."""
         _, stop, passes = self._stops(grid, M, z)
         return (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range, passes
-
-    def _logit_image(self, M: torch.Tensor) -> torch.Tensor:
-        """The occupancy logit ``gain * M + offset`` of a map ``[w, h, D]`` as an image ``[1,
-        1, h, w]`` (bilinear reads of it are those of ``M``, mapped); kept for the next call
-        on the same, unchanged map where no gradient is needed (a filter step reads its map
-        belief many times)."""
-        cached = getattr(self, "_image_cache", None)
-        if cached is not None and cached[0]() is M and cached[1] == M._version:
-            return cached[2]
-        image = (self.gain * M[..., 0] + self.offset).transpose(0, 1)[None, None]
-        if not image.requires_grad:
-            self._image_cache = (weakref.ref(M), M._version, image)
-        return image
-
-    def _march(self, grid, M: torch.Tensor, z: torch.Tensor, scale=None):
-        """:meth:`_range` on one map ``M [w, h, D]`` in blocks of ``BLOCK`` points, each beam
-        dropped once its transmittance is below ``TOLERANCE`` (the rest of the sum changes its
-        range by less than ``TOLERANCE * max_range``). With ``T_s`` the transmittance past
-        point ``s`` and ``step`` the points' spacing, the expected range is ``sum_s P(stop in
-        s) d_s + T_last max_range = step (1/2 + sum_{s < last} T_s + T_last / 2)``. With
-        ``scale [w, h, 1]``, also the relative variance ``v_s`` of ``q(M)`` averaged over
-        where the beam stops, ``sum_s P(stop in s) v_s + T_last v_last`` (``[..., B]``)."""
-        ang = z[..., 2:3] + self.beam_angles.to(z.dtype)  # [..., B]
-        u = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # [..., B, 2]
-        k = z.new_tensor([2 / grid.size[0], 2 / grid.size[1]])  # to grid_sample's [-1, 1]
-        o = ((z[..., None, :2] - z.new_tensor(grid.origin)) * k - 1).expand(u.shape)
-        o, du = o.reshape(-1, 2), (u * k).reshape(-1, 2)  # [N, 2] each
-        image = self._logit_image(M)  # [1, 1, h, w]
-        var_image = None if scale is None else (scale[..., 0] ** 2).transpose(0, 1)[None, None]
-        step = self.max_range / self.samples
-        c, dist = self.density * step, self.dist.to(z.dtype)
-        live = torch.arange(o.shape[0])
-        depth = z.new_zeros(o.shape[0])  # optical depth so far, of the live beams
-        acc = z.new_zeros(o.shape[0], 2)  # their sums of T_s and of P(stop in s) v_s so far
-        done, sums = [], []  # the beams dropped and their sums
-        block = max(BLOCK, SMALL // len(live))  # few beams: fewer, longer blocks
-        for s0 in range(0, self.samples, block):
-            pts = torch.addcmul(o[:, None], dist[s0 : s0 + block, None], du[:, None])  # [A, L, 2]
-            cum = depth[:, None] + c * nn.functional.softplus(_read(image, pts)).cumsum(-1)
-            T = torch.exp(-cum)  # [A, L]
-            v = T.new_zeros(()) if var_image is None else _read(var_image, _cell_shift(grid, pts))
-            stop = torch.cat([torch.exp(-depth)[:, None], T[:, :-1]], -1) - T  # [A, L]
-            acc, depth = acc + torch.stack([T.sum(-1), (stop * v).sum(-1)], -1), cum[:, -1]
-            if s0 + block >= self.samples:
-                break
-            keep = T[:, -1].detach() > TOLERANCE
-            if not bool(keep.all()):
-                done.append(live[~keep])
-                sums.append(acc[~keep])
-                live, o, du, depth, acc = live[keep], o[keep], du[keep], depth[keep], acc[keep]
-                if not len(live):
-                    break
-        last = z.new_zeros(u.shape[:-1].numel(), 2)  # T_last and T_last v_last
-        if len(live):
-            done.append(live)
-            sums.append(acc)
-            v_last = v[:, -1] if v.dim() else v.expand(len(live))
-            last = last.index_copy(0, live, torch.stack([T[:, -1], T[:, -1] * v_last], -1))
-        acc = torch.zeros_like(last).index_copy(0, torch.cat(done), torch.cat(sums))
-        rng = step * (0.5 + acc[:, 0] - 0.5 * last[:, 0])
-        shape = u.shape[:-1]
-        var = (acc[:, 1] + last[:, 1]).reshape(shape)
-        return rng.reshape(shape), last[:, 0].reshape(shape), var
 
     def expected_range(self, grid, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """Each beam's expected range ``[..., B]`` (the LiDAR reading)."""
@@ -296,31 +225,10 @@ class RayEmission(Emission):
         (``scale``) where the ray stops under ``loc``, averaged over the stopping point
         (passing rays: the last point). A beam that ends on a mapped wall is known even where
         the pose is new; one that runs into unmapped space is not."""
-        if loc.dim() == 3:
-            rng, _, var = self._march(grid, loc, z, scale[..., :1])
-            return rng, var
         pts, stop, passes = self._stops(grid, loc, z)  # [..., B, S, 2], [..., B, S], [..., B]
         var = grid.relative_variance(scale[..., :1], pts)[..., 0]  # [..., B, S] occupancy's
         rng = (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range
         return rng, (stop * var).sum(-1) + passes * var[..., -1]
-
-
-def _read(image: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-    """Bilinear reads ``[A, L]`` of ``image [1, 1, h, w]`` at ``pts [A, L, 2]`` in
-    ``grid_sample``'s coordinates (the border beyond the grid)."""
-    pts = pts[None].to(image.dtype)
-    return nn.functional.grid_sample(image, pts, align_corners=True, padding_mode="border")[0, 0]
-
-
-def _cell_shift(grid, pts: torch.Tensor) -> torch.Tensor:
-    """Points ``pts [..., 2]`` (``grid_sample``'s coordinates) moved within their cells to the
-    fractions ``a^2 / ((1 - a)^2 + a^2)``: a bilinear read of ``s^2`` there is
-    :meth:`~pyro_slam.model.MapGrid.relative_variance`'s ``sum a_i^2 s_i^2 / sum a_i^2``."""
-    n = pts.new_tensor(grid.cells) - 1  # [2]
-    g = torch.minimum((pts + 1) * (n / 2), n).clamp_min(0)  # grid coordinates
-    i0 = torch.minimum(g.floor(), n - 1)
-    a = g - i0
-    return (i0 + a * a / ((1 - a) ** 2 + a * a)) * (2 / n) - 1
 
 
 class ImageEmission(Emission):
