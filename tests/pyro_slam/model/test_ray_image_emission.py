@@ -209,5 +209,5 @@ def test_heading_observation_from_images(image_traversal):
         res = slam.run("online", progress=False)
         err[name] = wrap_angle(torch.as_tensor(res["mean"][:, 2] - tr.poses[:, 2])).abs()  # [T]
     assert float(err["on"][seen].max()) < 0.005  # measured 0.0022
-    # frames 50-54 see no two agreeing wall segments: the heading drifts there, then recovers
-    assert float(err["off"].max()) > 3 * float(err["on"].max())  # measured 0.082 vs 0.0145
+    # where the walls are seen, the run without the factor drifts from the truth
+    assert float(err["off"][seen].max()) > 3 * float(err["on"][seen].max())
