@@ -807,6 +807,7 @@ def test_pfnet_table_smoke_prints_the_rmse_table_as_json(tmp_path):
     assert all(math.isfinite(v) and v > 0 for v in rm.values())
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     not (REPO.parent / "shared" / "data" / "intel.gfs.log").is_file(),
     reason="the real laser logs (../shared/data) are not here",
