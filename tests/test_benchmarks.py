@@ -283,6 +283,7 @@ def test_pin_cache_learns_the_map_at_the_given_poses_and_writes_the_scans_there(
         assert torch.equal(slam.inserter.state_dict()[key], value)
 
 
+@pytest.mark.slow
 def test_exploration_benchmark_same_curves_serial_and_parallel(tmp_path):
     args = (
         *("--scales", "simple-small", "--seeds", "2", "--step-fraction", "0.02"),
@@ -605,6 +606,7 @@ def test_navigation_reuses_kept_slam_poses_only_for_the_same_run(tmp_path):
     assert len(tr.poses) == 50 and np.array_equal(poses, fake) and summary == {"mean": -1.0}
 
 
+@pytest.mark.slow
 def test_visual_slam_benchmark_summarises_mazes_and_resumes(tmp_path):
     from pyro_slam.metrics import localisation_error
 
