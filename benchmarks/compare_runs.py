@@ -36,7 +36,10 @@ def _load(parser, out: Path, pattern: str) -> dict[str, dict]:
             runs[f.name] = {"slam": z["slam"].astype(float), "pi": z["pi"].astype(float)}
             if {"std", "estimate", "truth"} <= set(z.files):  # the posterior's calibration
                 runs[f.name]["calibration"] = metrics.calibration(
-                    z["std"].astype(float), z["estimate"].astype(float), z["truth"].astype(float)
+                    z["std"].astype(float),
+                    z["estimate"].astype(float),
+                    z["truth"].astype(float),
+                    metrics.CALIBRATION_START,
                 )
     return runs
 

@@ -294,7 +294,8 @@ def _mode_summary(data: list, e: np.ndarray, dist: np.ndarray) -> dict:
     if all("std" in d for d in data):  # runs from before the std was saved lack it
         # calibration: the filter's position std over its actual error (1: calibrated), raw
         # and after the rigid alignment
-        cal = [metrics.calibration(d["std"], d["estimate"], d["truth"]) for d in data]
+        start = metrics.CALIBRATION_START
+        cal = [metrics.calibration(d["std"], d["estimate"], d["truth"], start) for d in data]
         for key in cal[0] if cal else ():
             out[f"{key}_median"] = float(np.median([c[key] for c in cal]))
     return out

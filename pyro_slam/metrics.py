@@ -141,14 +141,30 @@ def std_over_error(std: np.ndarray, error: np.ndarray) -> float:
     return spread / max(float(np.mean(error)), 1e-12)
 
 
-def calibration(std: np.ndarray, est: np.ndarray, true: np.ndarray) -> dict:
-    """How the posterior's spread compares with its error over one run: the time-averaged
-    position std (``std [T, 3]``, the filter's) over the time-averaged position error of ``est
-    [T, 3]``, raw and after the rigid alignment of :func:`aligned_error` (1: calibrated; below
-    1: overconfident; :func:`std_over_error`)."""
+# the first steps the calibration figures leave out (the posterior starts at the known pose)
+CALIBRATION_START = 100
+
+
+def coverage(std: np.ndarray, est: np.ndarray, true: np.ndarray, k: float = 2.0) -> float:
+    """The fraction of steps whose true position ``true [T, >= 2]`` lies inside the
+    ``k``-sigma ellipse of the posterior (mean ``est [T, >= 2]``, per-axis std ``std [T, >=
+    2]``): ``1 - exp(-k^2 / 2)`` for a calibrated 2-D Gaussian (0.865 at 2 sigma)."""
+    d = (est[:, :2] - true[:, :2]) / np.maximum(std[:, :2], 1e-12)
+    return float(np.mean((d**2).sum(1) <= k * k)) if len(d) else float("nan")
+
+
+def calibration(std: np.ndarray, est: np.ndarray, true: np.ndarray, start: int = 0) -> dict:
+    """How the posterior's spread compares with its error over one run, from step ``start``
+    on: the time-averaged position std (``std [T, 3]``) over the time-averaged position error
+    of ``est [T, 3]``, raw and after the rigid alignment of :func:`aligned_error` (1:
+    calibrated; below 1: overconfident; :func:`std_over_error`), and the 2-sigma
+    :func:`coverage` of the true positions (0.865 for a calibrated Gaussian)."""
+    aligned = aligned_error(est, true)[0][start:]
+    std, est, true = std[start:], est[start:], true[start:]
     return {
         "std_over_error": std_over_error(std, localisation_error(est, true)),
-        "std_over_aligned_error": std_over_error(std, aligned_error(est, true)[0]),
+        "std_over_aligned_error": std_over_error(std, aligned),
+        "coverage_2sigma": coverage(std, est, true),
     }
 
 

@@ -130,37 +130,72 @@ def map_marginals(guide) -> tuple[torch.Tensor, torch.Tensor]:
     )
 
 
-def map_param_leaves(guide, shape):
-    """Where a map guide keeps ``q(M)``'s marginal mean and scale in Pyro's parameter store, for
-    writing into them (scan insertion): ``(loc [w, h, D], raw_scale [w, h, D], to_raw)``, views
-    of the store's leaf tensors, with ``to_raw`` mapping a scale to its unconstrained value; None
-    where the guide keeps no such pair. The protocol, met by :class:`MapGuide` and by Pyro's
-    :class:`~pyro.infer.autoguide.AutoNormal` and
-    :class:`~pyro.infer.autoguide.AutoDiagonalNormal` over the map site alone: parameters
-    named ``{prefix}_loc``/``{prefix}_scale`` (``guide.prefix``), ``{name}.locs.map``/
-    ``{name}.scales.map`` or ``{name}.loc``/``{name}.scale`` (a flat vector of the map's
-    entries)."""
-    store = pyro.get_param_store()
-    if isinstance(guide, MapGuide):
-        names = (f"{guide.prefix}_loc", f"{guide.prefix}_scale")
-    else:
-        name = getattr(guide, "_pyro_name", None)
-        names = next(
-            (
-                (f"{name}.{a}", f"{name}.{b}")
-                for a, b in (("locs.map", "scales.map"), ("loc", "scale"))
-                if f"{name}.{a}" in store and f"{name}.{b}" in store
-            ),
-            None,
-        )
-    if names is None or any(n not in store for n in names):
-        return None
-    raw = dict(store.named_parameters())
-    loc, scale = raw[names[0]], raw[names[1]]
-    if loc.numel() != math.prod(shape) or scale.numel() != loc.numel():
-        return None
-    transform = biject_to(store._constraints[names[1]])
-    return loc.view(shape), scale.view(shape), transform.inv
+class MapLeaves:
+    """Where a map guide keeps ``q(M)``'s marginal mean and std in Pyro's parameter store, for
+    reading and writing them per grid point (scan insertion): views ``loc [w, h, D]`` and
+    ``raw [w, h, D]`` (the unconstrained scale) of the store's leaf tensors, and, for a low-rank
+    guide, its ``cov_factor [w, h, D, r]``, whose rows' norm ``sqrt(1 + |row|^2)`` is the factor
+    by which the marginal std exceeds the diagonal ``scale``. Build with :meth:`of`."""
+
+    def __init__(self, loc, raw, constraint, cov_factor=None):
+        self.loc, self.raw, self.cov_factor = loc, raw, cov_factor
+        self.transform = biject_to(constraint)
+
+    def _factor(self, i, j):
+        """``[P]``: the marginal std over the diagonal scale at ``(i, j)`` (1 without a
+        low-rank part)."""
+        if self.cov_factor is None:
+            return 1.0
+        return (1 + self.cov_factor[i, j, 0].detach().pow(2).sum(-1)).sqrt()
+
+    @classmethod
+    def of(cls, guide, shape) -> MapLeaves | None:
+        """The leaves of ``guide`` for a map of ``shape`` ``(w, h, D)``; None where the guide
+        keeps no such parameters. The protocol, met by :class:`MapGuide` and by Pyro's
+        :class:`~pyro.infer.autoguide.AutoNormal`, :class:`~pyro.infer.autoguide.
+        AutoDiagonalNormal` and :class:`~pyro.infer.autoguide.AutoLowRankMultivariateNormal`
+        over the map site alone: parameters named ``{prefix}_loc``/``{prefix}_scale``
+        (``guide.prefix``), ``{name}.locs.map``/``{name}.scales.map``, or ``{name}.loc``/
+        ``{name}.scale`` (a flat vector of the map's entries, with ``{name}.cov_factor`` for the
+        low-rank guide, whose marginal std is ``scale * sqrt(1 + |cov_factor row|^2)``)."""
+        store = pyro.get_param_store()
+        if isinstance(guide, MapGuide):
+            names = (f"{guide.prefix}_loc", f"{guide.prefix}_scale")
+        else:
+            name = getattr(guide, "_pyro_name", None)
+            names = next(
+                (
+                    (f"{name}.{a}", f"{name}.{b}")
+                    for a, b in (("locs.map", "scales.map"), ("loc", "scale"))
+                    if f"{name}.{a}" in store and f"{name}.{b}" in store
+                ),
+                None,
+            )
+        if names is None or any(n not in store for n in names):
+            return None
+        raw = dict(store.named_parameters())
+        loc, scale = raw[names[0]], raw[names[1]]
+        if loc.numel() != math.prod(shape) or scale.numel() != loc.numel():
+            return None
+        cov = names[0][: -len("loc")] + "cov_factor"
+        low_rank = not isinstance(guide, MapGuide) and cov in store
+        cov = raw[cov].view(*shape, -1) if low_rank else None
+        return cls(loc.view(shape), scale.view(shape), store._constraints[names[1]], cov)
+
+    def read(self, i, j) -> tuple[torch.Tensor, torch.Tensor]:
+        """``q(M)``'s marginal mean and std of the first feature at grid points ``(i [P], j
+        [P])``: ``([P], [P])``."""
+        with torch.no_grad():
+            std = self.transform(self.raw[i, j, 0]) * self._factor(i, j)
+            return self.loc[i, j, 0].clone(), std
+
+    def write(self, i, j, loc, std) -> None:
+        """Set the marginal mean ``loc`` and std ``std`` (``[P]`` or numbers) of the first
+        feature at grid points ``(i [P], j [P])``."""
+        with torch.no_grad():
+            std = torch.as_tensor(std, dtype=self.raw.dtype) / self._factor(i, j)
+            self.loc[i, j, 0] = torch.as_tensor(loc, dtype=self.loc.dtype)
+            self.raw[i, j, 0] = self.transform.inv(std)
 
 
 class ParamScope:

@@ -23,7 +23,7 @@ from ..inference import (
     PyroSMCFilter,
 )
 from ..model import GlobalGuide
-from ..model.guide import map_param_leaves
+from ..model.guide import MapLeaves
 from .build import build_model
 from .components import emission_kind
 from .heading import ManhattanHeading
@@ -90,14 +90,14 @@ def heading_data(run) -> ManhattanHeading | None:
 
 
 def inserter(run) -> ScanInserter | None:
-    """Scan insertion into the run's map guide, where the guide keeps a marginal mean and scale
-    (:func:`~pyro_slam.model.guide.map_param_leaves`); otherwise insertion is switched off with
-    a warning."""
-    leaves = map_param_leaves(run.map_guide, run.model.grid.shape)
+    """Scan insertion into the run's map guide, where the guide's marginal mean and std can be
+    read and written (:class:`~pyro_slam.model.guide.MapLeaves`); otherwise insertion is
+    switched off with a warning."""
+    leaves = MapLeaves.of(run.map_guide, run.model.grid.shape)
     if leaves is None:
         warnings.warn(
             f"scan insertion is off: the map guide {type(run.map_guide).__name__} keeps no "
-            "marginal mean and scale to write scans into (map_param_leaves)",
+            "marginal mean and std to update with scans (MapLeaves)",
             stacklevel=4,
         )
         return None

@@ -76,25 +76,29 @@ def _triple(name: str, value, optional: bool = False, positive: bool = True) -> 
 
 @dataclass(frozen=True)
 class ScanInsertionConfig:
-    """Scan insertion (ray-cast LiDAR only): each online scan, placed from the cloud's mean
-    pose, is written into ``q(M)`` (:mod:`pyro_slam.slam.insertion`), SVI then refines the map.
-    ``kind`` ``"occupancy"``: its hits, joined into a polyline (neighbouring hits closer than
-    ``gap`` form one wall), set the mean to ``occupancy`` and the scale to ``scale`` at grid
-    points no earlier scan hit, and the points its beams cross short of their returns, where
-    nothing was written yet, get the free mean ``-occupancy / 2`` (walls without thickness, as
-    in the simulated mazes); ``"fusion"``: a truncated signed distance fused over the scans
-    sets the mean on a ramp from free to ``occupancy`` across each wall, the scale ``scale /
-    sqrt(scans)`` (real walls, with a back side no beam sees)."""
+    """Scan insertion (ray-cast LiDAR only), the guide's update of ``q(M)`` with each online
+    scan placed from the cloud's mean pose (:mod:`pyro_slam.slam.insertion`); SVI then refines
+    the map. Its inverse sensor model: a wall's grid point reads the wall level ``occupancy``,
+    a grid point a beam passed the free level ``-occupancy / 2``, each with Gaussian noise of
+    std ``noise``; a Gaussian update of the model's map prior with those readings. ``kind``
+    ``"occupancy"``: the hits, joined into a polyline (neighbouring hits closer than ``gap``
+    form one wall), are read once per grid point (walls without thickness, as in the simulated
+    mazes); ``"fusion"``: a truncated signed distance fused over the scans gives the reading on
+    a ramp from free to ``occupancy`` across each wall, with the precision of the scans fused
+    (real walls, with a back side no beam sees)."""
 
     kind: str = "occupancy"
-    occupancy: float = 2.0
-    scale: float = 0.3
+    # a wall's reading and its noise: under the default prior N(0, 1) a first reading puts the
+    # belief at the emission's wall level 2.0 with std 0.3 (mean y / (1 + noise^2), std
+    # noise / sqrt(1 + noise^2)), where the ray-cast emission stops a ray within a grid spacing
+    occupancy: float = 2.2
+    noise: float = 0.315
     gap: float = 0.05
 
     def __post_init__(self):
         _choice("emission.insert.kind", self.kind, INSERTION_KINDS)
         _positive("emission.insert.occupancy", self.occupancy)
-        _positive("emission.insert.scale", self.scale)
+        _positive("emission.insert.noise", self.noise)
         _positive("emission.insert.gap", self.gap)
 
 
@@ -120,9 +124,12 @@ class EmissionConfig:
     outlier_prob: float = 0.1
     insert: ScanInsertionConfig | None = None
     ray_spacing: float | None = None
+    fit_sigma: bool = False
 
     def __post_init__(self):
         _choice("emission.kind", self.kind, EMISSIONS)
+        if not isinstance(self.fit_sigma, bool):
+            raise ConfigError(f"emission.fit_sigma must be true or false, got {self.fit_sigma!r}")
         kind = EMISSIONS[self.kind]
         _positive("emission.resolution", self.resolution)
         _non_negative("emission.margin", self.margin)

@@ -1,17 +1,44 @@
-"""Scan insertion: a warm start of ``q(M)`` for the ray-cast LiDAR emission.
+"""Scan insertion: the part of the guide that updates ``q(M)`` with each online scan, for the
+ray-cast LiDAR emission, as an approximate Bayesian update under the model's own map prior.
 
-Each online scan, placed from the pose estimate, is written into the map guide's mean and
-scale; SVI then refines the map. Readings at the sensor's range are misses and write no wall.
-Two ways (``emission.insert.kind``):
+**The inverse sensor model.** A scan placed at the pose estimate reads the value of each grid
+point it touches: a wall's grid point reads the emission's wall level ``occupancy`` (the logit
+at which a ray stops within a grid spacing), a grid point the beam passed reads the free level
+``-occupancy / 2`` (a logit that stops no ray), each with Gaussian noise of std ``noise``
+(``emission.insert``). Readings at the sensor's range are misses and read no wall.
+
+**The update.** Each grid point keeps its inverse-sensor-model reading as a Gaussian site (a
+pseudo-observation ``y`` of precision ``lambda``). Inserting a reading replaces the point's site
+and moves ``q(M)``'s natural parameters by the difference (an expectation-propagation site
+update): with ``q`` at the prior ``N(mu_0, s_0^2)``, the first reading gives
+
+    1 / s^2 = 1 / s_0^2 + lambda,    mu = s^2 (mu_0 / s_0^2 + lambda y),
+
+the model's prior scaled by the reading; whatever SVI has learned since is kept, as the update
+changes the belief only by the site's change. The prior's mean and variance are the model's
+(:meth:`~pyro_slam.model.DVBFLM.map_prior`: a swapped prior changes what insertion writes; a
+non-Gaussian prior enters through its first two moments). The belief is read and written
+through the map guide's marginal (:class:`~pyro_slam.model.guide.MapLeaves`).
+
+**The map's placement.** A reading is placed from the pose estimate, so where it lies in the
+world is as uncertain as that pose: each grid point also keeps the position variance (per axis)
+of the pose its reading was placed from, the map belief's *placement* variance. The filter's
+cloud gives the pose relative to the map; a pose's world-frame std adds the placement variance
+of the walls its beams stop at (:meth:`ScanInserter.placement_at`), and the scans it inserts
+are placed with that world-frame variance. Exploring hands the uncertainty on from wall to
+wall, as drift accumulates; a revisit of walls placed earlier, with less, takes it back.
+
+Two kinds (``emission.insert.kind``):
 
 ``"occupancy"`` (:class:`OccupancyInserter`)
     the hits, joined into a polyline (hits of neighbouring beams closer than ``gap`` are one
-    wall, sampled at half a grid spacing), set the grid points nearest to it that no earlier
-    scan hit to the mean ``occupancy`` and the scale ``scale``; the grid points each beam
-    crosses up to a grid spacing short of its return (up to the range for a miss), where
-    nothing was written yet, get the free mean ``-occupancy / 2`` and the same scale: known
-    free space, which a later hit may still overwrite. Each grid point is written once. For
-    walls without thickness (the simulated mazes).
+    wall, sampled at half a grid spacing), give the grid points nearest to it that no earlier
+    scan hit a wall reading; the grid points each beam crosses up to a grid spacing short of
+    its return (up to the range for a miss) that no scan has read yet get a free reading:
+    known free space, whose site a later hit replaces. Each grid point is read once (a wall
+    once, its free reading before that at most once): the scans of one place are not
+    independent readings of it, as the same pose error places them all. For walls without
+    thickness (the simulated mazes).
 ``"fusion"`` (:class:`FusionInserter`)
     a truncated signed distance (TSDF; Curless and Levoy 1996) per grid point, in grid
     spacings, positive behind a surface:
@@ -25,13 +52,13 @@ Two ways (``emission.insert.kind``):
     * each grid point keeps the running mean of what the scans said (at most ``MAX_WEIGHT``
       scans weigh, so that the map follows a changed pose estimate).
 
-    A fused grid point gets ``q(M)``'s mean from a linear ramp in its distance, from the free
-    value (``-occupancy / 2``, a logit that stops no ray) at ``-RAMP`` to ``occupancy`` at
-    ``+RAMP``, shifted (by at most ``SHIFT``) so that the emission's expected range at a wall
-    seen head-on is the wall's distance (:func:`surface_offset`); bilinear interpolation
-    reproduces a linear ramp exactly, so the ray stops at the wall to within a fraction of a
-    grid spacing whatever the wall's position in its cell. Its scale is ``scale /
-    sqrt(scans)``. For real walls, which have a back side no beam sees.
+    A fused grid point's reading is a linear ramp in its distance, from the free level at
+    ``-RAMP`` to ``occupancy`` at ``+RAMP``, shifted (by at most ``SHIFT``) so that the
+    emission's expected range at a wall seen head-on is the wall's distance
+    (:func:`surface_offset`); bilinear interpolation reproduces a linear ramp exactly, so the
+    ray stops at the wall to within a fraction of a grid spacing whatever the wall's position
+    in its cell. Its precision is ``scans / noise^2`` (the fused scans' readings). For real
+    walls, which have a back side no beam sees.
 """
 
 from __future__ import annotations
@@ -75,32 +102,48 @@ def surface_offset(emission, ramp, spacing: float, phases: int = 8) -> float:
 
 
 class ScanInserter:
-    """Writes scans into a map guide's mean and scale (module doc); :func:`make_inserter`
-    builds the configured kind.
+    """Updates a map guide's ``q(M)`` with scans (module doc); :func:`make_inserter` builds the
+    configured kind.
 
     Args:
         config: the :class:`~pyro_slam.slam.config.ScanInsertionConfig`.
-        model: the :class:`~pyro_slam.model.DVBFLM` (its grid and ray-cast emission).
-        leaves: where the guide keeps ``q(M)``'s mean and scale,
-            :func:`~pyro_slam.model.guide.map_param_leaves`.
+        model: the :class:`~pyro_slam.model.DVBFLM` (its grid, ray-cast emission and prior).
+        leaves: the guide's marginal, :class:`~pyro_slam.model.guide.MapLeaves`.
     """
 
     def __init__(self, config: ScanInsertionConfig, model, leaves):
-        self.cfg, self.model = config, model
-        self.loc, self.raw_scale, self.to_raw = leaves
+        self.cfg, self.model, self.leaves = config, model, leaves
         g = model.grid
         w, h, _ = g.shape
         self.spacing = min(g.size[0] / (w - 1), g.size[1] / (h - 1))
-        self.free = -0.5 * config.occupancy  # the mean of known free space
+        self.free = -0.5 * config.occupancy  # the free level
+        self.precision = 1.0 / config.noise**2  # one reading's
+        self.site_y = torch.zeros((w, h), dtype=torch.float64)  # [w, h] each point's reading
+        self.site_prec = torch.zeros((w, h), dtype=torch.float64)  # [w, h] and its precision
+        self.placement = torch.zeros((w, h), dtype=torch.float64)  # [w, h] its placement var
 
     @property
     def inserted(self) -> torch.Tensor:
         """``[w, h]`` bool: grid points some scan wrote a wall or a distance into."""
         raise NotImplementedError
 
-    def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor) -> None:
-        """Write scan ``x [B]`` (``valid [B]`` bool) placed from pose ``z [3]``."""
+    def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor, var=0.0) -> None:
+        """Update ``q(M)`` with scan ``x [B]`` (``valid [B]`` bool) placed from pose ``z [3]``,
+        whose world-frame position variance (per axis) is ``var``."""
         raise NotImplementedError
+
+    def placement_at(self, z: torch.Tensor) -> float:
+        """The placement variance (per axis) of the map where the beams of pose ``z [3]`` stop
+        under ``q(M)``'s mean: the stop-weighted mean over the readings that hit inserted grid
+        points (0 where none does)."""
+        em, grid = self.model.emission, self.model.grid
+        with torch.no_grad():
+            loc = self.leaves.loc.detach()
+            pts, stop, _ = em._stops(grid, loc, z.to(loc.dtype))  # [B, S, 2], [B, S]
+            field = torch.stack([self.placement, (self.site_prec > 0).double()], -1)
+            read = grid.attend(field.to(loc.dtype), pts)  # [B, S, 2]
+            seen = (stop * read[..., 1]).sum()
+            return float((stop * read[..., 0]).sum() / seen) if seen > 1e-6 else 0.0
 
     def _to_grid(self, p: torch.Tensor) -> torch.Tensor:
         """Positions ``[..., 2]`` in grid coordinates (spacings from the origin)."""
@@ -115,13 +158,31 @@ class ScanInserter:
         c = self._to_grid(p).round().long()
         return c[:, 0].clamp(0, w - 1), c[:, 1].clamp(0, h - 1)
 
-    def _write(self, i, j, loc, scale) -> None:
-        """``q(M)``'s mean ``loc`` and scale ``scale`` (numbers or ``[P]``) at ``(i, j)``."""
-        with torch.no_grad():
-            self.loc[i, j, 0] = torch.as_tensor(loc, dtype=self.loc.dtype)
-            # the store keeps the scale unconstrained
-            raw = self.to_raw(torch.as_tensor(scale, dtype=self.raw_scale.dtype))
-            self.raw_scale[i, j, 0] = raw
+    def _observe(self, i, j, y, precision, placement) -> None:
+        """Replace the sites of grid points ``(i [P], j [P])`` by readings ``y`` of precision
+        ``precision`` placed with variance ``placement`` (numbers or ``[P]``), moving ``q(M)``'s
+        natural parameters by the sites' change (module doc)."""
+        if not len(i):
+            return
+        loc, std = self.leaves.read(i, j)  # [P]
+        lam = std.double() ** -2
+        eta = loc.double() * lam
+        y = torch.as_tensor(y, dtype=torch.float64).expand(len(i))
+        prec = torch.as_tensor(precision, dtype=torch.float64).expand(len(i))
+        old_prec, old_y = self.site_prec[i, j], self.site_y[i, j]
+        lam_new = (lam - old_prec + prec).maximum(prec)  # (SVI may have widened the belief)
+        eta_new = eta - old_prec * old_y + prec * y
+        self.site_y[i, j], self.site_prec[i, j] = y, prec
+        self.placement[i, j] = torch.as_tensor(placement, dtype=torch.float64)
+        self.leaves.write(i, j, eta_new / lam_new, lam_new.rsqrt())
+
+    def state_dict(self) -> dict:
+        sites = ("site_y", "site_prec", "placement")
+        return {k: getattr(self, k).clone() for k in sites}
+
+    def load_state_dict(self, d: dict) -> None:
+        for k in ("site_y", "site_prec", "placement"):
+            getattr(self, k).copy_(d[k])
 
 
 class OccupancyInserter(ScanInserter):
@@ -164,22 +225,24 @@ class OccupancyInserter(ScanInserter):
         p = z[:2] + d[..., None] * torch.stack([ang.cos(), ang.sin()], -1)  # [n, V, 2]
         return self._nearest(p.reshape(-1, 2))
 
-    def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor) -> None:
-        """Write scan ``x [B]`` (``valid [B]``) placed from pose ``z [3]``: its walls where no
-        scan hit yet, then its free space where nothing was written yet."""
+    def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor, var=0.0) -> None:
+        """Read scan ``x [B]`` (``valid [B]``) placed from pose ``z [3]`` (position variance
+        ``var``): its walls where no scan hit yet, then its free space where nothing was read
+        yet."""
         i, j = self.hit_cells(x, valid, z)
         new = ~self.walls[i, j]  # [P]
-        self._write(i[new], j[new], self.cfg.occupancy, self.cfg.scale)
+        self._observe(i[new], j[new], self.cfg.occupancy, self.precision, var)
         self.walls[i[new], j[new]] = True
         i, j = self.free_cells(x, valid, z)
         new = ~(self.walls[i, j] | self.freed[i, j])
-        self._write(i[new], j[new], self.free, self.cfg.scale)
+        self._observe(i[new], j[new], self.free, self.precision, var)
         self.freed[i[new], j[new]] = True
 
     def state_dict(self) -> dict:
-        return {"walls": self.walls.clone(), "freed": self.freed.clone()}
+        return {**super().state_dict(), "walls": self.walls.clone(), "freed": self.freed.clone()}
 
     def load_state_dict(self, d: dict) -> None:
+        super().load_state_dict(d)
         self.walls.copy_(d["walls"])
         self.freed.copy_(d["freed"])
 
@@ -192,6 +255,7 @@ class FusionInserter(ScanInserter):
         w, h = model.grid.cells
         self.sdf = torch.zeros((w, h), dtype=torch.float64)  # weighted sum of distances
         self.weight = torch.zeros((w, h), dtype=torch.float64)  # scans fused
+        self.placed = torch.zeros((w, h), dtype=torch.float64)  # weighted sum of placement vars
         self.delta = surface_offset(model.emission, self.ramp, self.spacing)
 
     @property
@@ -270,9 +334,9 @@ class FusionInserter(ScanInserter):
         ok = (g[:, 0] >= 0) & (g[:, 0] <= w - 1) & (g[:, 1] >= 0) & (g[:, 1] <= h - 1)
         return torch.unique((g[ok, 0] * h + g[ok, 1]).long())
 
-    def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor) -> None:
-        """Fuse scan ``x [B]`` (``valid [B]``) placed from pose ``z [3]`` and write the fused
-        grid points into ``q(M)``."""
+    def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor, var=0.0) -> None:
+        """Fuse scan ``x [B]`` (``valid [B]``) placed from pose ``z [3]`` (position variance
+        ``var``) and update ``q(M)`` at the fused grid points."""
         idx, d = self.surface_points(*self.surfaces(x, valid, z))
         free = self.free_points(x, valid, z)
         free = free[~torch.isin(free, idx)]
@@ -281,15 +345,21 @@ class FusionInserter(ScanInserter):
         sdf, weight = self.sdf.view(-1), self.weight.view(-1)
         keep = ((MAX_WEIGHT - 1) / weight[idx].clamp_min(1e-9)).clamp(max=1)  # cap the weight
         sdf[idx] = sdf[idx] * keep + d
+        placed = self.placed.view(-1)
+        placed[idx] = placed[idx] * keep + var
         weight[idx] = weight[idx] * keep + 1
-        loc = self.ramp(sdf[idx] / weight[idx] + self.delta)
+        y = self.ramp(sdf[idx] / weight[idx] + self.delta)
         h = self.model.grid.cells[1]
-        self._write(idx // h, idx % h, loc, self.cfg.scale / weight[idx].sqrt())
+        prec, var = weight[idx] * self.precision, placed[idx] / weight[idx]
+        self._observe(idx // h, idx % h, y, prec, var)
 
     def state_dict(self) -> dict:
-        return {"sdf": self.sdf.clone(), "weight": self.weight.clone()}
+        own = {k: getattr(self, k).clone() for k in ("sdf", "weight", "placed")}
+        return {**super().state_dict(), **own}
 
     def load_state_dict(self, d: dict) -> None:
+        super().load_state_dict(d)
+        self.placed.copy_(d["placed"])
         self.sdf.copy_(d["sdf"])
         self.weight.copy_(d["weight"])
 
@@ -298,5 +368,6 @@ INSERTERS = {"occupancy": OccupancyInserter, "fusion": FusionInserter}
 
 
 def make_inserter(config: ScanInsertionConfig, model, leaves) -> ScanInserter:
-    """The scan inserter of ``config.kind`` (module doc) for ``model``'s map guide leaves."""
+    """The scan inserter of ``config.kind`` (module doc) for a map guide's marginal
+    ``leaves`` (:class:`~pyro_slam.model.guide.MapLeaves`)."""
     return INSERTERS[config.kind](config, model, leaves)

@@ -53,6 +53,8 @@ class SLAMState:
     estimates: list = field(default_factory=list)  # per step [3]
     stds: list = field(default_factory=list)
     losses: list = field(default_factory=list)
+    # per step: the placement variance of the map the pose is localised against (world_std)
+    anchors: list = field(default_factory=list)
     # offline SLAM: the initial online sweep's pose means, per step [3]
     sweep_estimates: list = field(default_factory=list)
 
@@ -79,6 +81,19 @@ def filter_step(run, t: int, M: MapBelief, start=None, store: bool = True) -> No
     if store:
         run.cache.store(torch.tensor([t]), run.particles.batched(), run.gen)
     run.history.record(t, run.particles, fresh=fresh)
+
+
+def world_std(run, mean: torch.Tensor, std: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """A pose's world-frame std ``[3]`` from the cloud's (``mean [3]``, ``std [3]``, relative to
+    the map): on x and y, the placement variance of the map where its beams stop added
+    (:meth:`~pyro_slam.slam.insertion.ScanInserter.placement_at`; without scan insertion, the
+    cloud's own). Returns it and that placement variance."""
+    if run.inserter is None:
+        return std, 0.0
+    var = run.inserter.placement_at(mean)
+    out = std.clone()
+    out[:2] = (std[:2] ** 2 + var).sqrt()
+    return out, var
 
 
 def svi_step(run, lo: int, hi: int, newest: int | None) -> float:
@@ -108,14 +123,17 @@ def online_sweep(run, progress: bool) -> None:
         t = st.t
         with torch.no_grad():
             filter_step(run, t, run.map_belief())
-        mean, std = run.particles.mean(), run.particles.std()
+        mean = run.particles.mean()
+        std, anchor = world_std(run, mean, run.particles.std())
         if st.phase == Phase.ONLINE:
             st.estimates.append(mean.tolist())
             st.stds.append(std.tolist())
+            st.anchors.append(anchor)
         else:  # offline SLAM's initial sweep: kept for diagnostics (result's "sweep_mean")
             st.sweep_estimates.append(mean.tolist())
         if run.inserter is not None:
-            run.inserter.insert(run.obs[t], run.valid(t), mean)
+            var = float((std[:2] ** 2).mean())
+            run.inserter.insert(run.obs[t], run.valid(t), mean, var)
         if run.heading is not None:
             run.heading.refine(t, float(mean[2]), float(std[2]))
         if t >= L - 1 and t % run.cfg.training.every == 0:
@@ -129,16 +147,24 @@ def online_sweep(run, progress: bool) -> None:
 
 
 def filter_pass(run, progress: bool, desc: str):
-    """Filter the whole traversal under the map belief (refreshes the cache); the pose means
-    and stds per step."""
+    """Filter the whole traversal under the map belief (refreshes the cache); the pose means,
+    world-frame stds and placement variances per step (:func:`world_std`)."""
     M = run.map_belief()
-    means, stds = [], []
+    out = ([], [], [])
     with torch.no_grad():
         for t in tqdm(range(run.T), desc=desc, disable=not progress, leave=False):
             filter_step(run, t, M)
-            means.append(run.particles.mean().tolist())
-            stds.append(run.particles.std().tolist())
-    return means, stds
+            _record(run, out)
+    return out
+
+
+def _record(run, out: tuple) -> None:
+    """Append the cloud's mean, world-frame std and placement variance to ``out``."""
+    mean = run.particles.mean()
+    std, anchor = world_std(run, mean, run.particles.std())
+    out[0].append(mean.tolist())
+    out[1].append(std.tolist())
+    out[2].append(anchor)
 
 
 def cache_pass(run, progress: bool, desc: str):
@@ -147,15 +173,14 @@ def cache_pass(run, progress: bool, desc: str):
     (categorical over the cache, plus 1e-3 noise) and filtered under the map belief; no
     particles cross a chunk boundary and the cache is left as it is."""
     M, L, K = run.map_belief(), run.cfg.training.chunk_length, run.cfg.filter.particles
-    means, stds = [], []
+    out = ([], [], [])
     with torch.no_grad():
         for s in tqdm(range(0, run.T, L), desc=desc, disable=not progress, leave=False):
             start = run.cache.propose(torch.tensor([s]), K, "categorical", generator=run.gen)[0]
             for t in range(s, min(s + L, run.T)):
                 filter_step(run, t, M, start if t == s else None, store=False)
-                means.append(run.particles.mean().tolist())
-                stds.append(run.particles.std().tolist())
-    return means, stds
+                _record(run, out)
+    return out
 
 
 def offline_round(run, progress: bool) -> None:
@@ -190,13 +215,14 @@ def offline(run, progress: bool) -> None:
         offline_round(run, progress)
     st.phase = Phase.FINAL
     final = cache_pass if run.cfg.offline.estimate == "cache" else filter_pass
-    st.estimates, st.stds = final(run, progress, "final filter pass")
+    st.estimates, st.stds, st.anchors = final(run, progress, "final filter pass")
 
 
 def estimates(run) -> dict:
     """The run's pose estimates (see :meth:`~pyro_slam.slam.runner.SLAM.result`): the filtered
-    means and stds ``[T, 3]``, smoothed over the particles' history once the run is done, the
-    SVI losses and the offline sweep's means."""
+    means and world-frame stds ``[T, 3]``, smoothed over the particles' history once the run is
+    done (with the placement variance of :func:`world_std` added), the SVI losses and the
+    offline sweep's means."""
     st = run.state
     filtered = np.asarray(st.estimates, dtype=np.float64).reshape(-1, 3)
     filtered_std = np.asarray(st.stds, dtype=np.float64).reshape(-1, 3)
@@ -206,6 +232,8 @@ def estimates(run) -> dict:
         m, sd = run.history.smoothed(lag)
         mean, std = m.double().numpy(), sd.double().numpy()
         mean[:, 2] = wrap_angle(mean[:, 2])
+        if len(st.anchors) == len(std):
+            std[:, :2] = np.sqrt(std[:, :2] ** 2 + np.asarray(st.anchors)[:, None])
     return {
         "mean": mean,
         "std": std,
