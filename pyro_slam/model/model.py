@@ -46,19 +46,6 @@ from .noise import BeamMixture, CircularUniform, WrappedMixture
 from .transitions import Transition
 
 
-class EmissionScale(nn.Module):
-    """``sigma_E`` as a parameter of the model (stored as its log), for the ELBO to fit:
-    registered with SVI by :meth:`DVBFLM.global_model` as ``"sigma_E"``."""
-
-    def __init__(self, sigma: float):
-        super().__init__()
-        self.log_sigma = nn.Parameter(torch.tensor(math.log(float(sigma))))
-
-    @property
-    def sigma(self) -> torch.Tensor:
-        return self.log_sigma.exp()
-
-
 @dataclass
 class MapBelief:
     """A Gaussian map belief, ``loc`` and ``scale`` ``[w, h, D]`` (e.g. a mean-field ``q(M)``)."""
@@ -259,8 +246,6 @@ class DVBFLM(nn.Module):
             :class:`~pyro_slam.model.noise.BeamMixture` of the noise and a uniform density over
             ``outlier_range`` (the sensor's range).
         heading: the heading factor (:class:`WallHeading`), or None.
-        fit_sigma: ``sigma_E`` is a parameter of the model that SVI fits with the rest
-            (:class:`EmissionScale`, starting at ``sigma_emission``) instead of a constant.
 
     Every factor is a Pyro distribution (:meth:`map_prior`, :meth:`emission_dist`,
     :meth:`transition_dist`), and everything that evaluates the model -- the Pyro model, the
@@ -281,7 +266,6 @@ class DVBFLM(nn.Module):
         outlier_prob: float = 0.0,
         outlier_range: float = 1.0,
         heading: WallHeading | None = None,
-        fit_sigma: bool = False,
     ):
         super().__init__()
         if not isinstance(emission, Emission):
@@ -293,8 +277,7 @@ class DVBFLM(nn.Module):
         self.grid = grid
         self.emission = emission
         self.transition = transition
-        self.emission_scale = EmissionScale(sigma_emission) if fit_sigma else None
-        self._sigma = float(sigma_emission)
+        self.sigma_emission = float(sigma_emission)
         self.register_buffer(
             "init_scale", torch.as_tensor(init_scale, dtype=torch.get_default_dtype())
         )
@@ -306,27 +289,6 @@ class DVBFLM(nn.Module):
             raise ValueError(f"outlier_range must be positive, got {outlier_range!r}")
         self.outlier_prob, self.outlier_range = float(outlier_prob), float(outlier_range)
         self.heading = heading
-
-    @property
-    def sigma_emission(self):
-        """``sigma_E``: a number, or (fitted, :class:`EmissionScale`) a scalar tensor."""
-        return self._sigma if self.emission_scale is None else self.emission_scale.sigma
-
-    @sigma_emission.setter
-    def sigma_emission(self, value) -> None:
-        if self.emission_scale is None:
-            self._sigma = float(value)
-        else:
-            with torch.no_grad():
-                self.emission_scale.log_sigma.fill_(math.log(float(value)))
-
-    def fitted_modules(self) -> dict:
-        """The modules SVI fits with the map, by their parameter-store names: the emission
-        (where it is learned) and ``sigma_E`` (where it is fitted)."""
-        out = {"emission": self.emission} if self.learn_emission else {}
-        if self.emission_scale is not None:
-            out["sigma_E"] = self.emission_scale
-        return out
 
     # ----------------------------------------------------------------- factors as functions
     def chart(self, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -353,8 +315,7 @@ class DVBFLM(nn.Module):
         with the outlier component of probability ``outlier_prob`` (default the model's; a
         tensor broadcasts). Argument validation is off unless ``validate``: the particle filter
         checks its weights itself and evaluates this on every particle of every step."""
-        s = self.sigma_emission if sigma is None else sigma
-        s = s.to(mean.dtype) if torch.is_tensor(s) else torch.as_tensor(s, dtype=mean.dtype)
+        s = torch.as_tensor(self.sigma_emission if sigma is None else sigma, dtype=mean.dtype)
         with pyro.validation_enabled(validate):
             d = self.noise(mean, s)
         d._validate_args = validate  # (read again by log_prob, after the context)
@@ -465,8 +426,8 @@ class DVBFLM(nn.Module):
         handed to :class:`pyro.infer.SVI` with
         :class:`~pyro_slam.inference.ParticleChunkELBO`, which adds the local part (poses,
         scans, wall directions) by particle filtering."""
-        for name, module in self.fitted_modules().items():
-            pyro.module(name, module)
+        if self.learn_emission:
+            pyro.module("emission", self.emission)
         return self.sample_map(), self.sample_frame()
 
     def mapping_model(self, poses, observations, mask=None, batch_size=None):

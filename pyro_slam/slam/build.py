@@ -182,7 +182,6 @@ def build_model(
         noise=noise,
         outlier_prob=e.outlier_prob,
         outlier_range=_reading_range(emission),
-        fit_sigma=e.fit_sigma,
     )
     return model, MapGuide(grid.shape, init_scale=model.prior_std())
 

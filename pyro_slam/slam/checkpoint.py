@@ -150,10 +150,10 @@ def restore(run, d: dict) -> None:
     with run.scope():
         load_param_store(d["params"])
         run.model.load_state_dict(d["model"])
-        for name, module in run.model.fitted_modules().items():
-            # the store now holds *loaded* tensors: make the module use (and SVI update)
-            # those, as it did before the checkpoint, not its own parameter copies
-            pyro.module(name, module, update_module_params=True)
+        if run.model.learn_emission:
+            # the store now holds *loaded* tensors: make the emission network use (and SVI
+            # update) those, as it did before the checkpoint, not its own parameter copies
+            pyro.module("emission", run.model.emission, update_module_params=True)
         run.optim.set_state(d["optim"])
         if run.inserter is not None:  # (the loaded parameters are new tensors)
             run.inserter = inserter(run)

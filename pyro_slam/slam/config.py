@@ -124,12 +124,9 @@ class EmissionConfig:
     outlier_prob: float = 0.1
     insert: ScanInsertionConfig | None = None
     ray_spacing: float | None = None
-    fit_sigma: bool = False
 
     def __post_init__(self):
         _choice("emission.kind", self.kind, EMISSIONS)
-        if not isinstance(self.fit_sigma, bool):
-            raise ConfigError(f"emission.fit_sigma must be true or false, got {self.fit_sigma!r}")
         kind = EMISSIONS[self.kind]
         _positive("emission.resolution", self.resolution)
         _non_negative("emission.margin", self.margin)

@@ -153,7 +153,7 @@ class ManhattanHeading:
             return
         s2, v_post = float(self.sigma[t]) ** 2, heading_std**2 + 1e-30
         rest = 1 / v_post - 1 / (s2 + f.var)  # precision of what the rest of the data says
-        if rest <= 0:
+        if rest <= 1e-6 / v_post:  # (to rounding) the wall direction said it all
             return
         seen = f.mean - float(self.direction[t])  # the heading h_t points to
         cavity = heading + float(wrap_angle(heading - seen, QUARTER)) * (1 / (s2 + f.var)) / rest

@@ -1,16 +1,15 @@
 """The geometric LiDAR read-out :class:`~pyro_slam.model.RayEmission`, its per-beam trust and
-beam-mixture weights, scan insertion and the Manhattan heading observation in SLAM."""
+beam-mixture weights, in the model and in SLAM."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import pyro
 import pytest
 import torch
+from small_slam import ray_slam
 
-from pyro_slam.geometry import wrap_angle
 from pyro_slam.inference import ParticleFilter
 from pyro_slam.metrics import localisation_error
 from pyro_slam.model import (
@@ -22,35 +21,12 @@ from pyro_slam.model import (
     RayEmission,
 )
 from pyro_slam.slam import (
-    SLAM,
     ConfigError,
     EmissionConfig,
-    FilterConfig,
-    HeadingConfig,
-    ScanInsertionConfig,
     SLAMConfig,
-    TrainingConfig,
-    TransitionConfig,
     build_model,
-    presets,
 )
-from pyro_slam.slam.insertion import FusionInserter, OccupancyInserter, make_inserter
 from simulators import simulate_traversal
-from simulators.world import LidarConfig
-
-# a small online SLAM configuration of the ray-cast emission
-SMALL = SLAMConfig(
-    emission=EmissionConfig("raycast", resolution=1 / 31, sigma=0.1, outlier_prob=0.0),
-    transition=TransitionConfig("kinematic", scale=(1.0, 1.0, 1.0)),
-    filter=FilterConfig(particles=64, proposal="transition"),
-    training=TrainingConfig(particles=8, chunk_length=4, chunks=4, every=1),
-    heading=None,
-)
-
-
-def ray_slam(tr, config: SLAMConfig = SMALL, samples: int = 24) -> SLAM:
-    """SLAM with the ray-cast emission, ``samples`` points per beam."""
-    return SLAM(tr, config, emission=RayEmission(tr.beam_angles, tr.max_range, samples))
 
 
 @pytest.fixture(scope="module")
@@ -203,172 +179,3 @@ def test_beam_mixture_weights_bound_one_wild_beam():
         DVBFLM(
             MapGrid((5, 5), 1), RayEmission([0.0], 1.0), KinematicTransition(1e-3), outlier_prob=1.0
         )
-
-
-def insertion_slam(tr, kind: str) -> SLAM:
-    """SLAM on a 1/63 grid with scan insertion of ``kind``."""
-    insert = ScanInsertionConfig(kind=kind, occupancy=2.0, scale=0.3)
-    return SLAM(tr, replace(SMALL, emission=EmissionConfig("raycast", 1 / 63, insert=insert)))
-
-
-def test_scan_insertion_fuses_scans_into_the_map(small_traversal):
-    """Fusion: a scan placed from a pose is fused into a signed distance per grid point
-    (walls from the hits of neighbouring beams, free space along the beams) and written into
-    q(M)'s mean; the map then reproduces that scan at that pose. The same scan again leaves the
-    mean as it is and shrinks the scale; a cell SVI rewrote gets the fused estimate back."""
-    tr = small_traversal
-    slam = insertion_slam(tr, "fusion")
-    inserter = slam.inserter
-    assert isinstance(inserter, FusionInserter) and not inserter.inserted.any()
-    z = torch.as_tensor(tr.poses[0], dtype=slam.obs.dtype)  # [3] the true start pose
-    valid = torch.ones_like(slam.obs[0], dtype=torch.bool)
-    inserter.insert(slam.obs[0], valid, z)
-    M = slam.map_belief().loc
-    written = inserter.inserted.clone()
-    assert int(written.sum()) > 20 and float(M.max()) <= 2.0 and float(M.min()) == -1.0
-    scale = slam.map_belief().scale[..., 0]  # [w, h]: 0.3 where written, else the prior
-    assert torch.allclose(scale[written], torch.tensor(0.3)) and scale.max() == 1.0
-    em, grid = slam.model.emission, slam.model.grid
-    hit = slam.obs[0] < em.max_range * 0.999
-    err = (em.read(grid, M, z) - slam.obs[0])[hit].abs()
-    assert err.median() < 0.005
-    with torch.no_grad():
-        inserter.loc.fill_(0.5)  # as if SVI had rewritten every cell
-    inserter.insert(slam.obs[0], valid, z)
-    belief = slam.map_belief()
-    assert torch.allclose(belief.loc[written], M[written], atol=1e-5)
-    assert torch.allclose(belief.scale[..., 0][written], torch.tensor(0.3 / 2**0.5))
-    # masked readings write nothing
-    inserter.weight.zero_()
-    inserter.insert(slam.obs[0], torch.zeros_like(valid), z)
-    assert not inserter.inserted.any()
-    with pytest.raises(ConfigError, match="emission.insert .* needs a ray-cast LiDAR emission"):
-        EmissionConfig("mlp", insert=ScanInsertionConfig())  # the MLP's map has no occupancy
-    with pytest.raises(ConfigError, match="emission.insert.scale"):
-        ScanInsertionConfig(scale=0.0)
-    with pytest.raises(ConfigError, match="emission.insert.kind must be one of"):
-        ScanInsertionConfig(kind="tsdf")
-
-
-def test_occupancy_insertion_writes_walls_once_and_free_space_a_hit_may_overwrite(
-    small_traversal,
-):
-    """Occupancy: a scan's hits, joined where neighbouring beams hit close together, are
-    written as walls from the given pose, and the grid points its beams cross short of their
-    returns as free space (free mean, insertion scale), never a wall point; the map then
-    reproduces the scan at that pose to within a grid spacing; a wall point is written only
-    once, and a later hit still writes a wall over a free point."""
-    tr = small_traversal
-    slam = insertion_slam(tr, "occupancy")
-    inserter = slam.inserter
-    assert isinstance(inserter, OccupancyInserter) and not inserter.inserted.any()
-    z = torch.as_tensor(tr.poses[0], dtype=slam.obs.dtype)
-    valid = torch.ones_like(slam.obs[0], dtype=torch.bool)
-    inserter.insert(slam.obs[0], valid, z)
-    b = slam.map_belief()
-    walls, free = inserter.inserted.clone(), inserter.freed.clone()
-    assert int(walls.sum()) > 20 and free.sum() > 3 * walls.sum() and not (walls & free).any()
-    assert torch.allclose(b.loc[walls][:, 0], torch.tensor(2.0))
-    assert torch.allclose(b.loc[free][:, 0], torch.tensor(-1.0))
-    assert torch.allclose(b.scale[walls | free][:, 0], torch.tensor(0.3))
-    em, grid = slam.model.emission, slam.model.grid
-    hit = slam.obs[0] < em.max_range * 0.999
-    err = (em.read(grid, b.loc, z) - slam.obs[0])[hit].abs()
-    assert err.median() < grid.size[0] / (grid.cells[0] - 1)  # within a grid spacing
-    # the sensor's own cell is free; the cells beyond a wall are not written
-    i, j = inserter.free_cells(slam.obs[0], valid, z)
-    assert bool(free[i, j].all())
-    with torch.no_grad():
-        inserter.loc.fill_(0.5)  # as if SVI had rewritten every cell
-    inserter.insert(slam.obs[0], valid, z)
-    assert float(slam.map_belief().loc.max()) == 0.5  # written once only
-    # a hit where an earlier scan saw free space writes the wall there: beam 0 of a scan from
-    # a pose a tenth of the range short of a free grid point, looking at it
-    k, m = map(int, torch.nonzero(free)[len(torch.nonzero(free)) // 2])
-    spacing = grid.size[0] / (grid.cells[0] - 1)
-    point = torch.tensor([grid.origin[0] + k * spacing, grid.origin[1] + m * spacing])
-    d = 0.1 * em.max_range
-    z2 = torch.cat([point - torch.tensor([d, 0.0]), -em.beam_angles[:1]])  # beam 0 along +x
-    x = torch.full_like(slam.obs[0], em.max_range)  # every other beam: no return
-    x[0] = d
-    inserter.insert(x, valid, z2)
-    assert bool(inserter.inserted[k, m]) and float(slam.map_belief().loc[k, m, 0]) == 2.0
-
-
-@pytest.mark.parametrize("kind", ["occupancy", "fusion"])
-def test_online_slam_inserts_each_scan_from_its_steps_estimate(small_traversal, kind):
-    """In the online sweep, scan ``t`` is inserted from the pose estimated at step ``t``: the
-    inserter's state is that of a replay of every scan placed at its step's estimate."""
-    tr = small_traversal
-    slam = insertion_slam(tr, kind)
-    leaves = (slam.inserter.loc.clone(), slam.inserter.raw_scale.clone(), slam.inserter.to_raw)
-    replay = make_inserter(slam.cfg.emission.insert, slam.model, leaves)
-    res = slam.run("online", progress=False)
-    est = torch.as_tensor(res["filtered_mean"], dtype=slam.obs.dtype)  # the step's own estimate
-    valid = torch.ones_like(slam.obs[0], dtype=torch.bool)
-    for t in range(est.shape[0]):
-        replay.insert(slam.obs[t], valid, est[t])
-    for key, value in replay.state_dict().items():
-        assert torch.allclose(slam.inserter.state_dict()[key].double(), value.double())
-        assert torch.equal(slam.state_dict()["inserter"][key], slam.inserter.state_dict()[key])
-    assert replay.inserted.any()
-
-
-def test_heading_observation_pins_the_heading_to_the_walls(small_traversal):
-    """The Manhattan heading observation (``heading``): in the simulator's maze (walls along the
-    axes) each scan gives the heading modulo pi / 2 exactly, and the filter samples the heading
-    conditioned on it, so the online estimate's heading stays within a few milliradians of the
-    truth where the same run without it drifts by several times more."""
-    tr = small_traversal
-    insert = ScanInsertionConfig(occupancy=2.0, scale=0.3)
-    base = replace(SMALL, emission=replace(SMALL.emission, insert=insert))
-    err = {}
-    for heading in (None, HeadingConfig(sigma=1e-3)):
-        slam = ray_slam(tr, replace(base, heading=heading))
-        assert (slam.heading is None) == (heading is None)
-        res = slam.run("online", progress=False)
-        d = torch.as_tensor(res["mean"][:, 2] - tr.poses[:, 2])
-        err[heading] = float(wrap_angle(d).abs().max())
-    assert err[HeadingConfig(sigma=1e-3)] < 0.005  # measured 0.0005
-    assert err[None] > 10 * err[HeadingConfig(sigma=1e-3)]  # measured 0.055
-    with pytest.raises(ConfigError, match="heading.sigma must be a positive number"):
-        HeadingConfig(sigma=0.0)
-    with pytest.raises(ConfigError, match="heading.support must be an integer >= 2"):
-        HeadingConfig(support=1)
-
-
-def test_manhattan_frame_is_found_in_a_rotated_world_with_a_noisy_lidar():
-    """The walls' frame is estimated, not assumed: in mazes turned by 0.3 rad that the filter is
-    not told, with range noise of 0.5 % of the maximum range plus 1 % short returns and 1 %
-    dropouts, the frame from the first scans is within 1e-2 rad (modulo a quarter turn) in
-    each of four mazes, within 1e-3 noise-free; the fitted noise is of the simulated one's
-    order, and only then does the observation get an outlier component; a frame refined with
-    exact headings converges to the truth; and where no scan has
-    enough agreeing segments the observation is off (nan) and no frame is claimed."""
-    cfg = presets.get("manhattan").config
-    q = math.pi / 2
-    for noise in (0.0, 0.005):
-        lidar = LidarConfig(range_noise=noise, short_prob=0.01, dropout_prob=0.01)
-        errs = []
-        for seed in range(1, 5):
-            tr = simulate_traversal(
-                "moderate-medium", steps=200, seed=seed, lidar=lidar, rotation=0.3
-            )
-            heading = SLAM(tr, cfg).heading
-            errs.append(abs((heading.frame.mean - 0.3 + q / 2) % q - q / 2))
-        # measured noise-free <= 2e-4; noisy 0.0047, 0.0005, 0.0009, 0.0026
-        assert max(errs) < (1e-3 if noise == 0 else 1e-2)
-        if noise:
-            assert 0.3 < heading.noise / (noise * tr.max_range) < 1.5  # measured 0.9
-        # noisy ranges: a segment may be a false wall, so the observation gets the filter's
-        # outlier component; a noise-free sensor's (short returns aside) is Gaussian
-        assert heading.outlier_prob == (cfg.emission.outlier_prob if noise else 0.0)
-        assert heading.factor().outlier_prob == heading.outlier_prob
-    ok = torch.nonzero(heading.ok).flatten()
-    true = torch.as_tensor(tr.poses[:, 2])
-    for t in ok[:100].tolist():  # refining with the true headings
-        heading.refine(t, float(true[t]), 1e-3)
-    assert abs((heading.frame.mean - 0.3 + q / 2) % q - q / 2) < 5e-3
-    strict = SLAM(tr, replace(cfg, heading=HeadingConfig(support=21))).heading  # > 20 beams
-    assert not bool(strict.ok.any()) and math.isnan(strict.frame.mean)
-    assert bool(strict.evidence().direction.isnan().all())
