@@ -465,12 +465,21 @@ def _mapping_model(traversal, poses, emission_steps, n_world, seed, progress, pr
 
 
 def run_env(
-    maze, traversal, config: SLAMConfig, map_loc, map_scale, poses, hit_margin: float = 0.02
+    maze,
+    traversal,
+    config: SLAMConfig,
+    map_loc,
+    map_scale,
+    poses,
+    hit_margin: float = 0.02,
+    prior=None,
+    noise=None,
 ) -> LearnedEnv:
     """A :class:`LearnedEnv` in the map a SLAM run left: its ``q(M)`` (``map_loc``,
     ``map_scale [w, h, D_m]``, e.g. a run folder's ``posterior.npz``) under the model its
-    ``config`` builds over ``traversal`` (the ray-cast emission, or the shipped emission MLP),
-    keeping ``hit_margin`` from the scans placed at the run's pose means ``poses [T, 3]``.
+    ``config`` builds over ``traversal`` (the ray-cast emission, or the shipped emission MLP)
+    with the run's map ``prior`` and emission ``noise`` (the defaults where None), keeping
+    ``hit_margin`` from the scans placed at the run's pose means ``poses [T, 3]``.
     ``ValueError`` for a map this model cannot read."""
     tr = prepare_traversal(traversal, config)
     kind = emission_kind(config.emission.kind)
@@ -480,7 +489,7 @@ def run_env(
             f"the run's emission.kind {kind.name!r} cannot be rebuilt for planning (a LiDAR "
             "emission without learned parameters, or with shipped ones, can)"
         )
-    model, _ = build_model(tr, config, emission=emission)
+    model, _ = build_model(tr, config, emission=emission, prior=prior, noise=noise)
     loc, scale = (torch.as_tensor(np.asarray(a), dtype=torch.float32) for a in (map_loc, map_scale))
     if tuple(loc.shape) != tuple(model.grid.shape) or loc.shape != scale.shape:
         raise ValueError(

@@ -37,7 +37,7 @@ from pyro_slam.model import (
     RayEmission,
     WrappedMixture,
 )
-from pyro_slam.model.guide import autoguide, map_param_leaves
+from pyro_slam.model.guide import MapLeaves, autoguide
 from pyro_slam.planning import LearnedEnv, learned_env, plan
 from pyro_slam.planning.exploration import ExploreConfig, Mapper, mutual_information
 from pyro_slam.slam import SLAM, fit_map, presets, with_overrides
@@ -465,9 +465,9 @@ def test_swaps_reach_navigation_and_mi():
     m = Mapper(grid, beams, 0.53, cfg, prior=wide)
     assert m.infogain() == pytest.approx(0.0, abs=1e-6)
     with m.scope():
-        _, raw_scale, to_raw = map_param_leaves(m.guide, grid.shape)
+        leaves = MapLeaves.of(m.guide, grid.shape)
     with torch.no_grad():
-        raw_scale.fill_(float(to_raw(torch.tensor(1.0))))
+        leaves.raw.fill_(float(leaves.transform.inv(torch.tensor(1.0))))
     per_entry = math.log(2.0) + 1 / 8 - 1 / 2
     assert m.infogain() == pytest.approx(per_entry * grid.cells[0] * grid.cells[1] * 10, rel=1e-4)
 

@@ -10,7 +10,7 @@ import torch
 from scipy.stats import ortho_group
 
 from pyro_slam.model import MapGrid
-from pyro_slam.model.guide import map_param_leaves
+from pyro_slam.model.guide import MapLeaves
 from pyro_slam.planning.exploration import (
     ExploreConfig,
     KnownObstacles,
@@ -50,11 +50,11 @@ def _half_explored_mapper(cfg):
     beams = 2 * np.pi * np.arange(20) / 20
     mapper = Mapper(grid, beams, 0.53, cfg)
     with mapper.scope():  # q(M)'s leaves in the mapper's parameter store
-        loc, raw_scale, to_raw = map_param_leaves(mapper.guide, grid.shape)
+        leaves = MapLeaves.of(mapper.guide, grid.shape)
     gen = torch.Generator().manual_seed(0)
     with torch.no_grad():
-        loc.copy_(torch.randn(loc.shape, generator=gen))
-        raw_scale[:4] = to_raw(torch.tensor(0.02))
+        leaves.loc.copy_(torch.randn(leaves.loc.shape, generator=gen))
+        leaves.raw[:4] = leaves.transform.inv(torch.tensor(0.02))
     assert torch.allclose(mapper.marginals()[1][:4], torch.tensor(0.02))
     return mapper
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import numpy as np
 import pyro.distributions as dist
 import pytest
 import torch
@@ -14,10 +15,12 @@ from pyro.infer.autoguide import AutoDelta, AutoLowRankMultivariateNormal
 from small_slam import SMALL
 
 from pyro_slam.model import autoguide, map_marginals
+from pyro_slam.planning.envs import run_env
 from pyro_slam.slam import SLAM, ConfigError, EmissionConfig, ScanInsertionConfig
 from pyro_slam.slam.insertion import FusionInserter, OccupancyInserter, make_inserter
 from pyro_slam.slam.loop import world_std
 from simulators import simulate_traversal
+from simulators.maze import make_maze
 
 INSERT = ScanInsertionConfig()
 WALL, FREE, NOISE = INSERT.occupancy, -INSERT.occupancy / 2, INSERT.noise
@@ -225,3 +228,37 @@ def test_online_slam_inserts_each_scan_from_its_steps_estimate(small_traversal, 
         assert torch.equal(slam.state_dict()["inserter"][key], slam.inserter.state_dict()[key])
     assert torch.allclose(slam.inserter.placement, replay.placement)
     assert replay.inserted.any()
+
+
+@pytest.mark.slow
+def test_prior_swap_reaches_map_and_planner():
+    """A map prior N(0, 2^2) instead of N(0, 1), through the default preset's online SLAM: the
+    inserted walls' belief moves towards the inverse sensor model's reading (a higher mean
+    wall logit, as the wider prior weighs less against the same readings), and the planner,
+    which counts a place as explored by its std relative to the prior's, finds the walls better
+    known; each by more than the spread between two seeds of the same prior."""
+    maze = make_maze("moderate-medium", 1)
+    tr = simulate_traversal(maze, steps=300, seed=1)
+    wide = dist.Normal(torch.zeros(1), 2.0 * torch.ones(1)).to_event(1)
+    wall_mean, explored = {}, {}
+    for name, prior in (("std", None), ("wide", wide)):
+        for seed in (0, 1):
+            slam = SLAM(tr, "manhattan", seed=seed, prior=prior)
+            r = slam.run("online", progress=False)
+            walls = slam.inserter.walls
+            wall_mean[name, seed] = float(torch.as_tensor(r["map_loc"])[walls].mean())
+            env = run_env(maze, tr, slam.cfg, r["map_loc"], r["map_scale"], r["mean"], prior=prior)
+            i, j = torch.nonzero(walls).T
+            g = slam.model.grid
+            xy = np.stack(
+                [
+                    g.origin[0] + i * g.size[0] / (g.cells[0] - 1),
+                    g.origin[1] + j * g.size[1] / (g.cells[1] - 1),
+                ],
+                -1,
+            )
+            explored[name, seed] = float(env.std(xy).mean())  # relative std at the walls
+    for d, sign in ((wall_mean, 1), (explored, -1)):
+        spread = max(abs(d["std", 0] - d["std", 1]), abs(d["wide", 0] - d["wide", 1]))
+        moved = min(sign * (d["wide", s] - d["std", s]) for s in (0, 1))
+        assert moved > spread, (d, moved, spread)
