@@ -48,12 +48,12 @@ def test_sha256_of_a_file_and_of_a_folder_in_sorted_order(tmp_path):
     f.write_bytes(b"FLASER 1 2 3\n")
     assert runtime.sha256(f) == hashlib.sha256(b"FLASER 1 2 3\n").hexdigest()
     bag = tmp_path / "bag"
-    (bag / "sub").mkdir(parents=True)
-    (bag / "sub" / "b.db3").write_bytes(b"b")  # written before a.yaml: the order is the name's
-    (bag / "metadata.yaml").write_bytes(b"a")
+    files = {"metadata.yaml": b"m", "sub/b.db3": b"b", "a_0.db3": b"a", "z.db3": b"z"}
+    for name in ("z.db3", "sub/b.db3", "metadata.yaml", "a_0.db3"):  # not in sorted order
+        (bag / name).parent.mkdir(parents=True, exist_ok=True)
+        (bag / name).write_bytes(files[name])
     lines = "".join(
-        f"{hashlib.sha256(data).hexdigest()}  {name}\n"
-        for name, data in (("metadata.yaml", b"a"), ("sub/b.db3", b"b"))
+        f"{hashlib.sha256(files[name]).hexdigest()}  {name}\n" for name in sorted(files)
     )
     digest = runtime.sha256(bag)
     assert digest == hashlib.sha256(lines.encode()).hexdigest()
