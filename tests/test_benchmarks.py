@@ -892,6 +892,12 @@ def test_real_data_runs_the_real_preset_on_both_logs(tmp_path):
     )
     assert out["csail_scan_consistency_worst_m"] >= out["csail_scan_consistency_mean_m"]
     assert offline["worst"]["by"] == "relation_error.trans_mean"
+    # the benchmark's scan consistency is the one pyro-slam slam writes for the same run
+    for seed in (0, 1):
+        row = json.loads((tmp_path / "runs" / f"mit-csail_online_seed{seed}.json").read_text())
+        run_dir = tmp_path / f"mit-csail_dvbf_seed{seed}"
+        written = json.loads((run_dir / "metrics.json").read_text())["scan_consistency"]["slam"]
+        assert row["scan_consistency"] == written and written["beam_stride"] == 2
     # each (log, mode, seed) run is kept: a run with a third seed runs that seed alone
     kept = tmp_path / "runs" / "intel_offline_seed0.json"
     stamp = kept.stat().st_mtime_ns
