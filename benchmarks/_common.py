@@ -11,6 +11,7 @@ from pathlib import Path
 import torch
 
 from pyro_slam.inference import ParticleFilter
+from pyro_slam.runtime import DEFAULT_THREADS
 from pyro_slam.slam import ConfigError, build_model, presets
 from simulators import simulate_traversal
 
@@ -53,6 +54,28 @@ def add_config_args(p: argparse.ArgumentParser, default: str, prefix: str = "") 
         metavar="JSON",
         help="nested overrides of the preset's configuration, e.g. "
         '\'{"filter": {"particles": 512}, "transition": {"kind": "kinematic"}}\'',
+    )
+
+
+def add_threads_arg(p: argparse.ArgumentParser, default: int = DEFAULT_THREADS) -> None:
+    """``--threads N``: torch intra-op threads of the benchmark's runs, a stated number that
+    its results depend on (never read from the machine's load; :mod:`pyro_slam.runtime`)."""
+
+    def positive(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            n = 0
+        if n < 1:
+            raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+        return n
+
+    p.add_argument(
+        "--threads",
+        type=positive,
+        default=default,
+        metavar="N",
+        help=f"torch intra-op threads (default {default})",
     )
 
 

@@ -58,7 +58,7 @@ def traversal(steps: int):
 def time_run(tr, config, mode: str, smc: bool = False) -> tuple[float, float]:
     """Wall seconds of one SLAM run (no progress bar, seed 1) and its final position error;
     ``smc``: Pyro's ``SMCFilter`` as the online filter."""
-    slam = SLAM(tr, config, seed=1, smc=smc)
+    slam = SLAM(tr, config, seed=1, smc=smc, threads=torch.get_num_threads())
     t0 = time.perf_counter()
     res = slam.run(mode, progress=False)
     wall = time.perf_counter() - t0
@@ -68,7 +68,7 @@ def time_run(tr, config, mode: str, smc: bool = False) -> tuple[float, float]:
 def breakdown(tr, config, steps: int) -> dict:
     """Fractions of the online loop's time in the filter, SVI, scan insertion and the rest,
     from a cProfile of its first ``steps`` steps."""
-    slam = SLAM(tr.slice(0, steps), config, seed=1)
+    slam = SLAM(tr.slice(0, steps), config, seed=1, threads=torch.get_num_threads())
     prof = cProfile.Profile()
     prof.enable()
     slam.run("online", progress=False)
@@ -87,7 +87,7 @@ def time_commit(
     rev: str, tr_path: Path, config: str, transition: str | None, mode: str, threads: int
 ) -> float:
     """Wall seconds of ``pyro-slam slam`` at commit ``rev`` (a temporary worktree) on the saved
-    traversal, from its ``metrics.json``."""
+    traversal, from its ``timing.json`` (older commits: ``metrics.json``)."""
     with tempfile.TemporaryDirectory() as tmp:
         tree = Path(tmp) / "tree"
         subprocess.run(
@@ -114,11 +114,15 @@ def time_commit(
             ]
             if transition:
                 argv += ["--transition", str(tree / transition)]
+            if '"--threads"' in (tree / "pyro_slam" / "cli.py").read_text():
+                argv += ["--threads", str(threads)]
             env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": str(threads)}
             run = subprocess.run(argv, cwd=tree, env=env, capture_output=True, text=True)
             if run.returncode:
                 raise RuntimeError(f"{rev}: pyro-slam slam failed: {run.stderr.strip()[-500:]}")
-            return float(json.loads((out / "metrics.json").read_text())["wall_time_s"])
+            timing = out / "timing.json"  # (older commits: in metrics.json)
+            timing = timing if timing.is_file() else out / "metrics.json"
+            return float(json.loads(timing.read_text())["wall_time_s"])
         finally:
             subprocess.run(
                 ["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], check=False

@@ -189,7 +189,9 @@ def run_one(
     tr = _traversal(maze_seed, seed, steps, odometry_scale, per_maze_noise=per_maze_noise)
     emission = copy.deepcopy(emission)  # fine-tuning must not leak from one maze to the next
     t0 = time.perf_counter()
-    slam = SLAM(tr, cfg, emission=emission, seed=0)  # the pretrained emission stays frozen
+    slam = SLAM(
+        tr, cfg, emission=emission, seed=0, threads=threads
+    )  # the pretrained emission stays frozen
     pi = path_integration(tr, slam.model.transition)
     if map_poses != "filter":  # diagnostic: the map is learned at these poses, see --map-poses
         pin_cache(slam, tr.poses if map_poses == "true" else pi, seed=seed)

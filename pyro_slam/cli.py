@@ -48,7 +48,7 @@ from .planning import (
 )
 from .planning.inverse import fit_inverse
 from .plotting import plot_navigation
-from .runtime import package_version
+from .runtime import DEFAULT_THREADS, package_version
 from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets
 from .slam.build import check_hits, prepare_traversal
 from .slam.components import emission_kind
@@ -157,8 +157,8 @@ def _print_report(report: dict, out: Path) -> None:
             line += f" | scan consistency undefined: {c['slam']['reason']}"
         else:
             line += (
-                f" | scan consistency SLAM {c['slam']['mean']:.3f} vs path integration "
-                f"{c['path_integration']['mean']:.3f}"
+                f" | scan consistency (beam stride {c['slam']['beam_stride']}) SLAM "
+                f"{c['slam']['mean']:.3f} vs path integration {c['path_integration']['mean']:.3f}"
             )
     print(line + f" -> {out}/ (metrics.json, slam.png, map.png / error.png, checkpoint.pt)")
 
@@ -241,6 +241,8 @@ def cmd_slam(args) -> int:
         overwrite=args.overwrite,
         source=source,
         checkpoint_every=args.checkpoint_every,
+        threads=args.threads,
+        argv=args.argv,
     )
     _print_report(report, args.out)
     return 0
@@ -330,6 +332,8 @@ def cmd_demo(args) -> int:
         inputs=inputs,
         source=str((out / "traversal.npz").resolve()),
         checkpoint_every=args.checkpoint_every,
+        threads=args.threads,
+        argv=args.argv,
     )
     _print_report(report, out)
     return 0
@@ -546,6 +550,14 @@ def _add_run_options(p, out: str, what: str) -> None:
         default=1000,
         metavar="N",
         help="write OUT/checkpoint.pt every N steps (and at the end)",
+    )
+    p.add_argument(
+        "--threads",
+        type=POSITIVE,
+        default=DEFAULT_THREADS,
+        metavar="N",
+        help="torch intra-op threads (the results depend on N, never on the machine's load; "
+        "recorded in metrics.json)",
     )
 
 
@@ -768,6 +780,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = ["pyro-slam", *(sys.argv[1:] if argv is None else argv)]  # for metrics.json
     try:
         return args.func(args)
     except (DatasetError, FileNotFoundError, ValueError, MissingExtra) as e:

@@ -275,3 +275,31 @@ def scan_consistency(
     out.update(mean=float(dist.mean()), median=float(np.median(dist)))
     out["frac_within_0.1"] = float((dist < 0.1).mean())
     return out
+
+
+# the scans on which a real log's scan consistency is quoted (pyro-slam slam's metrics.json,
+# benchmarks.real_data, the docs), whatever beam stride and range clip SLAM itself ran with
+SCAN_CONSISTENCY_BEAM_STRIDE = 2  # every 2nd beam
+SCAN_CONSISTENCY_RANGE_QUANTILE = 99.0  # readings below this percentile of the valid ranges
+
+
+def consistency_scans(traversal: Traversal) -> Traversal:
+    """The scans of a real log that :func:`log_scan_consistency` scores: every
+    :data:`SCAN_CONSISTENCY_BEAM_STRIDE`-th beam, readings clipped at the
+    :data:`SCAN_CONSISTENCY_RANGE_QUANTILE` percentile of the log's valid ranges (rounded to
+    0.01, as the ``real`` preset clips them), so that clipped readings are not endpoints."""
+    valid = traversal.valid_ranges()
+    tr = traversal.subsample_beams(SCAN_CONSISTENCY_BEAM_STRIDE)
+    if valid.size:
+        tr = tr.clip_ranges(round(float(np.percentile(valid, SCAN_CONSISTENCY_RANGE_QUANTILE)), 2))
+    return tr
+
+
+def log_scan_consistency(traversal: Traversal, poses: np.ndarray, scans=None) -> dict:
+    """The scan consistency quoted for a real log: :func:`scan_consistency` of ``poses [T, 3]``
+    on :func:`consistency_scans` of the raw ``traversal`` (``scans``: those, if already made),
+    with the ``beam_stride`` and ``range_clip`` it used."""
+    scans = consistency_scans(traversal) if scans is None else scans
+    out = scan_consistency(scans, poses)
+    clip = scans.metadata.get("range_clip")
+    return {**out, "beam_stride": SCAN_CONSISTENCY_BEAM_STRIDE, "range_clip": clip}

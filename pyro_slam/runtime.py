@@ -1,20 +1,28 @@
-"""The runtime: the installed package's version, and how many CPU threads torch uses for SLAM:
-as many as the machine has idle cores.
+"""The runtime: the installed package's version, how many CPU threads torch uses for SLAM, and
+the provenance a run records (versions, command line, thread count, the input's digest).
 
-Intra-op threads that spin-wait against another busy process on the same cores slow a run down
-by an order of magnitude; with one thread per idle core (at least one) a run degrades
-gracefully under load. ``OMP_WAIT_POLICY=PASSIVE`` (set when :mod:`pyro_slam` is imported
+The thread count is a stated number, never read from the machine: :data:`DEFAULT_THREADS`
+unless a caller (``pyro-slam slam --threads N``, a benchmark's ``--threads``) says otherwise.
+A run's results depend on it (the order of floating-point reductions differs between thread
+counts), so the same command with the same seed and thread count gives the same outputs
+however busy the machine is. ``OMP_WAIT_POLICY=PASSIVE`` (set when :mod:`pyro_slam` is imported
 before torch, unless the environment says otherwise) makes waiting threads sleep instead of
-spin.
+spin, so that several threads on a loaded machine do not slow each other down by spinning.
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
+import hashlib
 from importlib import metadata
+from pathlib import Path
 
+import numpy as np
+import pyro
 import torch
+
+DEFAULT_THREADS = 1  # torch intra-op threads of a run that names no count
+CHUNK = 1 << 20  # bytes read at a time when hashing
 
 
 def package_version() -> str:
@@ -26,23 +34,60 @@ def package_version() -> str:
         return "unknown"
 
 
-def idle_cores() -> int:
-    """The machine's cores minus its 1-minute load average (at least 1)."""
-    cores = os.cpu_count() or 1
-    try:
-        load = os.getloadavg()[0]
-    except OSError:  # (not available on every platform)
-        load = 0.0
-    return max(1, min(cores, int(cores - load + 0.5)))
+def thread_count(n: int | None = None) -> int:
+    """The torch intra-op thread count a run uses: ``n``, or :data:`DEFAULT_THREADS` for None
+    (a positive integer; anything else is a :class:`ValueError`)."""
+    n = DEFAULT_THREADS if n is None else n
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"threads must be a positive integer, got {n!r}")
+    return n
 
 
 @contextlib.contextmanager
 def torch_threads(n: int | None = None):
-    """Run the block with ``n`` torch intra-op threads (None: the current count, but at most
-    :func:`idle_cores`), then restore the previous count."""
+    """Run the block with :func:`thread_count` ``(n)`` torch intra-op threads, then restore
+    the previous count. Yields the count."""
     before = torch.get_num_threads()
-    torch.set_num_threads(min(before, idle_cores()) if n is None else max(1, int(n)))
+    torch.set_num_threads(thread_count(n))
     try:
         yield torch.get_num_threads()
     finally:
         torch.set_num_threads(before)
+
+
+def _file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(CHUNK):
+            h.update(block)
+    return h.hexdigest()
+
+
+def sha256(path: str | Path) -> str:
+    """The SHA-256 (hex) of a file's bytes; of a folder (a ROS 2 bag), the SHA-256 of the lines
+    ``"<sha256 of the file>  <path relative to the folder>\\n"`` of every file in it, in sorted
+    order of the relative paths (what ``sha256sum`` prints for each, sorted)."""
+    path = Path(path)
+    if not path.is_dir():
+        return _file_sha256(path)
+    files = sorted(p.relative_to(path).as_posix() for p in path.rglob("*") if p.is_file())
+    lines = "".join(f"{_file_sha256(path / rel)}  {rel}\n" for rel in files)
+    return hashlib.sha256(lines.encode()).hexdigest()
+
+
+def provenance(threads: int, argv: list[str] | None = None, source=None) -> dict:
+    """What a run's ``metrics.json`` records of how it was made: the thread count, the versions
+    of ``pyro_slam``, torch, Pyro and numpy, the command line ``argv`` (None: not given) and the
+    input ``source``'s :func:`sha256` (None without an input file)."""
+    digest = None
+    if source is not None and Path(source).exists():
+        digest = sha256(source)
+    return {
+        "threads": threads,
+        "version": package_version(),
+        "torch": torch.__version__,
+        "pyro": pyro.__version__,
+        "numpy": np.__version__,
+        "argv": None if argv is None else [str(a) for a in argv],
+        "sha256": digest,
+    }

@@ -809,6 +809,44 @@ def test_pfnet_table_smoke_prints_the_rmse_table_as_json(tmp_path):
     assert all(math.isfinite(v) and v > 0 for v in rm.values())
 
 
+def test_real_data_rows_over_seeds_are_means_with_std_and_the_worst_seed():
+    from benchmarks.real_data import over_seeds, seed_table
+
+    def row(sc, path, reason=None):
+        c = {"mean": sc, "points": 100, "cap": 1.0} | ({"reason": reason} if reason else {})
+        return {"scan_consistency": c, "path_length_m": path, "seconds_per_scan": 0.5}
+
+    runs = {0: row(0.04, 10.0), 1: row(0.08, 12.0), 2: row(0.06, 14.0)}
+    out = over_seeds(runs, ("scan_consistency", "mean"))
+    assert out["scan_consistency"]["mean"] == pytest.approx(0.06)  # the rows' keys, as means
+    assert out["path_length_m"] == pytest.approx(12.0)
+    assert out["scan_consistency"]["points"] == 100 and out["scan_consistency"]["cap"] == 1.0
+    assert isinstance(out["scan_consistency"]["points"], int)  # a shared count stays a count
+    assert out["std"]["path_length_m"] == pytest.approx(2.0)  # sample std
+    assert out["std"]["scan_consistency"]["mean"] == pytest.approx(0.02)
+    assert out["worst"]["seed"] == 1 and out["worst"]["value"] == 0.08
+    assert out["worst"]["by"] == "scan_consistency.mean"
+    assert out["worst"]["per_seed"] == {"0": 0.04, "1": 0.08, "2": 0.06}
+    assert out["seeds"] == [0, 1, 2]
+    one = over_seeds({3: row(0.05, 9.0)}, ("scan_consistency", "mean"))
+    assert one["path_length_m"] == 9.0 and one["std"]["path_length_m"] == 0.0
+    assert one["worst"]["seed"] == 3
+    # a figure undefined in one run (a short log) is undefined over the seeds
+    short = over_seeds({0: row(0.05, 9.0), 1: row(None, 9.0, "too short")}, ("x",))
+    assert short["scan_consistency"]["mean"] is None and short["scan_consistency"]["reason"] is None
+    assert short["worst"] == {
+        "seed": None,
+        "by": "x",
+        "value": None,
+        "per_seed": {"0": None, "1": None},
+    }
+    table = seed_table({"mit-csail": {"DVBF-LM": out}, "intel": {}})
+    assert table == [
+        "mit-csail DVBF-LM, 3 seeds: scan consistency 0.06 ± 0.02 m, path 12 ± 2 m, "
+        "s/scan 0.5 ± 0; worst scan_consistency.mean 0.08 (seed 1)"
+    ]
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(
     not (REPO.parent / "shared" / "data" / "intel.gfs.log").is_file(),
@@ -816,7 +854,8 @@ def test_pfnet_table_smoke_prints_the_rmse_table_as_json(tmp_path):
 )
 def test_real_data_runs_the_real_preset_on_both_logs(tmp_path):
     args = ("--steps", "30", "--no-mrpt", "--img", str(tmp_path / "img"), "--out", str(tmp_path))
-    out = last_json(run("real_data", *args, "--config", '{"offline": {"svi_steps": 5}}'))
+    fast = ("--config", '{"offline": {"svi_steps": 5}}')
+    out = last_json(run("real_data", *args, *fast, "--seeds", "2"))
     assert out == json.loads((tmp_path / "real_data.json").read_text())
     assert out["preset"] == "real" and out["steps"] == 30
     # the preset is adapted per log: every k-th beam of the 361 (CARMEN) and 180 (Intel)
@@ -845,6 +884,39 @@ def test_real_data_runs_the_real_preset_on_both_logs(tmp_path):
     assert "DVBF-LM offline" not in csail
     per_scan = [out[log]["DVBF-LM"]["seconds_per_scan"] for log in ("intel", "mit-csail")]
     assert min(per_scan) <= out["ms_per_scan"] / 1000 <= max(per_scan)
+    # every DVBF-LM row over seeds 0 and 1: means, their spread and the worst seed
+    assert out["seeds"] == 2 and csail["DVBF-LM"]["seeds"] == offline["seeds"] == [0, 1]
+    worst = csail["DVBF-LM"]["worst"]
+    assert (
+        out["csail_scan_consistency_worst_m"] == worst["value"] == max(worst["per_seed"].values())
+    )
+    assert out["csail_scan_consistency_worst_m"] >= out["csail_scan_consistency_mean_m"]
+    assert offline["worst"]["by"] == "relation_error.trans_mean"
+    # the benchmark's scan consistency is the one pyro-slam slam writes for the same run
+    for seed in (0, 1):
+        row = json.loads((tmp_path / "runs" / f"mit-csail_online_seed{seed}.json").read_text())
+        run_dir = tmp_path / f"mit-csail_dvbf_seed{seed}"
+        written = json.loads((run_dir / "metrics.json").read_text())["scan_consistency"]["slam"]
+        assert row["scan_consistency"] == written and written["beam_stride"] == 2
+    # each (log, mode, seed) run is kept: a run with a third seed runs that seed alone
+    kept = tmp_path / "runs" / "intel_offline_seed0.json"
+    stamp = kept.stat().st_mtime_ns
+    more = last_json(run("real_data", *args, *fast, "--seeds", "3"))
+    assert (
+        kept.stat().st_mtime_ns == stamp
+        and (tmp_path / "runs" / "intel_offline_seed2.json").is_file()
+    )
+    assert more["seeds"] == 3 and more["intel"]["DVBF-LM"]["worst"]["per_seed"].keys() == {
+        "0",
+        "1",
+        "2",
+    }
+    assert (
+        more["intel"]["DVBF-LM"]["worst"]["per_seed"]["1"]
+        == intel["DVBF-LM"]["worst"]["per_seed"]["1"]
+    )
+    other = bench("real_data", *args, "--seeds", "2", timeout=60)  # another configuration
+    assert other.returncode == 1 and "another configuration" in other.stderr
     err = bench("real_data", *args, "--config", '{"filter": {"proposal": "best"}}', timeout=60)
     assert err.returncode == 2 and "filter.proposal must be one of" in err.stderr
 

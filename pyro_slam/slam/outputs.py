@@ -19,7 +19,7 @@ import numpy as np
 from .. import metrics, plotting
 from ..data import DatasetError, Traversal, atomic_write, one_line
 from ..io.ros_map import occupancy_grid, write_map
-from ..runtime import package_version
+from ..runtime import provenance, torch_threads
 from .build import MAX_BYTES, path_integration
 from .config import SLAMConfig
 from .runner import SLAM
@@ -39,6 +39,7 @@ OUTPUTS = (
     "trajectory_slam.tum",
     "trajectory_path_integration.tum",
     "trajectory_true.tum",
+    "timing.json",
 )
 MAP_CELL = 0.05  # the finest cell of the exported occupancy grid (metres on real logs)
 MAP_BYTES_PER_CELL = 32  # the export's working set per cell (log odds, probabilities, image)
@@ -133,15 +134,14 @@ def _json_safe(value):
     return value
 
 
-def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float, run: dict):
-    """What ``metrics.json`` holds; ``run``: ``preset``, ``seed`` and ``input`` (path)."""
+def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, run: dict):
+    """What ``metrics.json`` holds: nothing that differs between two runs of the same command
+    (the timings are in ``timing.json``); ``run``: ``preset``, ``seed``, ``input`` (path) and
+    the :func:`~pyro_slam.runtime.provenance`."""
     report = {
         "mode": mode,
         **run,
-        "version": package_version(),
         "steps": traversal.num_steps,
-        "wall_time_s": wall,
-        "seconds_per_step": wall / traversal.num_steps,
         "config": slam.cfg.to_dict(),
         "metadata": {k: traversal.metadata.get(k) for k in ("source", "seed", "maze")},
     }
@@ -154,9 +154,10 @@ def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float,
         report["slam"] = metrics.summary(res["mean"], traversal.poses)
         report["path_integration"] = metrics.summary(res["path_integration"], traversal.poses)
     if not traversal.walls.shape[0]:  # real log: how well the scans agree under each path
+        scans = metrics.consistency_scans(traversal)
         report["scan_consistency"] = {
-            "slam": metrics.scan_consistency(slam.tr, res["mean"]),
-            "path_integration": metrics.scan_consistency(slam.tr, res["path_integration"]),
+            k: metrics.log_scan_consistency(traversal, res[v], scans)
+            for k, v in (("slam", "mean"), ("path_integration", "path_integration"))
         }
     return report
 
@@ -256,36 +257,58 @@ def run_slam(
     source: str | None = None,
     checkpoint_every: int = 1000,
     inputs: dict | None = None,
+    threads: int | None = None,
+    argv: list[str] | None = None,
 ) -> dict:
     """SLAM on ``traversal`` writing plots, trajectories, metrics and a checkpoint (every
     ``checkpoint_every`` steps) into the folder ``out`` (made ready by :func:`prepare_out_dir`
     first; ``overwrite``: the previous run's outputs are replaced only once SLAM has been set
-    up, see :func:`replacing`). ``source``: the input's path, recorded in ``metrics.json``;
-    ``inputs``: files the command writes into ``out`` first, ``{name: write(path)}`` (the
-    demo's traversal). Returns the report written to ``metrics.json``."""
-    inputs = inputs or {}
-    ckpt = Path(out) / "checkpoint.pt"
-    slam = SLAM(
-        traversal, config, transition, emission, ckpt, checkpoint_every=checkpoint_every, seed=seed
-    )
-    dead_reckoning = path_integration(traversal, slam.model.transition)
-    check_map_extent(slam, dead_reckoning, source or "traversal")
-    if resume:
-        slam.resume(ckpt)
-    with replacing(out, (*inputs, *OUTPUTS), overwrite):
-        for name, write in inputs.items():
-            write(Path(out) / name)
-        t0 = time.perf_counter()
-        res = slam.run(mode, progress=progress)
-        wall = time.perf_counter() - t0
-        res["mode"] = mode
-        res["path_integration"] = dead_reckoning
-        _write_trajectories(out, traversal, res)
-        run = {"preset": preset, "seed": seed, "input": source}
-        report = _json_safe(_report(slam, traversal, res, mode, wall, run))
-        text = json.dumps(report, indent=2, default=float)
-        atomic_write(out / "metrics.json", lambda f: f.write(text.encode()))
-        _plots(out, slam, traversal, res)
-        if slam.cfg.emission.observation == "lidar":
-            _occupancy(out, slam, res, progress)
-    return report
+    up, see :func:`replacing`). ``source``: the input's path, recorded in ``metrics.json`` with
+    its SHA-256; ``inputs``: files the command writes into ``out`` first, ``{name:
+    write(path)}`` (the demo's traversal); ``threads``: torch intra-op threads for the whole
+    run (:func:`~pyro_slam.runtime.thread_count`); ``argv``: the command line recorded in
+    ``metrics.json``. Returns the report written to ``metrics.json`` together with the
+    timings written to ``timing.json`` (``wall_time_s``, ``seconds_per_step``)."""
+    with torch_threads(threads) as n:
+        slam = SLAM(
+            traversal,
+            config,
+            transition,
+            emission,
+            Path(out) / "checkpoint.pt",
+            checkpoint_every=checkpoint_every,
+            seed=seed,
+            threads=n,
+        )
+        dead_reckoning = path_integration(traversal, slam.model.transition)
+        check_map_extent(slam, dead_reckoning, source or "traversal")
+        if resume:
+            slam.resume(Path(out) / "checkpoint.pt")
+        with replacing(out, (*(inputs or {}), *OUTPUTS), overwrite):
+            run = {"preset": preset, "seed": seed, "input": source}
+            return _run_and_write(
+                slam, traversal, Path(out), mode, dead_reckoning, run, argv, inputs or {}, progress
+            )
+
+
+def _run_and_write(slam, traversal, out, mode, dead_reckoning, run, argv, inputs, progress):
+    """The body of :func:`run_slam` once SLAM is set up: write ``inputs``, run, write the
+    outputs; returns the report and the timings."""
+    for name, write in inputs.items():
+        write(out / name)
+    t0 = time.perf_counter()
+    res = slam.run(mode, progress=progress)
+    wall = time.perf_counter() - t0
+    res["mode"] = mode
+    res["path_integration"] = dead_reckoning
+    _write_trajectories(out, traversal, res)
+    run = {**run, **provenance(slam.threads, argv, run["input"])}
+    report = _json_safe(_report(slam, traversal, res, mode, run))
+    timing = {"wall_time_s": wall, "seconds_per_step": wall / traversal.num_steps}
+    for name, data in (("metrics.json", report), ("timing.json", timing)):
+        text = json.dumps(data, indent=2, default=float)
+        atomic_write(out / name, lambda f, text=text: f.write(text.encode()))
+    _plots(out, slam, traversal, res)
+    if slam.cfg.emission.observation == "lidar":
+        _occupancy(out, slam, res, progress)
+    return {**report, **timing}

@@ -22,7 +22,7 @@ from ..model import (
     map_marginals,
 )
 from ..model.guide import ParamScope
-from ..runtime import torch_threads
+from ..runtime import thread_count, torch_threads
 from . import checkpoint, loop, presets
 from .assemble import assemble
 from .build import check_size, prepare_traversal, traversal_tensors
@@ -54,9 +54,9 @@ class SLAM:
         smc: filter with Pyro's :class:`pyro.infer.SMCFilter` on the same model and proposal
             (:class:`~pyro_slam.inference.PyroSMCFilter`; slower) instead of our batched filter;
             training keeps ours.
-        threads: torch intra-op threads while running (default: torch's current count, at most
-            one per idle core, :func:`pyro_slam.runtime.idle_cores`, so that a loaded machine is
-            not oversubscribed).
+        threads: torch intra-op threads while running (default
+            :data:`pyro_slam.runtime.DEFAULT_THREADS`, never read from the machine's load: the
+            results depend on the count).
         checkpoint: path of the checkpoint written every ``checkpoint_every`` steps.
         seed: seeds Pyro and the run's own ``torch.Generator``.
 
@@ -92,7 +92,8 @@ class SLAM:
             raise ValueError(
                 f"checkpoint_every must be a positive integer, got {checkpoint_every!r}"
             )
-        self.checkpoint_every, self.seed, self.threads = checkpoint_every, seed, threads
+        self.checkpoint_every, self.seed = checkpoint_every, seed
+        self.threads = thread_count(threads)
         self.tr = prepare_traversal(traversal, self.cfg)
         check_size(self.tr, self.cfg)
         self.obs, self.ctl, self.mask, self.init_pose = traversal_tensors(self.tr)
