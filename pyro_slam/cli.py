@@ -98,9 +98,27 @@ POSITIVE = _number(int, 1)
 FINITE = _number(float, -math.inf)
 
 
+def _bag_options(args, kind: str, path: Path) -> dict:
+    """The ROS bag reader's keywords from ``--scan-topic``, ``--odom-topic``,
+    ``--laser-offset`` and ``--no-odometry``; each refused for any other input."""
+    kw = {}
+    for opt in ("scan_topic", "odom_topic", "laser_offset", "no_odometry"):
+        if getattr(args, opt, None) not in (None, False):
+            if kind != "rosbag":
+                raise DatasetError(f"{path}: --{opt.replace('_', '-')} applies to ROS bags")
+            kw[opt] = getattr(args, opt)
+    if kw.pop("no_odometry", False):
+        for opt in ("odom_topic", "laser_offset"):
+            if opt in kw:
+                raise DatasetError(f"--{opt.replace('_', '-')}: --no-odometry reads no odometry")
+        kw["odometry"] = False
+    return kw
+
+
 def _read(args) -> Traversal:
     """The input traversal. ``--lenient`` (text logs): malformed lines are skipped, and said
-    in one line on stderr; ``--scan-topic`` / ``--odom-topic``: a ROS bag's topics."""
+    in one line on stderr; ``--scan-topic`` / ``--odom-topic``: a ROS bag's topics;
+    ``--no-odometry`` / ``--laser-offset``: a ROS bag's odometry and laser mount, chosen."""
     path = Path(args.traversal)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or directory")
@@ -109,11 +127,7 @@ def _read(args) -> Traversal:
         if kind != "carmen":
             raise DatasetError(f"{path}: --lenient applies to CARMEN text logs, not this input")
         kw["lenient"] = True
-    for opt in ("scan_topic", "odom_topic"):
-        if getattr(args, opt, None) is not None:
-            if kind != "rosbag":
-                raise DatasetError(f"{path}: --{opt.replace('_', '-')} applies to ROS bags")
-            kw[opt] = getattr(args, opt)
+    kw.update(_bag_options(args, kind, path))
     tr = read_any(path, **kw)
     skipped = tr.metadata.get("skipped_lines", 0)
     if skipped:
@@ -603,6 +617,20 @@ def _add_slam(sub) -> None:
         "--odom-topic",
         help="ROS bags: the Odometry topic (default: the bag's only one; without one, "
         "odometry from /tf, odom -> the laser's base frame)",
+    )
+    s.add_argument(
+        "--no-odometry",
+        action="store_true",
+        help="ROS bags: ignore any odometry, zero controls (a bag without odometry is refused "
+        "otherwise)",
+    )
+    s.add_argument(
+        "--laser-offset",
+        type=FINITE,
+        nargs=3,
+        metavar=("X", "Y", "YAW"),
+        help="ROS bags: the laser's pose on the odometry's frame (metres, rad), instead of "
+        "/tf_static and /tf (default: from the bag's transforms; refused where they are none)",
     )
     s.set_defaults(func=cmd_slam)
 

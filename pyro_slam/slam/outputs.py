@@ -40,6 +40,8 @@ OUTPUTS = (
     "trajectory_path_integration.tum",
     "trajectory_true.tum",
 )
+# what a reader chose for its input, recorded in metrics.json (ROS bags)
+INPUT_CHOICES = ("odometry_source", "laser_offset", "laser_offset_source", "frames")
 MAP_CELL = 0.05  # the finest cell of the exported occupancy grid (metres on real logs)
 MAP_BYTES_PER_CELL = 32  # the export's working set per cell (log odds, probabilities, image)
 
@@ -145,6 +147,9 @@ def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float,
         "config": slam.cfg.to_dict(),
         "metadata": {k: traversal.metadata.get(k) for k in ("source", "seed", "maze")},
     }
+    for key in INPUT_CHOICES:  # a real log's: where odometry and the laser's mount came from
+        if key in traversal.metadata:
+            report[key] = traversal.metadata[key]
     if "skipped_lines" in traversal.metadata:  # a text log: what --lenient skipped
         report["skipped_lines"] = traversal.metadata["skipped_lines"]
         report["skip_reasons"] = traversal.metadata.get("skip_reasons", [])
