@@ -24,6 +24,12 @@ import sys
 import textwrap
 from pathlib import Path
 
+from .version import package_version, version_only
+
+if version_only(__name__):  # `pyro-slam --version`: answered before torch is imported
+    print(f"pyro-slam {package_version()}")
+    raise SystemExit(0)
+
 import numpy as np
 import torch
 
@@ -48,7 +54,6 @@ from .planning import (
 )
 from .planning.inverse import fit_inverse
 from .plotting import plot_navigation
-from .runtime import package_version
 from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets
 from .slam.build import check_hits, prepare_traversal
 from .slam.components import emission_kind

@@ -1,4 +1,4 @@
-"""The runtime: the installed package's version, and how many CPU threads torch uses for SLAM:
+"""The runtime: how many CPU threads torch uses for SLAM:
 as many as the machine has idle cores.
 
 Intra-op threads that spin-wait against another busy process on the same cores slow a run down
@@ -12,18 +12,12 @@ from __future__ import annotations
 
 import contextlib
 import os
-from importlib import metadata
 
 import torch
 
+from .version import package_version
 
-def package_version() -> str:
-    """The installed ``pyro_slam``'s version (its package metadata), ``"unknown"`` when it runs
-    from a folder that was never installed."""
-    try:
-        return metadata.version("pyro_slam")
-    except metadata.PackageNotFoundError:
-        return "unknown"
+__all__ = ["idle_cores", "package_version", "torch_threads"]
 
 
 def idle_cores() -> int:

@@ -19,7 +19,7 @@ import numpy as np
 from .. import metrics, plotting
 from ..data import DatasetError, Traversal, atomic_write, one_line
 from ..io.ros_map import occupancy_grid, write_map
-from ..runtime import package_version
+from ..version import package_version
 from .build import MAX_BYTES, path_integration
 from .config import SLAMConfig
 from .runner import SLAM

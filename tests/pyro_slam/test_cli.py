@@ -410,3 +410,28 @@ def test_every_option_has_help_and_shows_its_default(capsys):
         cli.main(["--version"])
     assert info.value.code == 0
     assert capsys.readouterr().out.strip() == f"pyro-slam {package_version()}"
+
+
+def test_version_answers_without_importing_torch():
+    """``pyro-slam --version`` (the console script and ``python -m pyro_slam.cli``) prints the
+    version before the command line's imports load torch."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    script = (
+        "import sys\nsys.argv = ['/usr/bin/pyro-slam', '--version']\n"
+        "try:\n    from pyro_slam.cli import main\nexcept SystemExit as e:\n"
+        "    print('exit', e.code, 'torch' in sys.modules)\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", script], env=env, cwd=REPO, capture_output=True, text=True
+    )
+    assert run.stdout.split("\n")[:2] == [f"pyro-slam {package_version()}", "exit 0 False"]
+    run = subprocess.run(
+        [sys.executable, "-X", "importtime", "-m", "pyro_slam.cli", "--version"],
+        env=env,
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 0 and run.stdout.strip() == f"pyro-slam {package_version()}"
+    imported = [line.rsplit("|", 1)[-1].strip() for line in run.stderr.splitlines()]
+    assert "pyro_slam.version" in imported and "torch" not in imported
