@@ -168,8 +168,12 @@ def _print_report(report: dict, out: Path) -> None:
         line += (
             f" | final error SLAM {s['final_error']:.4f} vs path integration {p['final_error']:.4f}"
         )
-        if "ate" in s:  # (evo, the [eval] extra)
-            line += f" | ATE rmse {s['ate']['rmse']:.4f} vs {p['ate']['rmse']:.4f}"
+        if "ate_aligned" in s:  # (evo, the [eval] extra)
+            line += (
+                f" | ATE rmse unaligned {s['ate_unaligned']['rmse']:.4f} vs "
+                f"{p['ate_unaligned']['rmse']:.4f}, aligned {s['ate_aligned']['rmse']:.4f} vs "
+                f"{p['ate_aligned']['rmse']:.4f}"
+            )
     if "scan_consistency" in report:
         c = report["scan_consistency"]
         if c["slam"]["mean"] is None:
