@@ -148,16 +148,21 @@ def _read(args) -> Traversal:
 def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
     """The preset named by ``--preset`` (default: ``real`` for a real log, else the default
     preset) for this traversal, with the ``--config`` JSON overrides (a string or a file):
-    :func:`pyro_slam.slam.presets.configure`, as the benchmarks choose theirs."""
+    :func:`pyro_slam.slam.presets.configure`, as the benchmarks choose theirs. An option that
+    the chosen preset does not use (``--odometry-noise`` outside the real-log presets) is
+    refused."""
+    noise = getattr(args, "odometry_noise", None)
     try:
-        return presets.configure(
-            args.preset,
-            traversal,
-            args.config or None,
-            getattr(args, "odometry_noise", None),
-        )
+        name, config = presets.configure(args.preset, traversal, args.config or None, noise)
     except ConfigError as e:
         raise DatasetError(f"--config: {e}") from None
+    if noise is not None and presets.get(name).adapt is not presets.adapt_real_log:
+        real = [p.name for p in presets.PRESETS.values() if p.adapt is presets.adapt_real_log]
+        raise DatasetError(
+            f"--odometry-noise: applies to the real-log preset{'s' * (len(real) > 1)} "
+            f"{', '.join(map(repr, real))}, not to the preset {name!r} chosen here"
+        )
+    return name, config
 
 
 def _print_report(report: dict, out: Path) -> None:
@@ -616,7 +621,8 @@ def _add_slam(sub) -> None:
     s.add_argument(
         "--odometry-noise",
         type=_number(float, 0.0, inclusive=False),
-        help="real logs: transition std as this fraction of the RMS odometry step (default 0.1)",
+        help="the real preset: transition std as this fraction of the RMS odometry step "
+        "(default 0.1; refused with another preset)",
     )
     s.add_argument(
         "--scan-topic",

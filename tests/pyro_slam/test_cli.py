@@ -435,3 +435,16 @@ def test_version_answers_without_importing_torch():
     assert run.returncode == 0 and run.stdout.strip() == f"pyro-slam {package_version()}"
     imported = [line.rsplit("|", 1)[-1].strip() for line in run.stderr.splitlines()]
     assert "pyro_slam.version" in imported and "torch" not in imported
+
+
+def test_option_not_applying_to_preset_is_refused(traversal, tmp_path, capsys):
+    """``--odometry-noise`` adapts the real-log preset; with a preset that does not use it
+    (the simulator's default, or one named) it is refused naming the option and the preset,
+    not silently ignored."""
+    args = ["slam", str(traversal), "--config", TINY, "--odometry-noise", "0.2"]
+    assert cli.main([*args, "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert "--odometry-noise" in err and f"'{presets.DEFAULT}'" in err and "'real'" in err
+    assert cli.main([*args, "--preset", "raycast", "--out", str(tmp_path / "b")]) == 2
+    assert "not to the preset 'raycast'" in capsys.readouterr().err
+    assert not (tmp_path / "a" / "metrics.json").exists()
