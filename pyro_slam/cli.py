@@ -45,10 +45,12 @@ from .io import input_kind, read_any
 from .model import pretrain_transition
 from .planning import (
     GroundTruthEnv,
+    check_endpoints,
     execute,
     free_grid,
     learned_env,
     lookalikes,
+    maze_bounds,
     plan,
     run_env,
 )
@@ -485,6 +487,10 @@ def cmd_navigate(args) -> int:
     pts = free_grid(maze)
     start = np.array(args.start) if args.start else np.array([*pts[0], 0.0])
     goal = np.array(args.goal) if args.goal else pts[-1]
+    check_endpoints(maze_bounds(maze), start, goal, ("--start", "--goal"))
+    if args.target_scan_from_pose is not None:
+        target = args.target_scan_from_pose
+        check_endpoints(maze_bounds(maze), start, target, ("--start", "--target-scan-from-pose"))
     lenv = _navigation_map(args, maze, tr, run)
     if args.planner == "learned":  # the agent's own scan at the start: trusted free space
         env = lenv.with_observation(start, GroundTruthEnv(maze).scan(start)[0].numpy())

@@ -16,8 +16,10 @@ import pytest
 
 from pyro_slam import cli, pretrained
 from pyro_slam.data import load
+from pyro_slam.planning import GroundTruthEnv, plan
 from pyro_slam.runtime import package_version
 from pyro_slam.slam import SLAM, SLAMConfig, presets
+from simulators import make_maze
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = json.dumps(
@@ -448,3 +450,21 @@ def test_option_not_applying_to_preset_is_refused(traversal, tmp_path, capsys):
     assert cli.main([*args, "--preset", "raycast", "--out", str(tmp_path / "b")]) == 2
     assert "not to the preset 'raycast'" in capsys.readouterr().err
     assert not (tmp_path / "a" / "metrics.json").exists()
+
+
+def test_goal_outside_map_refused(traversal, tmp_path, capsys):
+    """A navigation goal, start or target pose outside the maze is refused before any map is
+    fitted or searched, naming the option and the map's extent; :func:`plan` refuses it too."""
+    base = ["navigate", "--traversal", str(traversal), "--out", str(tmp_path / "n.png")]
+    for option, values in (
+        ("--goal", ["5", "5"]),
+        ("--start", ["1e308", "1e308", "0"]),
+        ("--target-scan-from-pose", ["-1", "0.5", "0"]),
+    ):
+        assert cli.main([*base, option, *values]) == 2, option
+        err = capsys.readouterr().err
+        assert f"error: {option} " in err and "outside the map" in err, err
+    assert not (tmp_path / "n.png").exists()
+    env = GroundTruthEnv(make_maze("simple-small", 1))
+    with pytest.raises(ValueError, match="goal 5 5: outside the map"):
+        plan(env, np.array([0.1, 0.1, 0.0]), np.array([5.0, 5.0]))
