@@ -16,8 +16,10 @@ finds no plan.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import json
+import logging
 import math
 import os
 import sys
@@ -809,16 +811,48 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=_Help,
     )
     p.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+    talk = p.add_mutually_exclusive_group()
+    talk.add_argument(
+        "--verbose", action="store_true", help="log the library's progress messages (INFO)"
+    )
+    talk.add_argument("--quiet", action="store_true", help="log errors only, no warnings")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser, metavar="command")
     for add in (_add_simulate, _add_slam, _add_demo, _add_navigate, _add_pretrain):
         add(sub)
     return p
 
 
+LOGGERS = ("pyro_slam", "simulators")  # the packages whose log messages the command shows
+
+
+@contextlib.contextmanager
+def _logging(args):
+    """The packages' log messages on stderr for the command's duration: warnings and errors
+    (default), also INFO with ``--verbose``, errors only with ``--quiet``. (Progress bars are
+    not log messages: they stay.)"""
+    level = logging.ERROR if args.quiet else logging.INFO if args.verbose else logging.WARNING
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(f"pyro-slam {args.command}: %(levelname)s: %(message)s"))
+    loggers = [logging.getLogger(name) for name in LOGGERS]
+    before = [(lg.level, lg.propagate) for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(level)
+        lg.addHandler(handler)
+        lg.propagate = False
+    try:
+        yield
+    finally:
+        for lg, (lvl, prop) in zip(loggers, before):
+            lg.removeHandler(handler)
+            lg.setLevel(lvl)
+            lg.propagate = prop
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
+        with _logging(args):
+            return args.func(args)
     except (DatasetError, FileNotFoundError, ValueError, MissingExtra) as e:
         print(f"pyro-slam {args.command}: error: {e}", file=sys.stderr)
         return 2

@@ -19,6 +19,7 @@ reference trajectory); timestamps from the scans' header stamps (bag receive tim
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from dataclasses import dataclass, field
@@ -42,6 +43,8 @@ try:  # the [ros] extra
     from rosbags.typesys import Stores, get_typestore
 except ImportError:
     AnyReader = Stores = get_typestore = None
+
+log = logging.getLogger(__name__)
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -265,6 +268,22 @@ def _odometry(
     return compose(odom, np.broadcast_to(offset, odom.shape)), meta
 
 
+def _log_choices(path: Path, meta: dict) -> None:
+    """Say where the odometry and the laser's mount came from (a warning without odometry)."""
+    if meta["laser_offset"] is None:
+        log.warning("%s: %s", path, meta["odometry_source"])
+        return
+    log.info(
+        "%s: odometry %s; laser %r at %s on %r (%s)",
+        path,
+        meta["odometry_source"],
+        meta["frames"]["laser"],
+        [round(v, 6) for v in meta["laser_offset"]],
+        meta["frames"]["base"],
+        meta["laser_offset_source"],
+    )
+
+
 def _sensor(first, ranges: np.ndarray, max_range: float | None) -> tuple[dict, float]:
     """The sensor's metadata and its maximum range (argument, ``range_max`` or sentinel)."""
     sensor = {
@@ -343,6 +362,7 @@ def read_rosbag(
     odom_topic = odoms[0].topic if odoms else None
     odom, odom_meta = _odometry(path, bag, times, pairing, odom_topic, odometry, laser_offset)
     meta.update(odom_topic=odom_topic if odometry else None, **odom_meta)
+    _log_choices(path, meta)
     meta["counts"] = {"scans": len(times), "odometry": len(bag.odom_pose)}
     angles = wrap_angle(first.angle_min + first.angle_increment * np.arange(ranges.shape[1]))
     return build_traversal(

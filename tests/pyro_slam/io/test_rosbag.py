@@ -366,3 +366,27 @@ def test_bag_without_offset_or_odometry_is_reported(tmp_path, capsys):
     )
     report = json.loads((tmp_path / "c" / "metrics.json").read_text())
     assert report["odometry_source"].startswith("none") and report["laser_offset"] is None
+
+
+def test_quiet_and_verbose_drive_the_library_logging(tmp_path, capsys):
+    """The library's log messages reach stderr through ``logging``: its warnings by default
+    (here: a run without odometry), its INFO messages too with ``--verbose`` (the odometry's
+    source, the map export), errors only with ``--quiet``."""
+    bag = write_ros2(tmp_path / "scans_only", with_odom=False)
+    run = ["slam", str(bag), "--config", TINY, "--no-odometry", "--out"]
+    assert cli.main([*run, str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert "pyro-slam slam: WARNING:" in err and "zero controls" in err
+    assert "INFO" not in err
+    assert cli.main(["--verbose", *run, str(tmp_path / "b")]) == 0
+    err = capsys.readouterr().err
+    assert "WARNING:" in err and "pyro-slam slam: INFO: map.pgm:" in err
+    assert cli.main(["--quiet", *run, str(tmp_path / "c")]) == 0
+    err = capsys.readouterr().err
+    assert "WARNING" not in err and "INFO" not in err
+    good = write_ros2(tmp_path / "good")
+    assert (
+        cli.main(["--verbose", "slam", str(good), "--config", TINY, "--out", str(tmp_path / "d")])
+        == 0
+    )
+    assert "INFO: " + str(good) + ": odometry /odom" in capsys.readouterr().err
