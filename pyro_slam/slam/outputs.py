@@ -136,7 +136,8 @@ def _json_safe(value):
 
 
 def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float, run: dict):
-    """What ``metrics.json`` holds; ``run``: ``preset``, ``seed`` and ``input`` (path)."""
+    """What ``metrics.json`` holds; ``run``: ``preset``, ``seed``, ``input`` (path),
+    ``resumed`` and ``wall_time_session_s``; ``wall``: the run's wall time over all sessions."""
     report = {
         "mode": mode,
         **run,
@@ -282,11 +283,13 @@ def run_slam(
             write(Path(out) / name)
         t0 = time.perf_counter()
         res = slam.run(mode, progress=progress)
-        wall = time.perf_counter() - t0
+        session = time.perf_counter() - t0
+        wall = slam.state.wall_time_s  # summed over the sessions of a resumed run
         res["mode"] = mode
         res["path_integration"] = dead_reckoning
         _write_trajectories(out, traversal, res)
-        run = {"preset": preset, "seed": seed, "input": source}
+        run = {"preset": preset, "seed": seed, "input": source, "resumed": resume}
+        run["wall_time_session_s"] = session
         report = _json_safe(_report(slam, traversal, res, mode, wall, run))
         text = json.dumps(report, indent=2, default=float)
         atomic_write(out / "metrics.json", lambda f: f.write(text.encode()))

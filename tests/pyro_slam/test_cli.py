@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -18,7 +19,7 @@ from pyro_slam import cli, pretrained
 from pyro_slam.data import load
 from pyro_slam.planning import GroundTruthEnv, plan
 from pyro_slam.runtime import package_version
-from pyro_slam.slam import SLAM, SLAMConfig, presets
+from pyro_slam.slam import SLAM, SLAMConfig, checkpoint, presets, runner
 from simulators import make_maze
 
 REPO = Path(__file__).resolve().parents[2]
@@ -82,6 +83,23 @@ def test_resume_of_finished_run_keeps_result(traversal, tmp_path):
     first = np.load(out / "posterior.npz")["pose_mean"]
     assert cli.main(args + ["--resume"]) == 0
     np.testing.assert_array_equal(np.load(out / "posterior.npz")["pose_mean"], first)
+
+
+def test_resumed_run_keeps_the_total_wall_time(traversal, tmp_path, monkeypatch):
+    """``wall_time_s`` of a resumed run is the run's wall time over all its sessions (kept in
+    the checkpoint), not the last session's; ``resumed`` says it was resumed. (A clock that
+    advances one second per reading makes the times exact.)"""
+    ticks = iter(range(10**6))
+    monkeypatch.setattr(runner, "time", SimpleNamespace(perf_counter=lambda: float(next(ticks))))
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--config", TINY, "--checkpoint-every", "10"]
+    assert cli.main(args) == 0
+    first = json.loads((out / "metrics.json").read_text())
+    saved = checkpoint.read(out / "checkpoint.pt")["state"]["wall_time_s"]
+    assert first["resumed"] is False and 0 < saved < first["wall_time_s"]
+    assert cli.main([*args, "--resume"]) == 0
+    again = json.loads((out / "metrics.json").read_text())
+    assert again["resumed"] is True and again["wall_time_s"] >= first["wall_time_s"]
 
 
 def test_a_run_never_replaces_another_runs_folder(traversal, tmp_path, capsys):
