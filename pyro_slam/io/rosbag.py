@@ -196,13 +196,22 @@ def _odometry_records(bag: _Bag, chain: dict, odom_topic: str | None):
 
 def _mount(path: Path, chain: dict, base: str, laser: str, odom_source, laser_offset):
     """The laser's pose on the odometry's ``base`` frame ``[3]`` and where it came from:
-    ``laser_offset`` where given, else the chain of mounts; a :class:`ParseError` naming what is
-    missing where the bag does not say."""
+    ``laser_offset`` where given (a warning where the bag's mounts say otherwise), else the
+    chain of mounts; a :class:`ParseError` naming what is missing where the bag does not say."""
     if laser_offset is not None:
         offset = np.asarray(laser_offset, dtype=np.float64)
         if offset.shape != (3,) or not np.isfinite(offset).all():
             raise ValueError(
                 f"laser_offset must be 3 finite numbers (x, y, yaw), got {laser_offset}"
+            )
+        if base in chain and not np.allclose(chain[base][0], offset, atol=CONSTANT_TOL):
+            log.warning(
+                "%s: --laser-offset %s replaces the laser's mount %s on %r from %s",
+                path,
+                offset.tolist(),
+                [round(v, 6) for v in chain[base][0].tolist()],
+                base,
+                chain[base][1] or "the frames (the same)",
             )
         return offset, "argument (--laser-offset)"
     if base in chain:
@@ -269,9 +278,9 @@ def _odometry(
 
 
 def _log_choices(path: Path, meta: dict) -> None:
-    """Say where the odometry and the laser's mount came from (a warning without odometry)."""
+    """Say where the odometry and the laser's mount came from."""
     if meta["laser_offset"] is None:
-        log.warning("%s: %s", path, meta["odometry_source"])
+        log.info("%s: %s", path, meta["odometry_source"])
         return
     log.info(
         "%s: odometry %s; laser %r at %s on %r (%s)",
