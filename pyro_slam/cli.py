@@ -16,13 +16,21 @@ finds no plan.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import json
+import logging
 import math
 import os
 import sys
 import textwrap
 from pathlib import Path
+
+from .version import package_version, version_only
+
+if version_only(__name__):  # `pyro-slam --version`: answered before torch is imported
+    print(f"pyro-slam {package_version()}")
+    raise SystemExit(0)
 
 import numpy as np
 import torch
@@ -39,16 +47,18 @@ from .io import input_kind, read_any
 from .model import pretrain_transition
 from .planning import (
     GroundTruthEnv,
+    check_endpoints,
     execute,
     free_grid,
     learned_env,
     lookalikes,
+    maze_bounds,
     plan,
     run_env,
 )
 from .planning.inverse import fit_inverse
 from .plotting import plot_navigation
-from .runtime import DEFAULT_THREADS, package_version
+from .runtime import DEFAULT_THREADS
 from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets
 from .slam.build import check_hits, prepare_traversal
 from .slam.components import emission_kind
@@ -98,9 +108,27 @@ POSITIVE = _number(int, 1)
 FINITE = _number(float, -math.inf)
 
 
+def _bag_options(args, kind: str, path: Path) -> dict:
+    """The ROS bag reader's keywords from ``--scan-topic``, ``--odom-topic``,
+    ``--laser-offset`` and ``--no-odometry``; each refused for any other input."""
+    kw = {}
+    for opt in ("scan_topic", "odom_topic", "laser_offset", "no_odometry"):
+        if getattr(args, opt, None) not in (None, False):
+            if kind != "rosbag":
+                raise DatasetError(f"{path}: --{opt.replace('_', '-')} applies to ROS bags")
+            kw[opt] = getattr(args, opt)
+    if kw.pop("no_odometry", False):
+        for opt in ("odom_topic", "laser_offset"):
+            if opt in kw:
+                raise DatasetError(f"--{opt.replace('_', '-')}: --no-odometry reads no odometry")
+        kw["odometry"] = False
+    return kw
+
+
 def _read(args) -> Traversal:
     """The input traversal. ``--lenient`` (text logs): malformed lines are skipped, and said
-    in one line on stderr; ``--scan-topic`` / ``--odom-topic``: a ROS bag's topics."""
+    in one line on stderr; ``--scan-topic`` / ``--odom-topic``: a ROS bag's topics;
+    ``--no-odometry`` / ``--laser-offset``: a ROS bag's odometry and laser mount, chosen."""
     path = Path(args.traversal)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or directory")
@@ -109,11 +137,7 @@ def _read(args) -> Traversal:
         if kind != "carmen":
             raise DatasetError(f"{path}: --lenient applies to CARMEN text logs, not this input")
         kw["lenient"] = True
-    for opt in ("scan_topic", "odom_topic"):
-        if getattr(args, opt, None) is not None:
-            if kind != "rosbag":
-                raise DatasetError(f"{path}: --{opt.replace('_', '-')} applies to ROS bags")
-            kw[opt] = getattr(args, opt)
+    kw.update(_bag_options(args, kind, path))
     tr = read_any(path, **kw)
     skipped = tr.metadata.get("skipped_lines", 0)
     if skipped:
@@ -129,16 +153,21 @@ def _read(args) -> Traversal:
 def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
     """The preset named by ``--preset`` (default: ``real`` for a real log, else the default
     preset) for this traversal, with the ``--config`` JSON overrides (a string or a file):
-    :func:`pyro_slam.slam.presets.configure`, as the benchmarks choose theirs."""
+    :func:`pyro_slam.slam.presets.configure`, as the benchmarks choose theirs. An option that
+    the chosen preset does not use (``--odometry-noise`` outside the real-log presets) is
+    refused."""
+    noise = getattr(args, "odometry_noise", None)
     try:
-        return presets.configure(
-            args.preset,
-            traversal,
-            args.config or None,
-            getattr(args, "odometry_noise", None),
-        )
+        name, config = presets.configure(args.preset, traversal, args.config or None, noise)
     except ConfigError as e:
         raise DatasetError(f"--config: {e}") from None
+    if noise is not None and presets.get(name).adapt is not presets.adapt_real_log:
+        real = [p.name for p in presets.PRESETS.values() if p.adapt is presets.adapt_real_log]
+        raise DatasetError(
+            f"--odometry-noise: applies to the real-log preset{'s' * (len(real) > 1)} "
+            f"{', '.join(map(repr, real))}, not to the preset {name!r} chosen here"
+        )
+    return name, config
 
 
 def _print_report(report: dict, out: Path) -> None:
@@ -149,8 +178,12 @@ def _print_report(report: dict, out: Path) -> None:
         line += (
             f" | final error SLAM {s['final_error']:.4f} vs path integration {p['final_error']:.4f}"
         )
-        if "ate" in s:  # (evo, the [eval] extra)
-            line += f" | ATE rmse {s['ate']['rmse']:.4f} vs {p['ate']['rmse']:.4f}"
+        if "ate_aligned" in s:  # (evo, the [eval] extra)
+            line += (
+                f" | ATE rmse unaligned {s['ate_unaligned']['rmse']:.4f} vs "
+                f"{p['ate_unaligned']['rmse']:.4f}, aligned {s['ate_aligned']['rmse']:.4f} vs "
+                f"{p['ate_aligned']['rmse']:.4f}"
+            )
     if "scan_consistency" in report:
         c = report["scan_consistency"]
         if c["slam"]["mean"] is None:
@@ -461,6 +494,10 @@ def cmd_navigate(args) -> int:
     pts = free_grid(maze)
     start = np.array(args.start) if args.start else np.array([*pts[0], 0.0])
     goal = np.array(args.goal) if args.goal else pts[-1]
+    check_endpoints(maze_bounds(maze), start, goal, ("--start", "--goal"))
+    if args.target_scan_from_pose is not None:
+        target = args.target_scan_from_pose
+        check_endpoints(maze_bounds(maze), start, target, ("--start", "--target-scan-from-pose"))
     lenv = _navigation_map(args, maze, tr, run)
     if args.planner == "learned":  # the agent's own scan at the start: trusted free space
         env = lenv.with_observation(start, GroundTruthEnv(maze).scan(start)[0].numpy())
@@ -605,7 +642,8 @@ def _add_slam(sub) -> None:
     s.add_argument(
         "--odometry-noise",
         type=_number(float, 0.0, inclusive=False),
-        help="real logs: transition std as this fraction of the RMS odometry step (default 0.1)",
+        help="the real preset: transition std as this fraction of the RMS odometry step "
+        "(default 0.1; refused with another preset)",
     )
     s.add_argument(
         "--scan-topic",
@@ -615,6 +653,20 @@ def _add_slam(sub) -> None:
         "--odom-topic",
         help="ROS bags: the Odometry topic (default: the bag's only one; without one, "
         "odometry from /tf, odom -> the laser's base frame)",
+    )
+    s.add_argument(
+        "--no-odometry",
+        action="store_true",
+        help="ROS bags: ignore any odometry, zero controls (a bag without odometry is refused "
+        "otherwise)",
+    )
+    s.add_argument(
+        "--laser-offset",
+        type=FINITE,
+        nargs=3,
+        metavar=("X", "Y", "YAW"),
+        help="ROS bags: the laser's pose on the odometry's frame (metres, rad), instead of "
+        "/tf_static and /tf (default: from the bag's transforms; refused where they are none)",
     )
     s.set_defaults(func=cmd_slam)
 
@@ -772,17 +824,49 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=_Help,
     )
     p.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+    talk = p.add_mutually_exclusive_group()
+    talk.add_argument(
+        "--verbose", action="store_true", help="log the library's progress messages (INFO)"
+    )
+    talk.add_argument("--quiet", action="store_true", help="log errors only, no warnings")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser, metavar="command")
     for add in (_add_simulate, _add_slam, _add_demo, _add_navigate, _add_pretrain):
         add(sub)
     return p
 
 
+LOGGERS = ("pyro_slam", "simulators")  # the packages whose log messages the command shows
+
+
+@contextlib.contextmanager
+def _logging(args):
+    """The packages' log messages on stderr for the command's duration: warnings and errors
+    (default), also INFO with ``--verbose``, errors only with ``--quiet``. (Progress bars are
+    not log messages: they stay.)"""
+    level = logging.ERROR if args.quiet else logging.INFO if args.verbose else logging.WARNING
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(f"pyro-slam {args.command}: %(levelname)s: %(message)s"))
+    loggers = [logging.getLogger(name) for name in LOGGERS]
+    before = [(lg.level, lg.propagate) for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(level)
+        lg.addHandler(handler)
+        lg.propagate = False
+    try:
+        yield
+    finally:
+        for lg, (lvl, prop) in zip(loggers, before):
+            lg.removeHandler(handler)
+            lg.setLevel(lvl)
+            lg.propagate = prop
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     args.argv = ["pyro-slam", *(sys.argv[1:] if argv is None else argv)]  # for metrics.json
     try:
-        return args.func(args)
+        with _logging(args):
+            return args.func(args)
     except (DatasetError, FileNotFoundError, ValueError, MissingExtra) as e:
         print(f"pyro-slam {args.command}: error: {e}", file=sys.stderr)
         return 2

@@ -2,9 +2,10 @@
 
 Errors are Euclidean position errors in the traversal's units (the unit-square maze for the
 simulator, metres for real logs). ATE uses the `evo` package (a well-tested reference
-implementation of Sturm et al.'s absolute trajectory error) without alignment, since SLAM is
-anchored at the known start pose; evo is the optional extra ``[eval]``, and without it
-:func:`summary` leaves the ATE out.
+implementation of Sturm et al.'s absolute trajectory error); :func:`summary` reports it both
+unaligned (``ate_unaligned``: SLAM is anchored at the known start pose) and after the
+least-squares rigid SE(2) alignment of the whole trajectory (``ate_aligned``, as ``evo_ape
+-a``). evo is the optional extra ``[eval]``, and without it :func:`summary` leaves the ATE out.
 """
 
 from __future__ import annotations
@@ -106,14 +107,36 @@ def _to_evo(poses: np.ndarray, stamps: np.ndarray, feature: str):
     return PoseTrajectory3D(positions_xyz=xyz, orientations_quat_wxyz=quat, timestamps=stamps)
 
 
+def rigid_alignment(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares rigid SE(2) transform (Umeyama without scale) that maps the positions
+    of ``est [T, >=2]`` onto those of ``true [T, >=2]``: ``(R [2, 2], t [2])``. Unlike evo's
+    3-D alignment it is defined for a straight-line path too."""
+    a, b = np.asarray(est, np.float64)[:, :2], np.asarray(true, np.float64)[:, :2]
+    ma, mb = a.mean(0), b.mean(0)
+    u, _, vt = np.linalg.svd((b - mb).T @ (a - ma) / len(a))
+    r = u @ np.diag([1.0, 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0]) @ vt
+    return r, mb - r @ ma
+
+
+def align_poses(est: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """``est [T, 3]`` moved by :func:`rigid_alignment` onto ``true [T, 3]`` (positions and
+    headings)."""
+    est = np.asarray(est, dtype=np.float64)
+    r, t = rigid_alignment(est, true)
+    xy = est[:, :2] @ r.T + t
+    return np.column_stack([xy, wrap_angle(est[:, 2] + math.atan2(r[1, 0], r[0, 0]))])
+
+
 def ate(est: np.ndarray, true: np.ndarray, align: bool = False) -> dict:
-    """Absolute trajectory error (translation) via ``evo``: rmse / mean / std / max
-    (:class:`~pyro_slam.extras.MissingExtra` without the ``[eval]`` extra)."""
+    """Absolute trajectory error (translation) via ``evo``: rmse / mean / std / max, of ``est
+    [T, 3]`` against ``true [T, 3]`` as they are, or (``align``) after the rigid SE(2)
+    alignment of :func:`align_poses` (``evo_ape -a``); :class:`~pyro_slam.extras.MissingExtra`
+    without the ``[eval]`` extra."""
     stamps = np.arange(len(true), dtype=np.float64)
+    if align:
+        est = align_poses(est, true)
     ref, e = _to_evo(true, stamps, "ATE"), _to_evo(est, stamps, "ATE")
     ref, e = evo_sync.associate_trajectories(ref, e)
-    if align:
-        e.align(ref, correct_scale=False)
     m = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
     m.process_data((ref, e))
     s = m.get_all_statistics()
@@ -175,7 +198,8 @@ def frame_error(frame: float, true_frame: float = 0.0) -> float:
 
 
 def summary(est: np.ndarray, true: np.ndarray) -> dict:
-    """Final and mean errors, relative error and (with the ``[eval]`` extra) ATE for one run."""
+    """Final and mean errors, relative error and (with the ``[eval]`` extra) ATE for one run:
+    ``ate_unaligned`` and ``ate_aligned`` (rigid SE(2) alignment, ``evo_ape -a``)."""
     e = localisation_error(est, true)
     r = relative_error(est, true)
     out = {
@@ -185,7 +209,8 @@ def summary(est: np.ndarray, true: np.ndarray) -> dict:
         "distance_travelled": float(distance_travelled(true)[-1]),
     }
     if HAVE_EVO:
-        out["ate"] = ate(est, true)
+        out["ate_unaligned"] = ate(est, true)
+        out["ate_aligned"] = ate(est, true, align=True)
     return out
 
 

@@ -14,24 +14,18 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 import pyro
 import torch
 
+from .version import package_version
+
 DEFAULT_THREADS = 1  # torch intra-op threads of a run that names no count
 CHUNK = 1 << 20  # bytes read at a time when hashing
 
-
-def package_version() -> str:
-    """The installed ``pyro_slam``'s version (its package metadata), ``"unknown"`` when it runs
-    from a folder that was never installed."""
-    try:
-        return metadata.version("pyro_slam")
-    except metadata.PackageNotFoundError:
-        return "unknown"
+__all__ = ["DEFAULT_THREADS", "package_version", "thread_count", "torch_threads"]
 
 
 def thread_count(n: int | None = None) -> int:

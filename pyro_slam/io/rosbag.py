@@ -3,9 +3,14 @@
 
 Reads ``sensor_msgs/msg/LaserScan`` (one traversal step per scan) and, when present,
 ``nav_msgs/msg/Odometry`` (paired to each scan by time), else the odometry in ``/tf``
-(``odom -> base_link``). The laser's mounting offset on the robot (``base_link -> laser`` in
-``/tf_static``) is applied: the controls move the laser's frame, whose origin and heading the
-scans are measured from. Output conventions match
+(``odom -> base_link``). Transforms come from ``/tf_static`` and ``/tf`` (``tf2_msgs/TFMessage``
+or ROS 1's older ``tf/tfMessage``); a transform on ``/tf`` that is constant over the bag (what
+ROS 1's ``static_transform_publisher`` republishes) is a mount, never odometry, unless its parent
+is ``odom``. The laser's mounting offset on the robot (``base_link -> laser``) is applied: the
+controls move the laser's frame, whose origin and heading the scans are measured from. Where the
+bag holds no odometry, or does not say where the laser sits on the odometry's frame, reading
+stops naming what is missing, unless the caller chooses (``odometry=False``,
+``laser_offset``). Output conventions match
 :func:`pyro_slam.io.read_carmen`: ranges ``[T, B]`` in metres with invalid readings (non-finite,
 ``<= range_min``, ``>= max_range``) masked and set to ``max_range``; ``controls`` ``[T-1, 3]``
 odometry increments (``control_model = "odometry_delta"``); ``poses`` None (a bag holds no
@@ -14,6 +19,7 @@ reference trajectory); timestamps from the scans' header stamps (bag receive tim
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from dataclasses import dataclass, field
@@ -38,11 +44,14 @@ try:  # the [ros] extra
 except ImportError:
     AnyReader = Stores = get_typestore = None
 
+log = logging.getLogger(__name__)
+
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
-TF = "tf2_msgs/msg/TFMessage"
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")  # ROS 2 / ROS 1, and ROS 1's older one
 TF_STATIC_TOPIC = "/tf_static"
 ODOM_FRAME = "odom"  # the parent frame of odometry in /tf (REP 105)
+CONSTANT_TOL = 1e-6  # metres / radians: a /tf transform that moves less is a mount
 
 
 @dataclass
@@ -55,7 +64,8 @@ class _Bag:
     odom_pose: list = field(default_factory=list)  # K x [3]
     odom_time: list = field(default_factory=list)  # K
     odom_child: str = ""  # the Odometry messages' child frame
-    static: dict = field(default_factory=dict)  # /tf_static: child -> (parent, [3])
+    odom_parent: str = ""  # the Odometry messages' header frame
+    static: dict = field(default_factory=dict)  # mounts: child -> (parent, [3], topic)
     dynamic: dict = field(default_factory=dict)  # /tf: (parent, child) -> ([time], [[3]])
 
 
@@ -115,7 +125,7 @@ def _add_transforms(bag: _Bag, msg, static: bool) -> None:
         parent, child = _frame(tf.header.frame_id), _frame(tf.child_frame_id)
         pose = [t.x, t.y, _yaw(q)]
         if static:
-            bag.static[child] = (parent, np.asarray(pose))
+            bag.static[child] = (parent, np.asarray(pose), TF_STATIC_TOPIC)
         else:
             times, poses = bag.dynamic.setdefault((parent, child), ([], []))
             times.append(tf.header.stamp.sec + 1e-9 * tf.header.stamp.nanosec)
@@ -132,54 +142,155 @@ def _read_messages(reader, path: Path, conns) -> _Bag:
             bag.odom_pose.append([p.position.x, p.position.y, _yaw(p.orientation)])
             bag.odom_time.append(_stamp(msg, bag_ns))
             bag.odom_child = _frame(msg.child_frame_id)
-        elif conn.msgtype == TF:
-            _add_transforms(bag, msg, conn.topic == TF_STATIC_TOPIC)
+            bag.odom_parent = _frame(msg.header.frame_id)
+        elif conn.msgtype in TF_TYPES:
+            _add_transforms(bag, msg, conn.topic.lstrip("/") == TF_STATIC_TOPIC[1:])
         else:
             _add_scan(bag, path, conn.topic, msg, bag_ns)
+    _split_mounts(bag)
     return bag
 
 
-def _mount_chain(static: dict, laser: str) -> list[tuple[str, np.ndarray]]:
-    """``[(frame, pose of the laser in that frame [3])]``, from the laser's own frame up the
-    ``/tf_static`` tree (e.g. ``laser`` -> ``base_link`` -> ``base_footprint``)."""
-    chain, pose, frame = [(laser, np.zeros(3))], np.zeros(3), laser
-    while frame in static and static[frame][0] not in {f for f, _ in chain}:
-        frame, offset = static[frame]
+def _split_mounts(bag: _Bag) -> None:
+    """Move the ``/tf`` transforms that are constant over the bag (and whose parent is not
+    ``odom``: a robot standing still still has odometry) into ``bag.static``: mounts."""
+    for (parent, child), (_, poses) in list(bag.dynamic.items()):
+        p = np.asarray(poses)  # [K, 3]
+        spread = np.abs(np.concatenate([p[:, :2] - p[0, :2], wrap_angle(p[:, 2:] - p[0, 2])], 1))
+        if parent != ODOM_FRAME and spread.max() <= CONSTANT_TOL and child not in bag.static:
+            bag.static[child] = (parent, p[0], "/tf")
+            del bag.dynamic[(parent, child)]
+
+
+def _mount_chain(static: dict, laser: str) -> list[tuple[str, np.ndarray, str]]:
+    """``[(frame, pose of the laser in that frame [3], topics)]``, from the laser's own frame
+    up the tree of mounts (e.g. ``laser`` -> ``base_link`` -> ``base_footprint``); ``topics``:
+    where the transforms on the way came from."""
+    chain, pose, frame, topics = [(laser, np.zeros(3), "")], np.zeros(3), laser, []
+    while frame in static and static[frame][0] not in {f for f, _, _ in chain}:
+        frame, offset, topic = static[frame]
         pose = compose(offset, pose)
-        chain.append((frame, pose))
+        topics.append(topic)
+        chain.append((frame, pose, " + ".join(dict.fromkeys(topics))))
     return chain
 
 
-def _odometry(bag: _Bag, times: np.ndarray, pairing: str, odom_topic: str | None):
+NO_ODOMETRY_HINT = "pass --no-odometry (odometry=False) to run on the scans alone, zero controls"
+OFFSET_HINT = "give the laser's pose on it with --laser-offset X Y YAW (laser_offset=)"
+
+
+def _odometry_records(bag: _Bag, chain: dict, odom_topic: str | None):
+    """``(stamps [K], poses [K, 3], parent frame, base frame, source)`` of the odometry: the
+    Odometry topic's, else the ``/tf`` transform that moves the laser's base (``odom -> base``
+    preferred, REP 105); None where the bag has neither."""
+    if bag.odom_pose:
+        stamps, poses = np.asarray(bag.odom_time), np.asarray(bag.odom_pose)
+        return stamps, poses, bag.odom_parent, bag.odom_child, odom_topic
+    found = [k for k in bag.dynamic if k[1] in chain or k[0] == ODOM_FRAME]
+    if not found:
+        return None
+    found.sort(key=lambda k: (k[1] not in chain, k[0] != ODOM_FRAME))
+    (parent, base), (stamps, poses) = found[0], bag.dynamic[found[0]]
+    return np.asarray(stamps), np.asarray(poses), parent, base, f"/tf {parent} -> {base}"
+
+
+def _mount(path: Path, chain: dict, base: str, laser: str, odom_source, laser_offset):
+    """The laser's pose on the odometry's ``base`` frame ``[3]`` and where it came from:
+    ``laser_offset`` where given (a warning where the bag's mounts say otherwise), else the
+    chain of mounts; a :class:`ParseError` naming what is missing where the bag does not say."""
+    if laser_offset is not None:
+        offset = np.asarray(laser_offset, dtype=np.float64)
+        if offset.shape != (3,) or not np.isfinite(offset).all():
+            raise ValueError(
+                f"laser_offset must be 3 finite numbers (x, y, yaw), got {laser_offset}"
+            )
+        if base in chain and not np.allclose(chain[base][0], offset, atol=CONSTANT_TOL):
+            log.warning(
+                "%s: --laser-offset %s replaces the laser's mount %s on %r from %s",
+                path,
+                offset.tolist(),
+                [round(v, 6) for v in chain[base][0].tolist()],
+                base,
+                chain[base][1] or "the frames (the same)",
+            )
+        return offset, "argument (--laser-offset)"
+    if base in chain:
+        pose, topics = chain[base]
+        return pose, (topics or "none: the laser's frame is the odometry's")
+    if not base:
+        raise ParseError(
+            path,
+            None,
+            f"the odometry on {odom_source} has an empty child_frame_id, so the frame the laser "
+            f"{laser!r} is mounted on is unknown; {OFFSET_HINT}",
+        )
+    raise ParseError(
+        path,
+        None,
+        f"no transform from the odometry's frame {base!r} to the laser's frame {laser!r} in "
+        f"/tf_static or /tf: the laser's mounting offset is unknown; {OFFSET_HINT}",
+    )
+
+
+def _odometry(
+    path: Path,
+    bag: _Bag,
+    times: np.ndarray,
+    pairing: str,
+    odom_topic: str | None,
+    odometry: bool = True,
+    laser_offset=None,
+):
     """The laser's odometry poses ``[T, 3]`` at the scan ``times [T]`` (the base frame's, from
     the Odometry topic or from ``/tf`` ``odom -> base``, composed with the laser's mounting
-    offset on the base from ``/tf_static``) and the metadata saying where they came from."""
-    chain = dict(_mount_chain(bag.static, _frame(bag.first.header.frame_id)))
-    if bag.odom_pose:
-        stamps, poses, base = np.asarray(bag.odom_time), np.asarray(bag.odom_pose), bag.odom_child
-        source = f"{odom_topic} ({pairing} in time to each scan)"
-    else:
-        found = [k for k in bag.dynamic if k[1] in chain]
-        found.sort(key=lambda k: k[0] != ODOM_FRAME)  # odom -> base first (REP 105)
-        if not found:
-            meta = {
-                "odometry_source": "none (no Odometry topic, no odometry in /tf): zero controls"
-            }
-            return np.zeros((len(times), 3)), meta
-        (parent, base), (stamps, poses) = found[0], bag.dynamic[found[0]]
-        stamps, poses = np.asarray(stamps), np.asarray(poses)
-        source = f"/tf {parent} -> {base} ({pairing} in time to each scan)"
+    offset on the base) and the metadata saying where they came from and which frames."""
+    laser = _frame(bag.first.header.frame_id)
+    if not odometry:
+        meta = {
+            "odometry_source": "none (odometry=False, --no-odometry): zero controls",
+            "laser_offset": None,
+            "laser_offset_source": "not used without odometry",
+            "frames": {"laser": laser},
+        }
+        return np.zeros((len(times), 3)), meta
+    chain = {f: (pose, topics) for f, pose, topics in _mount_chain(bag.static, laser)}
+    found = _odometry_records(bag, chain, odom_topic)
+    if found is None:
+        raise ParseError(
+            path,
+            None,
+            f"no odometry: no {ODOMETRY} topic, and no transform in /tf that moves the laser's "
+            f"frame {laser!r} or leaves {ODOM_FRAME!r} (constant /tf transforms are mounts); "
+            + NO_ODOMETRY_HINT,
+        )
+    stamps, poses, parent, base, source = found
+    offset, offset_source = _mount(path, chain, base, laser, source, laser_offset)
     odom, gap = poses_at(times, stamps, poses, pairing)
-    offset = chain.get(base)
     meta = {
-        "odometry_source": source,
+        "odometry_source": f"{source} ({pairing} in time to each scan)",
         "odometry_max_time_gap": float(gap.max()),
         "base_frame": base,
-        "laser_offset": None if offset is None else offset.tolist(),
+        "laser_offset": offset.tolist(),
+        "laser_offset_source": offset_source,
+        "frames": {"laser": laser, "base": base, "odometry": parent},
     }
-    if offset is None:  # the laser is not on the base frame in /tf_static: taken as at its origin
-        return odom, meta
     return compose(odom, np.broadcast_to(offset, odom.shape)), meta
+
+
+def _log_choices(path: Path, meta: dict) -> None:
+    """Say where the odometry and the laser's mount came from."""
+    if meta["laser_offset"] is None:
+        log.info("%s: %s", path, meta["odometry_source"])
+        return
+    log.info(
+        "%s: odometry %s; laser %r at %s on %r (%s)",
+        path,
+        meta["odometry_source"],
+        meta["frames"]["laser"],
+        [round(v, 6) for v in meta["laser_offset"]],
+        meta["frames"]["base"],
+        meta["laser_offset_source"],
+    )
 
 
 def _sensor(first, ranges: np.ndarray, max_range: float | None) -> tuple[dict, float]:
@@ -209,19 +320,30 @@ def read_rosbag(
     beam_stride: int = 1,
     max_range: float | None = None,
     pairing: str = "nearest",
+    odometry: bool = True,
+    laser_offset=None,
 ) -> Traversal:
     """Read a ROS 1 ``.bag`` or ROS 2 bag directory into a :class:`Traversal`.
 
     Args:
         scan_topic / odom_topic: topics to use; default: the bag's only LaserScan / Odometry
             topic. Without an Odometry topic, odometry comes from ``/tf`` (``odom -> base``,
-            the base being the frame ``/tf_static`` mounts the laser on); without either, the
-            controls are zero (said in ``metadata``).
+            the base being the frame the mounts in ``/tf_static`` or constant ``/tf``
+            transforms put the laser on); without either, a :class:`ParseError` says so.
         beam_stride: keep every ``beam_stride``-th beam.
         max_range: override the first scan's ``range_max``.
         pairing: ``"nearest"`` (default) or ``"interp"``: odometry record matched to a scan.
+        odometry: False: ignore any odometry, zero controls (SLAM on the scans alone).
+        laser_offset: ``(x, y, yaw)``, the laser's pose on the odometry's frame, instead of
+            the bag's transforms (needed where the bag has none, e.g. an Odometry topic with
+            an empty ``child_frame_id`` and no ``/tf_static``).
+    ``metadata`` records ``odometry_source``, ``laser_offset`` (and its source) and the
+    ``frames`` used (``laser``, ``base``, ``odometry``).
+
     Raises:
-        ParseError: unreadable bag, missing / ambiguous topics, inconsistent scans, no scans.
+        ParseError: unreadable bag, missing / ambiguous topics, inconsistent scans, no scans,
+            no odometry (without ``odometry=False``), no mount of the laser on the odometry's
+            frame (without ``laser_offset``).
     """
     require(AnyReader, "reading ROS bags", "rosbags", "ros")
     path = Path(path)
@@ -234,8 +356,8 @@ def read_rosbag(
         raise ParseError(path, None, f"cannot open bag ({type(e).__name__}: {e})") from e
     try:
         scans = _connections(reader, path, scan_topic, LASER_SCAN, required=True)
-        odoms = _connections(reader, path, odom_topic, ODOMETRY, required=False)
-        tfs = [c for c in reader.connections if c.msgtype == TF]
+        odoms = _connections(reader, path, odom_topic, ODOMETRY, False) if odometry else []
+        tfs = [c for c in reader.connections if c.msgtype in TF_TYPES]
         bag = _read_messages(reader, path, scans + odoms + tfs)
     finally:
         reader.close()
@@ -246,8 +368,10 @@ def read_rosbag(
     first = bag.first
     sensor, max_range = _sensor(first, ranges, max_range)
     meta = {"source": "rosbag", "file": str(path), "scan_topic": scans[0].topic, "sensor": sensor}
-    odom, odom_meta = _odometry(bag, times, pairing, odoms[0].topic if odoms else None)
-    meta.update(odom_topic=odoms[0].topic if odoms else None, **odom_meta)
+    odom_topic = odoms[0].topic if odoms else None
+    odom, odom_meta = _odometry(path, bag, times, pairing, odom_topic, odometry, laser_offset)
+    meta.update(odom_topic=odom_topic if odometry else None, **odom_meta)
+    _log_choices(path, meta)
     meta["counts"] = {"scans": len(times), "odometry": len(bag.odom_pose)}
     angles = wrap_angle(first.angle_min + first.angle_increment * np.arange(ranges.shape[1]))
     return build_traversal(

@@ -17,6 +17,7 @@ from .envs import (
 from .planner import (
     PlanResult,
     Primitives,
+    check_endpoints,
     inside_scan,
     plan,
     safety,
@@ -30,6 +31,7 @@ __all__ = [
     "PlanResult",
     "Primitives",
     "ScanHits",
+    "check_endpoints",
     "execute",
     "free_grid",
     "inside_scan",

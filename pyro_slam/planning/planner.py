@@ -95,6 +95,20 @@ class PlanResult:
     visited: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # expanded poses
 
 
+def check_endpoints(bounds, start, goal, names=("start", "goal")) -> None:
+    """Refuse a ``start [3]`` or ``goal [2+]`` position outside ``bounds`` ``(x0, x1, y0, y1)``
+    (where the search never goes) or not finite: :class:`ValueError` naming it (``names``)."""
+    x0, x1, y0, y1 = (float(b) for b in bounds)
+    for name, pose in zip(names, (start, goal)):
+        p = np.asarray(pose, dtype=np.float64).reshape(-1)
+        if not np.isfinite(p).all() or not (x0 <= p[0] <= x1 and y0 <= p[1] <= y1):
+            shown = " ".join(f"{v:g}" for v in p)
+            raise ValueError(
+                f"{name} {shown}: outside the map, which spans x {x0:g} .. {x1:g} and "
+                f"y {y0:g} .. {y1:g}"
+            )
+
+
 def plan(
     env,
     start,
@@ -125,6 +139,7 @@ def plan(
     unpadded = primitives.controls()
     start = np.asarray(start, dtype=np.float64)
     goal = np.asarray(goal, dtype=np.float64)[:2]
+    check_endpoints(env.bounds, start, goal)
     x0, x1, y0, y1 = env.bounds
     succ = _Successors(env, prims, safety_weight, safety_kw or {}, check_path)
 

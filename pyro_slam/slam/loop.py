@@ -57,6 +57,7 @@ class SLAMState:
     anchors: list = field(default_factory=list)
     # offline SLAM: the initial online sweep's pose means, per step [3]
     sweep_estimates: list = field(default_factory=list)
+    wall_time_s: float = 0.0  # the run's wall time so far, summed over resumes
 
     def __post_init__(self):
         self.phase = Phase(self.phase)

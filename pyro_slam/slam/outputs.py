@@ -41,6 +41,8 @@ OUTPUTS = (
     "trajectory_true.tum",
     "timing.json",
 )
+# what a reader chose for its input, recorded in metrics.json (ROS bags)
+INPUT_CHOICES = ("odometry_source", "laser_offset", "laser_offset_source", "frames")
 MAP_CELL = 0.05  # the finest cell of the exported occupancy grid (metres on real logs)
 MAP_BYTES_PER_CELL = 32  # the export's working set per cell (log odds, probabilities, image)
 
@@ -145,6 +147,9 @@ def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, run: dict):
         "config": slam.cfg.to_dict(),
         "metadata": {k: traversal.metadata.get(k) for k in ("source", "seed", "maze")},
     }
+    for key in INPUT_CHOICES:  # a real log's: where odometry and the laser's mount came from
+        if key in traversal.metadata:
+            report[key] = traversal.metadata[key]
     if "skipped_lines" in traversal.metadata:  # a text log: what --lenient skipped
         report["skipped_lines"] = traversal.metadata["skipped_lines"]
         report["skip_reasons"] = traversal.metadata.get("skip_reasons", [])
@@ -268,7 +273,8 @@ def run_slam(
     write(path)}`` (the demo's traversal); ``threads``: torch intra-op threads for the whole
     run (:func:`~pyro_slam.runtime.thread_count`); ``argv``: the command line recorded in
     ``metrics.json``. Returns the report written to ``metrics.json`` together with the
-    timings written to ``timing.json`` (``wall_time_s``, ``seconds_per_step``)."""
+    timings written to ``timing.json`` (``wall_time_s``, summed over the sessions of a resumed
+    run, ``seconds_per_step``, ``wall_time_session_s`` and ``resumed``)."""
     with torch_threads(threads) as n:
         slam = SLAM(
             traversal,
@@ -285,7 +291,7 @@ def run_slam(
         if resume:
             slam.resume(Path(out) / "checkpoint.pt")
         with replacing(out, (*(inputs or {}), *OUTPUTS), overwrite):
-            run = {"preset": preset, "seed": seed, "input": source}
+            run = {"preset": preset, "seed": seed, "input": source, "resumed": resume}
             return _run_and_write(
                 slam, traversal, Path(out), mode, dead_reckoning, run, argv, inputs or {}, progress
             )
@@ -298,13 +304,20 @@ def _run_and_write(slam, traversal, out, mode, dead_reckoning, run, argv, inputs
         write(out / name)
     t0 = time.perf_counter()
     res = slam.run(mode, progress=progress)
-    wall = time.perf_counter() - t0
+    session = time.perf_counter() - t0
+    wall = slam.state.wall_time_s  # summed over the sessions of a resumed run
+    resumed = run.pop("resumed")
     res["mode"] = mode
     res["path_integration"] = dead_reckoning
     _write_trajectories(out, traversal, res)
     run = {**run, **provenance(slam.threads, argv, run["input"])}
     report = _json_safe(_report(slam, traversal, res, mode, run))
-    timing = {"wall_time_s": wall, "seconds_per_step": wall / traversal.num_steps}
+    timing = {
+        "wall_time_s": wall,
+        "seconds_per_step": wall / traversal.num_steps,
+        "wall_time_session_s": session,
+        "resumed": resumed,
+    }
     for name, data in (("metrics.json", report), ("timing.json", timing)):
         text = json.dumps(data, indent=2, default=float)
         atomic_write(out / name, lambda f, text=text: f.write(text.encode()))

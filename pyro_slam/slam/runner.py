@@ -5,6 +5,7 @@ random stream."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import torch
@@ -104,6 +105,7 @@ class SLAM:
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
         self.particles: Particles | None = None
         self.state: SLAMState | None = None
+        self._clock: float | None = None  # when the wall time was last added to the state
 
     # --------------------------------------------------------------------------- helpers
     def model_inputs(self) -> tuple:
@@ -135,9 +137,23 @@ class SLAM:
         return self.mask[t].bool()
 
     def run(self, mode: str = "online", progress: bool = True) -> dict:
-        """Run (or, after :meth:`resume`, continue) SLAM. Returns :meth:`result`."""
-        with torch_threads(self.threads), self.scope():
-            return self._run(mode, progress)
+        """Run (or, after :meth:`resume`, continue) SLAM. Returns :meth:`result`. The wall time
+        spent in runs, summed over resumes, accumulates in ``state.wall_time_s`` (checkpoints
+        keep it)."""
+        self._clock = time.perf_counter()
+        try:
+            with torch_threads(self.threads), self.scope():
+                return self._run(mode, progress)
+        finally:
+            self._tick()
+            self._clock = None
+
+    def _tick(self) -> None:
+        """Add the wall time since the last tick of this :meth:`run` to ``state.wall_time_s``."""
+        now = time.perf_counter()
+        if self.state is not None and self._clock is not None:
+            self.state.wall_time_s += now - self._clock
+            self._clock = now
 
     def _run(self, mode: str, progress: bool) -> dict:
         if mode not in ("online", "offline"):
@@ -156,9 +172,10 @@ class SLAM:
         else:
             loop.offline(self, progress)
         self.state.phase = Phase.DONE
-        if self.checkpoint:
+        result = self.result()
+        if self.checkpoint:  # (last: its wall time is the run's)
             self.save(self.checkpoint)
-        return self.result()
+        return result
 
     def result(self) -> dict:
         """``mean``, ``std`` ``[T, 3]``: the pose posterior smoothed over the particles'
@@ -185,6 +202,7 @@ class SLAM:
 
     def save(self, path) -> None:
         """Atomic checkpoint (temp file + rename)."""
+        self._tick()
         checkpoint.write(path, self.state_dict())
 
     def resume(self, path) -> SLAM:

@@ -10,14 +10,17 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from pyro_slam import cli, pretrained
 from pyro_slam.data import load
+from pyro_slam.planning import GroundTruthEnv, plan
 from pyro_slam.runtime import package_version
-from pyro_slam.slam import SLAM, SLAMConfig, presets
+from pyro_slam.slam import SLAM, SLAMConfig, checkpoint, presets, runner
+from simulators import make_maze
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = json.dumps(
@@ -60,7 +63,7 @@ def test_slam_writes_outputs_and_metrics(traversal, tmp_path, capsys):
     s, p = report["slam"], report["path_integration"]
     # a 30-step run cannot drift far: both errors are small and finite
     assert 0 <= s["final_error"] < 0.2 and 0 <= p["final_error"] < 0.2
-    assert np.isfinite(s["ate"]["rmse"])
+    assert np.isfinite(s["ate_unaligned"]["rmse"]) and np.isfinite(s["ate_aligned"]["rmse"])
     post = np.load(out / "posterior.npz")
     assert post["pose_mean"].shape == (30, 3) and np.isfinite(post["pose_mean"]).all()
     tum = np.loadtxt(out / "trajectory_slam.tum")
@@ -80,6 +83,23 @@ def test_resume_of_finished_run_keeps_result(traversal, tmp_path):
     first = np.load(out / "posterior.npz")["pose_mean"]
     assert cli.main(args + ["--resume"]) == 0
     np.testing.assert_array_equal(np.load(out / "posterior.npz")["pose_mean"], first)
+
+
+def test_resumed_run_keeps_the_total_wall_time(traversal, tmp_path, monkeypatch):
+    """``timing.json``'s ``wall_time_s`` of a resumed run is the run's wall time over all its
+    sessions (kept in the checkpoint), not the last session's; ``resumed`` says it was resumed.
+    (A clock that advances one second per reading makes the times exact.)"""
+    ticks = iter(range(10**6))
+    monkeypatch.setattr(runner, "time", SimpleNamespace(perf_counter=lambda: float(next(ticks))))
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--config", TINY, "--checkpoint-every", "10"]
+    assert cli.main(args) == 0
+    first = json.loads((out / "timing.json").read_text())
+    saved = checkpoint.read(out / "checkpoint.pt")["state"]["wall_time_s"]
+    assert first["resumed"] is False and 0 < saved < first["wall_time_s"]
+    assert cli.main([*args, "--resume"]) == 0
+    again = json.loads((out / "timing.json").read_text())
+    assert again["resumed"] is True and again["wall_time_s"] >= first["wall_time_s"]
 
 
 def test_a_run_never_replaces_another_runs_folder(traversal, tmp_path, capsys):
@@ -410,3 +430,59 @@ def test_every_option_has_help_and_shows_its_default(capsys):
         cli.main(["--version"])
     assert info.value.code == 0
     assert capsys.readouterr().out.strip() == f"pyro-slam {package_version()}"
+
+
+def test_version_answers_without_importing_torch():
+    """``pyro-slam --version`` (the console script and ``python -m pyro_slam.cli``) prints the
+    version before the command line's imports load torch."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    script = (
+        "import sys\nsys.argv = ['/usr/bin/pyro-slam', '--version']\n"
+        "try:\n    from pyro_slam.cli import main\nexcept SystemExit as e:\n"
+        "    print('exit', e.code, 'torch' in sys.modules)\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", script], env=env, cwd=REPO, capture_output=True, text=True
+    )
+    assert run.stdout.split("\n")[:2] == [f"pyro-slam {package_version()}", "exit 0 False"]
+    run = subprocess.run(
+        [sys.executable, "-X", "importtime", "-m", "pyro_slam.cli", "--version"],
+        env=env,
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 0 and run.stdout.strip() == f"pyro-slam {package_version()}"
+    imported = [line.rsplit("|", 1)[-1].strip() for line in run.stderr.splitlines()]
+    assert "pyro_slam.version" in imported and "torch" not in imported
+
+
+def test_option_not_applying_to_preset_is_refused(traversal, tmp_path, capsys):
+    """``--odometry-noise`` adapts the real-log preset; with a preset that does not use it
+    (the simulator's default, or one named) it is refused naming the option and the preset,
+    not silently ignored."""
+    args = ["slam", str(traversal), "--config", TINY, "--odometry-noise", "0.2"]
+    assert cli.main([*args, "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert "--odometry-noise" in err and f"'{presets.DEFAULT}'" in err and "'real'" in err
+    assert cli.main([*args, "--preset", "raycast", "--out", str(tmp_path / "b")]) == 2
+    assert "not to the preset 'raycast'" in capsys.readouterr().err
+    assert not (tmp_path / "a" / "metrics.json").exists()
+
+
+def test_goal_outside_map_refused(traversal, tmp_path, capsys):
+    """A navigation goal, start or target pose outside the maze is refused before any map is
+    fitted or searched, naming the option and the map's extent; :func:`plan` refuses it too."""
+    base = ["navigate", "--traversal", str(traversal), "--out", str(tmp_path / "n.png")]
+    for option, values in (
+        ("--goal", ["5", "5"]),
+        ("--start", ["1e308", "1e308", "0"]),
+        ("--target-scan-from-pose", ["-1", "0.5", "0"]),
+    ):
+        assert cli.main([*base, option, *values]) == 2, option
+        err = capsys.readouterr().err
+        assert f"error: {option} " in err and "outside the map" in err, err
+    assert not (tmp_path / "n.png").exists()
+    env = GroundTruthEnv(make_maze("simple-small", 1))
+    with pytest.raises(ValueError, match="goal 5 5: outside the map"):
+        plan(env, np.array([0.1, 0.1, 0.0]), np.array([5.0, 5.0]))

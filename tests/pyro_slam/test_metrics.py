@@ -126,7 +126,7 @@ def test_ate_statistics_match_numpy():
     d = distance_travelled(true)[-1]
     assert s["distance_travelled"] == pytest.approx(d)
     assert s["final_relative_error"] == pytest.approx(e[-1] / d)
-    assert s["ate"] == pytest.approx(r)
+    assert s["ate_unaligned"] == pytest.approx(r)
 
 
 def test_odometry_poses_rotate_forward_matches_simulator():
@@ -201,3 +201,26 @@ def test_along_track_error_is_signed_and_keeps_its_sign_around_corners():
         along_track_error(line[:3], line)
     with pytest.raises(ValueError, match=r"\[T, 2\+\] trajectories"):
         along_track_error(line, line[:, 0])
+
+
+def test_ate_aligned_and_unaligned():
+    """``summary`` reports the ATE as it is (``ate_unaligned``) and after the rigid SE(2)
+    alignment (``ate_aligned``, as ``evo_ape -a``, equal to evo's own alignment), the latter
+    also for a straight-line path, where evo's 3-D alignment has no unique rotation."""
+    rng = np.random.default_rng(1)
+    true = np.column_stack([np.cumsum(rng.normal(size=(40, 2)), 0), rng.normal(size=40)])
+    c, s = math.cos(0.4), math.sin(0.4)
+    est = true.copy()
+    est[:, :2] = true[:, :2] @ np.array([[c, s], [-s, c]]) + [3.0, -2.0]
+    est[:, :2] += rng.normal(scale=0.01, size=(40, 2))
+    out = summary(est, true)
+    e = localisation_error(est, true)
+    assert out["ate_unaligned"]["rmse"] == pytest.approx(np.sqrt(np.mean(e**2)))
+    assert out["ate_aligned"]["rmse"] < 0.02 < 1 < out["ate_unaligned"]["rmse"]
+    evo_aligned = aligned_error(est, true)[0]
+    assert out["ate_aligned"]["rmse"] == pytest.approx(np.sqrt(np.mean(evo_aligned**2)))
+    line = np.column_stack([np.linspace(0, 5, 20), np.zeros(20), np.zeros(20)])
+    shifted = line + [1.0, 2.0, 0.0]
+    straight = summary(shifted, line)
+    assert straight["ate_aligned"]["rmse"] == pytest.approx(0, abs=1e-9)
+    assert straight["ate_unaligned"]["rmse"] == pytest.approx(math.sqrt(5))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from pyro_slam import cli
 from pyro_slam.io import ParseError, read_any, read_rosbag
@@ -31,8 +31,9 @@ def scan_ranges(k):
     return r.astype(np.float32)
 
 
-def messages(store, ros1: bool):
-    """(topic, msgtype, t_ns, message) in time order: scans at SCAN_TIMES, odometry at 20 Hz."""
+def messages(store, ros1: bool, laser="base_link", odom_child="base_link"):
+    """(topic, msgtype, t_ns, message) in time order: scans at SCAN_TIMES in the frame
+    ``laser``, odometry of the frame ``odom_child`` at 20 Hz."""
     T_ = store.types
     Header, Time = T_["std_msgs/msg/Header"], T_["builtin_interfaces/msg/Time"]
 
@@ -43,7 +44,7 @@ def messages(store, ros1: bool):
     out = []
     for k, t in enumerate(SCAN_TIMES):
         scan = T_["sensor_msgs/msg/LaserScan"](
-            header=header(t, "laser"),
+            header=header(t, laser),
             angle_min=ANGLE_MIN,
             angle_max=ANGLE_MIN + ANGLE_INC * 6,
             angle_increment=ANGLE_INC,
@@ -72,7 +73,7 @@ def messages(store, ros1: bool):
         )
         odom = T_["nav_msgs/msg/Odometry"](
             header=header(t, "odom"),
-            child_frame_id="base_link",
+            child_frame_id=odom_child,
             pose=T_[gm + "PoseWithCovariance"](pose=pose, covariance=cov),
             twist=twist,
         )
@@ -80,11 +81,11 @@ def messages(store, ros1: bool):
     return sorted(out, key=lambda m: m[2])
 
 
-def write_ros2(path, extra_scan_topic=False, with_odom=True):
+def write_ros2(path, extra_scan_topic=False, with_odom=True, **frames):
     store = get_typestore(Stores.ROS2_HUMBLE)
     with Writer2(path, version=9) as w:
         conns = {}
-        for topic, msgtype, t, msg in messages(store, ros1=False):
+        for topic, msgtype, t, msg in messages(store, ros1=False, **frames):
             if topic == "/odom" and not with_odom:
                 continue
             topics = [topic, "/scan2"] if extra_scan_topic and topic == "/scan" else [topic]
@@ -141,8 +142,6 @@ def test_topic_selection_and_errors(tmp_path):
         read_rosbag(path, scan_topic="/nope")
     with pytest.raises(ParseError, match="is nav_msgs/msg/Odometry, not sensor_msgs"):
         read_rosbag(path, scan_topic="/odom")
-    no_odom = read_rosbag(write_ros2(tmp_path / "scans_only", with_odom=False))
-    assert (no_odom.controls == 0).all() and no_odom.metadata["odom_topic"] is None
 
 
 def test_unreadable_bag(tmp_path):
@@ -189,7 +188,7 @@ def write_tf_bag(path, with_odom: bool):
 
         static = [transform(store, p, c, 99.0, pose) for p, c, pose in MOUNT]
         put("/tf_static", tf_type, 99.0, TFMessage(transforms=static))
-        for topic, msgtype, t, msg in messages(store, ros1=False):
+        for topic, msgtype, t, msg in messages(store, ros1=False, laser="laser"):
             if topic == "/odom":
                 tfs = [
                     transform(store, "odom", "base_link", t, true_pose(t)),
@@ -237,3 +236,152 @@ def test_a_bag_with_two_scan_topics_runs_with_scan_topic(tmp_path, capsys):
     consistency = report["scan_consistency"]["slam"]
     assert consistency["mean"] is None and "too short" in consistency["reason"]
     assert "NaN" not in (tmp_path / "c" / "metrics.json").read_text()
+
+
+# ----------------------------------------------------- TF as ROS 1 and ROS 2 users publish it
+MOUNT_ON_TF = (0.2, -0.1, 0.3)  # base_link -> laser, republished on /tf with every message
+OLD_TF = "tf/msg/tfMessage"  # ROS 1's message type before tf2
+
+
+def tf_message(store, tf_type, ros1, transforms):
+    """A TF message of ``transforms`` ``[(parent, child, t, pose)]``."""
+    T_, gm = store.types, "geometry_msgs/msg/"
+    out = []
+    for parent, child, t, (x, y, th) in transforms:
+        stamp = T_["builtin_interfaces/msg/Time"](sec=int(t), nanosec=int(round((t % 1) * 1e9)))
+        head = T_["std_msgs/msg/Header"]
+        out.append(
+            T_[gm + "TransformStamped"](
+                header=head(0, stamp, parent) if ros1 else head(stamp, parent),
+                child_frame_id=child,
+                transform=T_[gm + "Transform"](
+                    translation=T_[gm + "Vector3"](x=x, y=y, z=0.0),
+                    rotation=T_[gm + "Quaternion"](
+                        x=0.0, y=0.0, z=math.sin(th / 2), w=math.cos(th / 2)
+                    ),
+                ),
+            )
+        )
+    return T_[tf_type](transforms=out)
+
+
+def write_tf_only_bag(path, ros1=False, tf_type="tf2_msgs/msg/TFMessage", odom=True, mount=True):
+    """Scans in ``laser``; no Odometry topic and no ``/tf_static``: ``/tf`` alone holds, at 20
+    Hz, the moving ``odom -> base_link`` (``odom``) and the constant ``base_link -> laser``
+    (``mount``), as ROS 1's ``static_transform_publisher`` republishes it."""
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    if tf_type == OLD_TF:
+        store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", OLD_TF))
+    serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
+    with Writer1(path) if ros1 else Writer2(path, version=9) as w:
+        conns = {}
+
+        def put(topic, msgtype, t, msg):
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, msgtype, typestore=store)
+            w.write(conns[topic], int(t * 1e9), serialize(msg, msgtype))
+
+        for topic, msgtype, t, msg in messages(store, ros1=ros1, laser="laser"):
+            if topic != "/odom":
+                put(topic, msgtype, t, msg)
+                continue
+            tfs = [("odom", "base_link", t, true_pose(t))] if odom else []
+            tfs += [("base_link", "laser", t, MOUNT_ON_TF)] if mount else []
+            put("/tf", tf_type, t, tf_message(store, tf_type, ros1, tfs))
+    return path
+
+
+def laser_controls(offset):
+    base = np.stack([true_pose(t) for t in SCAN_TIMES])
+    laser = compose(base, np.broadcast_to(np.asarray(offset), base.shape))
+    return relative(laser[:-1], laser[1:])
+
+
+def test_bag_mount_on_tf_is_not_odometry(tmp_path):
+    """A constant ``base_link -> laser`` on ``/tf`` is the laser's mount, applied on the
+    odometry ``odom -> base_link``; alone on ``/tf`` it is no odometry, and reading stops
+    saying so instead of taking the mount for a robot standing still."""
+    tr = read_rosbag(write_tf_only_bag(tmp_path / "bag"))
+    np.testing.assert_allclose(tr.controls, laser_controls(MOUNT_ON_TF), atol=1e-6)
+    meta = tr.metadata
+    np.testing.assert_allclose(meta["laser_offset"], MOUNT_ON_TF, atol=1e-9)
+    assert meta["laser_offset_source"] == "/tf"
+    assert meta["odometry_source"].startswith("/tf odom -> base_link")
+    assert meta["frames"] == {"laser": "laser", "base": "base_link", "odometry": "odom"}
+    with pytest.raises(ParseError, match="no odometry.*'laser'.*--no-odometry"):
+        read_rosbag(write_tf_only_bag(tmp_path / "mount_only", odom=False))
+
+
+def test_bag_old_tf_message_type(tmp_path):
+    """A ROS 1 bag whose ``/tf`` is the older ``tf/tfMessage`` (no ``/tf_static``, the mount
+    republished on ``/tf``) gives the same odometry and mount as ``tf2_msgs/TFMessage``."""
+    tr = read_rosbag(write_tf_only_bag(tmp_path / "old.bag", ros1=True, tf_type=OLD_TF))
+    np.testing.assert_allclose(tr.controls, laser_controls(MOUNT_ON_TF), atol=1e-6)
+    np.testing.assert_allclose(tr.metadata["laser_offset"], MOUNT_ON_TF, atol=1e-9)
+    assert tr.metadata["odometry_source"].startswith("/tf odom -> base_link")
+
+
+def test_bag_without_offset_or_odometry_is_reported(tmp_path, capsys):
+    """No odometry at all, or an Odometry topic with an empty ``child_frame_id`` and no
+    ``/tf_static`` (the laser's mount unknown): reading stops naming what is missing and the
+    option that decides it; with the choice made (``odometry=False`` / ``--no-odometry``,
+    ``laser_offset`` / ``--laser-offset``) it runs and ``metrics.json`` records it."""
+    scans_only = write_ros2(tmp_path / "scans_only", with_odom=False)
+    with pytest.raises(ParseError, match="scans_only: no odometry.*--no-odometry"):
+        read_rosbag(scans_only)
+    tr = read_rosbag(scans_only, odometry=False)
+    assert (tr.controls == 0).all() and tr.metadata["odometry_source"].startswith("none")
+    unnamed = write_ros2(tmp_path / "unnamed", laser="laser", odom_child="")
+    with pytest.raises(ParseError, match="empty child_frame_id.*'laser'.*--laser-offset"):
+        read_rosbag(unnamed)
+    tr = read_rosbag(unnamed, laser_offset=MOUNT_ON_TF)
+    np.testing.assert_allclose(tr.controls, laser_controls(MOUNT_ON_TF), atol=1e-6)
+    assert tr.metadata["laser_offset_source"].startswith("argument")
+    named = write_ros2(tmp_path / "named", laser="laser")
+    with pytest.raises(ParseError, match="no transform from .*'base_link' to .*'laser'"):
+        read_rosbag(named)
+
+    args = ["slam", str(unnamed), "--config", TINY, "--out"]
+    assert cli.main([*args, str(tmp_path / "a")]) == 2
+    assert "--laser-offset" in capsys.readouterr().err
+    offset = ["--laser-offset", *map(str, MOUNT_ON_TF)]
+    assert cli.main([*args, str(tmp_path / "b"), *offset]) == 0
+    report = json.loads((tmp_path / "b" / "metrics.json").read_text())
+    np.testing.assert_allclose(report["laser_offset"], MOUNT_ON_TF)
+    assert report["odometry_source"].startswith("/odom")
+    assert report["frames"] == {"laser": "laser", "base": "", "odometry": "odom"}
+    assert (
+        cli.main(
+            [
+                "slam",
+                str(scans_only),
+                "--config",
+                TINY,
+                "--no-odometry",
+                "--out",
+                str(tmp_path / "c"),
+            ]
+        )
+        == 0
+    )
+    report = json.loads((tmp_path / "c" / "metrics.json").read_text())
+    assert report["odometry_source"].startswith("none") and report["laser_offset"] is None
+
+
+def test_quiet_and_verbose_drive_the_library_logging(tmp_path, capsys):
+    """The library's log messages reach stderr through ``logging``: its warnings by default
+    (here: ``--laser-offset`` replacing the bag's own mount), its INFO messages too with
+    ``--verbose`` (the odometry's source, the map export), errors only with ``--quiet``."""
+    bag = write_tf_bag(tmp_path / "bag", with_odom=True)
+    run = ["slam", str(bag), "--config", TINY, "--laser-offset", "0", "0", "0", "--out"]
+    assert cli.main([*run, str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert "pyro-slam slam: WARNING:" in err and "replaces the laser's mount" in err
+    assert "INFO" not in err
+    assert cli.main(["--verbose", *run, str(tmp_path / "b")]) == 0
+    err = capsys.readouterr().err
+    assert "WARNING:" in err and "pyro-slam slam: INFO: map.pgm:" in err
+    assert f"INFO: {bag}: odometry /odom" in err
+    assert cli.main(["--quiet", *run, str(tmp_path / "c")]) == 0
+    err = capsys.readouterr().err
+    assert "WARNING" not in err and "INFO" not in err
