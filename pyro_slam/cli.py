@@ -20,6 +20,7 @@ import io
 import json
 import math
 import os
+import signal
 import sys
 import textwrap
 from pathlib import Path
@@ -52,7 +53,7 @@ from .runtime import package_version
 from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets
 from .slam.build import check_hits, prepare_traversal
 from .slam.components import emission_kind
-from .slam.outputs import prepare_out_dir, read_run, run_slam
+from .slam.outputs import read_run, run_folder, run_slam
 from .slam.training import pretrain_emission
 
 DEFAULT_MAZE, DEFAULT_MAZE_SEED = "moderate-medium", 1001  # navigate's own maze
@@ -209,39 +210,38 @@ def cmd_simulate(args) -> int:
 
 def cmd_slam(args) -> int:
     """Read the input, the configuration and the networks, then run SLAM into ``--out``
-    (with ``--overwrite`` the previous run there is replaced only after all of that)."""
+    (written beside it and swapped in at the end: a failure leaves ``--out`` as it was)."""
     torch.manual_seed(args.seed)
-    prepare_out_dir(args.out, args.resume, args.overwrite)
-    tr = _read(args)
-    if args.steps:
-        tr = tr.slice(0, min(args.steps, tr.num_steps))
-    name, config = _config(args, tr)
-    source = str(Path(args.traversal).resolve())
-    check_hits(prepare_traversal(tr, config), config, source)
-    emission = None
-    if args.emission is not None:
-        kind = emission_kind(config.emission.kind)
-        if kind.load is None:
-            raise DatasetError(
-                f"--emission loads a pretrained emission network; emission.kind {kind.name!r} "
-                "has none"
-            )
-        emission = kind.load(args.emission, tr)
-    transition = pretrained.load_transition(args.transition) if args.transition else None
-    report = run_slam(
-        tr,
-        args.out,
-        args.mode,
-        config,
-        emission,
-        transition,
-        args.resume,
-        seed=args.seed,
-        preset=name,
-        overwrite=args.overwrite,
-        source=source,
-        checkpoint_every=args.checkpoint_every,
-    )
+    with run_folder(args.out, args.resume, args.overwrite) as folder:
+        tr = _read(args)
+        if args.steps:
+            tr = tr.slice(0, min(args.steps, tr.num_steps))
+        name, config = _config(args, tr)
+        source = str(Path(args.traversal).resolve())
+        check_hits(prepare_traversal(tr, config), config, source)
+        emission = None
+        if args.emission is not None:
+            kind = emission_kind(config.emission.kind)
+            if kind.load is None:
+                raise DatasetError(
+                    f"--emission loads a pretrained emission network; emission.kind "
+                    f"{kind.name!r} has none"
+                )
+            emission = kind.load(args.emission, tr)
+        transition = pretrained.load_transition(args.transition) if args.transition else None
+        report = run_slam(
+            tr,
+            folder,
+            args.mode,
+            config,
+            emission,
+            transition,
+            args.resume,
+            seed=args.seed,
+            preset=name,
+            source=source,
+            checkpoint_every=args.checkpoint_every,
+        )
     _print_report(report, args.out)
     return 0
 
@@ -314,23 +314,22 @@ def cmd_demo(args) -> int:
     """Simulate the default maze, run SLAM with the default preset, write plots and metrics."""
     torch.manual_seed(args.seed)
     out = Path(args.out)
-    prepare_out_dir(out, args.resume, args.overwrite, keep=DEMO_INPUTS)
-    tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
-    config = presets.get(args.preset).for_traversal(tr)
-    inputs = {"traversal.npz": tr.save, "traversal.png": lambda p: plot_traversal(tr, p)}
-    report = run_slam(
-        tr,
-        out,
-        args.mode,
-        config,
-        resume=args.resume,
-        seed=args.seed,
-        preset=args.preset,
-        overwrite=args.overwrite,
-        inputs=inputs,
-        source=str((out / "traversal.npz").resolve()),
-        checkpoint_every=args.checkpoint_every,
-    )
+    with run_folder(out, args.resume, args.overwrite, keep=DEMO_INPUTS) as folder:
+        tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
+        config = presets.get(args.preset).for_traversal(tr)
+        inputs = {"traversal.npz": tr.save, "traversal.png": lambda p: plot_traversal(tr, p)}
+        report = run_slam(
+            tr,
+            folder,
+            args.mode,
+            config,
+            resume=args.resume,
+            seed=args.seed,
+            preset=args.preset,
+            inputs=inputs,
+            source=str((out / "traversal.npz").resolve()),
+            checkpoint_every=args.checkpoint_every,
+        )
     _print_report(report, out)
     return 0
 
@@ -777,6 +776,10 @@ def main(argv=None) -> int:
         why = f"{type(e).__name__}: {one_line(e)}"
         print(f"pyro-slam {args.command}: error: {why}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as e:  # SIGINT, or SIGTERM during a run (outputs.Interrupted)
+        sig = getattr(e, "signal", "SIGINT")
+        print(f"pyro-slam {args.command}: {one_line(e) if str(e) else sig}", file=sys.stderr)
+        return 128 + getattr(signal, sig, signal.SIGINT)
 
 
 if __name__ == "__main__":
