@@ -2,6 +2,7 @@
 bad input."""
 
 import argparse
+import errno
 import hashlib
 import json
 import os
@@ -17,7 +18,7 @@ import pytest
 from pyro_slam import cli, pretrained
 from pyro_slam.data import load
 from pyro_slam.runtime import package_version
-from pyro_slam.slam import SLAM, SLAMConfig, presets
+from pyro_slam.slam import SLAM, SLAMConfig, outputs, presets
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = json.dumps(
@@ -214,18 +215,18 @@ def test_overwrite_keeps_previous_run_on_bad_input(traversal, tmp_path, capsys, 
         assert cli.main(argv) == 2, argv
         assert named in capsys.readouterr().err
         assert _files(out) == before, argv
-    # a failure after the input was read but before the new run wrote anything: put back
+    # a failure after the input was read: a one-line error, the previous run untouched
     with monkeypatch.context() as m:
         m.setattr(SLAM, "run", _diverge)
-        with pytest.raises(FloatingPointError):
-            cli.main([*args, "--overwrite"])
+        assert cli.main([*args, "--overwrite"]) == 2
+    assert "SLAM diverged" in capsys.readouterr().err
     assert _files(out) == before
     assert cli.main([*args, "--overwrite", "--seed", "5"]) == 0
     assert json.loads((out / "metrics.json").read_text())["seed"] == 5
     assert sorted(_files(out)) == sorted(before)  # the same outputs, none left behind
 
 
-KILL_AT_FIRST_CHECKPOINT = textwrap.dedent(
+SIGNAL_AT_FIRST_CHECKPOINT = textwrap.dedent(
     """
     import os, signal, sys
     import torch
@@ -233,13 +234,23 @@ KILL_AT_FIRST_CHECKPOINT = textwrap.dedent(
     from pyro_slam import cli
     from pyro_slam.slam import SLAM
     save = SLAM.save
-    def save_and_die(self, path):
+    def save_and_signal(self, path):
         save(self, path)
-        os.kill(os.getpid(), signal.SIGKILL)
-    SLAM.save = save_and_die
+        os.kill(os.getpid(), getattr(signal, os.environ["SIGNAL"]))
+    SLAM.save = save_and_signal
     sys.exit(cli.main(sys.argv[1:]))
     """
 )
+
+
+def _signalled_run(argv: list[str], name: str) -> subprocess.CompletedProcess:
+    """``pyro-slam ARGV`` in a new process that sends itself the signal ``name`` right after
+    its first checkpoint."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "SIGNAL": name}
+    script = [sys.executable, "-c", SIGNAL_AT_FIRST_CHECKPOINT, *argv]
+    return subprocess.run(script, env=env, capture_output=True, timeout=300)
+
+
 # the default preset (its transition noise follows the cloud's trust in the map), shrunk; the
 # first checkpoint (step 5) follows an SVI step (step 4), so the map has changed since the last
 # weighing: the trust must come from the checkpoint, not be recomputed
@@ -256,11 +267,11 @@ def _assert_resume_is_byte_identical(traversal, tmp_path, mode):
     args = [str(traversal), "--mode", mode, "--config", RESUME_CONFIG, "--checkpoint-every", "5"]
     ref, killed = tmp_path / "uninterrupted", tmp_path / "killed"
     assert cli.main(["slam", *args, "--out", str(ref)]) == 0
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    argv = [sys.executable, "-c", KILL_AT_FIRST_CHECKPOINT, "slam", *args, "--out", str(killed)]
-    proc = subprocess.run(argv, env=env, capture_output=True, timeout=300)
+    proc = _signalled_run(["slam", *args, "--out", str(killed)], "SIGKILL")
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
-    assert sorted(p.name for p in killed.iterdir()) == ["checkpoint.pt"]  # killed at step 5
+    # killed at step 5: no output folder yet, the run so far beside it
+    assert not killed.exists()
+    assert sorted(p.name for p in (tmp_path / ".killed.partial").iterdir()) == ["checkpoint.pt"]
     # a fresh run object that knows only the checkpoint file
     assert cli.main(["slam", *args, "--out", str(killed), "--resume"]) == 0
     for name in ("trajectory_slam.tum", "map.pgm"):
@@ -279,6 +290,125 @@ def test_resume_is_byte_identical_online(traversal, tmp_path):
 def test_resume_is_byte_identical_offline(traversal, tmp_path):
     """The same for offline SLAM, killed inside the online sweep it starts with."""
     _assert_resume_is_byte_identical(traversal, tmp_path, "offline")
+
+
+# ------------------------------------------------------------------------------ failing runs
+ABSURD_LR = json.dumps(
+    {**json.loads(TINY), "training": {**json.loads(TINY)["training"], "lr": 1e30}}
+)
+
+
+def test_overwrite_survives_late_failure(traversal, tmp_path, capsys):
+    """A new ``--overwrite`` run that fails late leaves the previous run byte for byte: the
+    filter diverging (an absurd learning rate, after the first checkpoint) is one line naming
+    ``training.lr``; SIGINT and SIGTERM right after the first checkpoint keep the run so far
+    beside the folder, and ``--resume`` finishes it and only then replaces the previous one."""
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+    assert cli.main(args) == 0
+    before, folder = _files(out), _files(tmp_path)
+    capsys.readouterr()
+    late = ["--overwrite", "--checkpoint-every", "5"]
+    assert cli.main([*args[:4], "--config", ABSURD_LR, *late]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(err) == 1 and "SLAM diverged" in err[0] and "training.lr 1e+30" in err[0]
+    assert _files(tmp_path) == folder  # nothing left beside it either
+    partial = tmp_path / ".run.partial"
+    for name, rc in (("SIGINT", 130), ("SIGTERM", 143)):
+        proc = _signalled_run([*args, *late, "--seed", "5"], name)
+        err = proc.stderr.decode()
+        assert proc.returncode == rc, err[-2000:]
+        assert "Traceback" not in err and f"interrupted ({name})" in err
+        assert _files(out) == before, name
+        assert (partial / "checkpoint.pt").is_file(), name  # the run so far, for --resume
+    assert cli.main([*args, "--seed", "5", "--checkpoint-every", "5", "--resume"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["seed"] == 5
+    assert not partial.exists() and sorted(_files(out)) == sorted(before)
+
+
+def test_full_disk_keeps_previous_run(traversal, tmp_path, capsys, monkeypatch):
+    """A write failing for a full disk (ENOSPC) while the outputs are written: one line naming
+    the file, the previous run unchanged, the finished checkpoint kept for ``--resume``."""
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+    assert cli.main(args) == 0
+    before = _files(out)
+
+    def full(_tr, _res, _grid, path):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    with monkeypatch.context() as m:
+        m.setattr(outputs.plotting, "plot_slam", full)
+        assert cli.main([*args, "--overwrite", "--seed", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "slam.png" in err and str(out) in err
+    assert _files(out) == before
+    assert cli.main([*args, "--seed", "2", "--resume"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["seed"] == 2
+
+
+def test_failed_run_leaves_no_empty_folder(traversal, tmp_path, capsys, monkeypatch):
+    """A run into a new folder (with new parents) that fails, at any point, leaves nothing."""
+    out = tmp_path / "new" / "run"
+    late = ["--out", str(out), "--checkpoint-every", "5"]
+    assert cli.main(["slam", str(traversal), *late, "--config", ABSURD_LR]) == 2
+    assert cli.main(["slam", str(tmp_path / "missing.npz"), *late]) == 2
+    with monkeypatch.context() as m:
+        m.setattr(SLAM, "run", _diverge)
+        assert cli.main(["demo", *late, "--steps", "20"]) == 2
+    assert "SLAM diverged" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+HOLD_THE_FOLDER = textwrap.dedent(
+    """
+    import sys
+    from pyro_slam.slam.outputs import run_folder
+    with run_folder(sys.argv[1]):
+        print("holding", flush=True)
+        sys.stdin.read()
+    """
+)
+
+
+def test_concurrent_runs_refused(traversal, tmp_path, capsys):
+    """While another process runs into a folder, a second run into it is refused before any
+    work, naming the folder; once the first has finished, it runs."""
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLD_THE_FOLDER, str(out)],
+        env=env,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+    )
+    try:
+        assert holder.stdout.readline() == b"holding\n"
+        args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+        assert cli.main(args) == 2
+        err = capsys.readouterr().err
+        assert "another run is writing into it" in err and str(out) in err
+        assert cli.main([*args, "--overwrite"]) == 2
+    finally:
+        holder.communicate(b"", timeout=120)
+    assert holder.returncode == 0
+    assert cli.main(args) == 0
+
+
+def test_resume_refuses_other_walls(traversal, tmp_path, capsys):
+    """``--resume`` with an input whose walls differ (here: enlarge the map) is refused
+    naming the data set's walls, not continued with a map of another size."""
+    out = tmp_path / "run"
+    assert cli.main(["slam", str(traversal), "--out", str(out), "--config", TINY]) == 0
+    arrays = dict(np.load(traversal))
+    walls = arrays["walls"].copy()
+    walls[0] -= 0.5  # one wall moved outside the maze: a larger map grid
+    other = tmp_path / "other.npz"
+    np.savez(other, **{**arrays, "walls": walls})
+    before = _files(out)
+    assert cli.main(["slam", str(other), "--out", str(out), "--config", TINY, "--resume"]) == 2
+    assert "walls" in capsys.readouterr().err
+    assert _files(out) == before
 
 
 # ------------------------------------------------------------------------------ pretrain
