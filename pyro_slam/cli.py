@@ -53,7 +53,8 @@ from .runtime import package_version
 from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets
 from .slam.build import check_hits, prepare_traversal
 from .slam.components import emission_kind
-from .slam.outputs import read_run, run_folder, run_slam
+from .slam.config import parse_overrides
+from .slam.outputs import check_settings, read_run, run_folder, run_slam, walls_fingerprint
 from .slam.training import pretrain_emission
 
 DEFAULT_MAZE, DEFAULT_MAZE_SEED = "moderate-medium", 1001  # navigate's own maze
@@ -77,8 +78,9 @@ class _Help(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpF
         return super()._get_help_string(action)
 
 
-def _number(kind, low: float, inclusive: bool = True):
-    """An argparse type: ``kind`` (int or float), finite, at least (or above) ``low``."""
+def _number(kind, low: float, inclusive: bool = True, high: float = math.inf):
+    """An argparse type: ``kind`` (int or float), finite, at least (or above) ``low`` and at
+    most ``high``."""
 
     def parse(text: str):
         try:
@@ -88,6 +90,8 @@ def _number(kind, low: float, inclusive: bool = True):
         if not math.isfinite(value) or value < low or (value == low and not inclusive):
             bound = f">= {low:g}" if inclusive else f"> {low:g}"
             raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
+        if value > high:
+            raise argparse.ArgumentTypeError(f"must be at most {high:.0f}, got {text}")
         return value
 
     parse.__name__ = kind.__name__
@@ -97,6 +101,11 @@ def _number(kind, low: float, inclusive: bool = True):
 COUNT = _number(int, 0)  # 0 or more
 POSITIVE = _number(int, 1)
 FINITE = _number(float, -math.inf)
+MAX_SEED = 2**32 - 1  # numpy's legacy seeding takes 32-bit seeds
+SEED = _number(int, 0, high=MAX_SEED)
+MAX_STEPS = 1_000_000  # a simulated traversal's steps (about 1 GB with camera frames)
+STEPS = _number(int, 1, high=MAX_STEPS)
+MAX_DISTRACTORS = 1000
 
 
 def _read(args) -> Traversal:
@@ -130,16 +139,27 @@ def _read(args) -> Traversal:
 def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
     """The preset named by ``--preset`` (default: ``real`` for a real log, else the default
     preset) for this traversal, with the ``--config`` JSON overrides (a string or a file):
-    :func:`pyro_slam.slam.presets.configure`, as the benchmarks choose theirs."""
+    :func:`pyro_slam.slam.presets.configure`, as the benchmarks choose theirs. Settings the
+    chosen components would ignore, or that do not fit the traversal, are refused."""
     try:
-        return presets.configure(
+        name, config = presets.configure(
             args.preset,
             traversal,
             args.config or None,
             getattr(args, "odometry_noise", None),
         )
+        given = parse_overrides(args.config) if args.config else {}
+        tran = given.get("transition") if isinstance(given, dict) else None
+        if isinstance(tran, dict) and "sigma" in tran and config.transition.kind == "learned":
+            raise ConfigError(
+                "transition.sigma is the kinematic transition's std; transition.kind 'learned' "
+                "uses its network's own (scale it with transition.scale), so it would be "
+                "ignored"
+            )
+        check_settings(traversal, config, str(args.traversal))
     except ConfigError as e:
         raise DatasetError(f"--config: {e}") from None
+    return name, config
 
 
 def _print_report(report: dict, out: Path) -> None:
@@ -363,6 +383,23 @@ def _maze_of(tr: Traversal, src, args):
     return maze
 
 
+def _same_maze(report: dict, tr: Traversal, path, run_dir) -> None:
+    """Refuse a traversal ``tr`` of another maze than the one the run in ``run_dir`` mapped
+    (its ``metrics.json``: the walls' fingerprint, or, in older runs, the maze's name and
+    seed)."""
+    walls, maze = report.get("walls"), (report.get("metadata") or {}).get("maze")
+    if isinstance(walls, str):
+        same = walls == walls_fingerprint(tr.walls)
+    else:
+        same = maze is None or maze == tr.metadata.get("maze")
+    if not same:
+        what = "" if maze is None else f" (maze {maze.get('name')} seed {maze.get('seed')})"
+        raise DatasetError(
+            f"{path}: field 'walls' differs from the maze the run --from {run_dir} mapped"
+            f"{what}: give the traversal that run mapped"
+        )
+
+
 def _navigation_data(args):
     """``(maze, mapping traversal, run)``: simulated here (``--seed``), given
     (``--traversal``), or a finished SLAM run's (``--from``; ``run`` from
@@ -389,6 +426,8 @@ def _navigation_data(args):
     tr = read_any(path)
     if run is not None and run["metrics"]["steps"] != tr.num_steps:
         tr = tr.slice(0, min(run["metrics"]["steps"], tr.num_steps))  # (a run of --steps N)
+    if run is not None:
+        _same_maze(run["metrics"], tr, path, args.from_run)
     if run is not None and run["pose_mean"].shape[0] != tr.num_steps:
         raise DatasetError(
             f"{path}: {tr.num_steps} steps, but the run --from "
@@ -509,11 +548,18 @@ def _add_simulate(sub) -> None:
         "camera): the data set SLAM runs on, and a plot of it.",
     )
     p.add_argument("--maze", default="moderate-medium", choices=sorted(SCALES), help="maze scale")
-    p.add_argument("--steps", type=POSITIVE, default=3000, help="number of time steps T")
-    p.add_argument("--seed", type=COUNT, default=1, help="seeds maze, noise and driver")
+    p.add_argument(
+        "--steps", type=STEPS, default=3000, help=f"number of time steps T (at most {MAX_STEPS})"
+    )
+    p.add_argument("--seed", type=SEED, default=1, help="seeds maze, noise and driver")
     p.add_argument("--out", type=Path, default=Path("traversal.npz"), help="output .npz")
     p.add_argument("--images", action="store_true", help="also render 32x24 camera frames")
-    p.add_argument("--distractors", type=COUNT, default=0, help="boxes not in the floor map")
+    p.add_argument(
+        "--distractors",
+        type=_number(int, 0, high=MAX_DISTRACTORS),
+        default=0,
+        help=f"boxes not in the floor map (at most {MAX_DISTRACTORS})",
+    )
     p.add_argument("--plot", type=Path, default=None, help="output PNG (default: next to --out)")
     p.add_argument("--no-plot", action="store_true", help="do not write a PNG")
     p.set_defaults(func=cmd_simulate)
@@ -561,7 +607,7 @@ def _add_slam(sub) -> None:
     s.add_argument("traversal", type=Path, help="the input: .npz, .clf / .log, .bag or a folder")
     _add_run_options(s, "run", "the run's outputs")
     s.add_argument("--steps", type=COUNT, default=0, help="use only the first N steps (0: all)")
-    s.add_argument("--seed", type=COUNT, default=0, help="seeds Pyro and the particle filter")
+    s.add_argument("--seed", type=SEED, default=0, help="seeds Pyro and the particle filter")
     s.add_argument(
         "--preset",
         choices=list(presets.PRESETS),
@@ -629,8 +675,8 @@ def _add_pretrain(sub) -> None:
     )
     t.add_argument("--overwrite", action="store_true", help="replace network files in OUT")
     t.add_argument("--maze", default="moderate-medium", choices=sorted(SCALES), help="maze scale")
-    t.add_argument("--seed", type=COUNT, default=100, help="maze and training seed")
-    t.add_argument("--steps", type=POSITIVE, default=6000, help="steps of the training traversal")
+    t.add_argument("--seed", type=SEED, default=100, help="maze and training seed")
+    t.add_argument("--steps", type=STEPS, default=6000, help="steps of the training traversal")
     t.add_argument("--emission-steps", type=POSITIVE, default=3000, help="emission SGD steps")
     t.add_argument("--transition-epochs", type=POSITIVE, default=30, help="transition epochs")
     t.set_defaults(func=cmd_pretrain)
@@ -646,8 +692,10 @@ def _add_demo(sub) -> None:
     )
     _add_run_options(d, "out", "the traversal and the run's outputs")
     d.add_argument("--maze", default="moderate-medium", choices=sorted(SCALES), help="maze scale")
-    d.add_argument("--steps", type=POSITIVE, default=3000, help="number of time steps T")
-    d.add_argument("--seed", type=COUNT, default=1, help="seeds the simulation and SLAM")
+    d.add_argument(
+        "--steps", type=STEPS, default=3000, help=f"number of time steps T (at most {MAX_STEPS})"
+    )
+    d.add_argument("--seed", type=SEED, default=1, help="seeds the simulation and SLAM")
     d.add_argument(
         "--preset", choices=list(presets.PRESETS), default=presets.DEFAULT, help="SLAM preset"
     )
@@ -678,7 +726,7 @@ def _add_navigate_inputs(p) -> None:
     )
     p.add_argument(
         "--maze-seed",
-        type=COUNT,
+        type=SEED,
         help=f"maze seed (default: {DEFAULT_MAZE_SEED}, or the traversal's)",
     )
     p.add_argument(
@@ -687,8 +735,8 @@ def _add_navigate_inputs(p) -> None:
         help="q(M) fitted at the true poses, or at the pose means of an online SLAM run with "
         "the 'paper' preset (default: known_poses; with --from the run's own map)",
     )
-    p.add_argument("--seed", type=COUNT, default=1, help="seeds the simulation, fits and actuation")
-    p.add_argument("--traversal-steps", type=POSITIVE, default=3000, help="mapping traversal T")
+    p.add_argument("--seed", type=SEED, default=1, help="seeds the simulation, fits and actuation")
+    p.add_argument("--traversal-steps", type=STEPS, default=3000, help="mapping traversal T")
     p.add_argument("--fit-steps", type=POSITIVE, default=1500, help="SVI steps fitting q(M)")
     p.add_argument(
         "--emission-steps",

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import hashlib
 import json
 import logging
 import math
@@ -23,7 +24,7 @@ from ..inference import ParticleFilterFailed
 from ..io.ros_map import occupancy_grid, write_map
 from ..runtime import package_version
 from .build import MAX_BYTES, path_integration
-from .config import SLAMConfig, TrainingConfig
+from .config import ConfigError, SLAMConfig, TrainingConfig
 from .runner import SLAM
 
 log = logging.getLogger(__name__)
@@ -44,6 +45,7 @@ OUTPUTS = (
 )
 MAP_CELL = 0.05  # the finest cell of the exported occupancy grid (metres on real logs)
 MAP_BYTES_PER_CELL = 32  # the export's working set per cell (log odds, probabilities, image)
+MIN_CELLS_PER_RANGE = 4  # the coarsest map: the sensor's range spans this many grid cells
 
 
 class Interrupted(KeyboardInterrupt):
@@ -308,6 +310,12 @@ def _json_safe(value):
     return value
 
 
+def walls_fingerprint(walls: np.ndarray) -> str:
+    """A SHA-256 of the walls ``[W, 2, 2]`` (float64): which maze a run mapped."""
+    a = np.ascontiguousarray(walls, dtype=np.float64)
+    return hashlib.sha256(f"{a.shape}".encode() + a.tobytes()).hexdigest()[:32]
+
+
 def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float, run: dict):
     """What ``metrics.json`` holds; ``run``: ``preset``, ``seed`` and ``input`` (path)."""
     report = {
@@ -319,6 +327,7 @@ def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, wall: float,
         "seconds_per_step": wall / traversal.num_steps,
         "config": slam.cfg.to_dict(),
         "metadata": {k: traversal.metadata.get(k) for k in ("source", "seed", "maze")},
+        "walls": walls_fingerprint(traversal.walls),
     }
     if "skipped_lines" in traversal.metadata:  # a text log: what --lenient skipped
         report["skipped_lines"] = traversal.metadata["skipped_lines"]
@@ -399,6 +408,35 @@ def read_run(out: Path) -> dict:
     return {"metrics": report, **arrays}
 
 
+def check_settings(traversal: Traversal, config: SLAMConfig, src: str = "traversal") -> None:
+    """Refuse, before any work, settings that cannot mean anything for this (raw) traversal,
+    naming the field and its limit: a ``beam_stride`` that leaves fewer than two beams, a
+    ``range_clip`` beyond the sensor's range, and an ``emission.resolution`` whose grid cell is
+    not small against what the sensor sees (a beam must cross at least
+    ``MIN_CELLS_PER_RANGE`` cells)."""
+    lidar = config.emission.observation == "lidar"
+    n = traversal.num_beams
+    if lidar and config.beam_stride >= max(n, 2):
+        raise ConfigError(
+            f"beam_stride {config.beam_stride} leaves fewer than 2 of the {n} beams of {src} "
+            f"(at most {max(n - 1, 1)})"
+        )
+    top = math.ceil(traversal.max_range * 100) / 100  # (the real-log preset rounds its clip)
+    if config.range_clip is not None and config.range_clip > top:
+        raise ConfigError(
+            f"range_clip {config.range_clip:g} is beyond the sensor's range "
+            f"{traversal.max_range:g} in {src} (at most {top:g})"
+        )
+    reach = float(config.range_clip or traversal.max_range)
+    limit = reach / MIN_CELLS_PER_RANGE
+    if config.emission.resolution > limit:
+        raise ConfigError(
+            f"emission.resolution {config.emission.resolution:g} is too coarse for the "
+            f"sensor's range {reach:g} in {src}: a beam must cross at least "
+            f"{MIN_CELLS_PER_RANGE} grid cells (at most {limit:g})"
+        )
+
+
 def check_map_extent(slam: SLAM, path: np.ndarray, src: str = "traversal") -> None:
     """Refuse, before SLAM runs, a traversal whose exported occupancy grid (``map.pgm``) would
     not fit in memory: the dead-reckoned ``path [T, 3]`` plus the sensor's range, at the
@@ -459,6 +497,7 @@ def run_slam(
         kw = dict(locals())
         with run_folder(out, resume, overwrite and not resume, tuple(inputs or ())) as folder:
             return run_slam(**{**kw, "out": folder})
+    check_settings(traversal, config, source or "traversal")
     slam = SLAM(
         traversal,
         config,

@@ -411,6 +411,44 @@ def test_resume_refuses_other_walls(traversal, tmp_path, capsys):
     assert _files(out) == before
 
 
+def _no_work(*_a, **_kw):
+    pytest.fail("the command started working before refusing its input")
+
+
+def _exit_status(argv: list[str]) -> int:
+    """``cli.main(argv)``'s exit status, also where argparse exits."""
+    try:
+        return cli.main(argv)
+    except SystemExit as e:
+        return e.code
+
+
+def test_huge_sizes_refused_fast(traversal, tmp_path, capsys, monkeypatch):
+    """A size or number that cannot mean anything is refused before any work (nothing is
+    simulated, no SLAM is set up, nothing is written), exit status 2, naming the option or
+    field and its limit."""
+    monkeypatch.setattr(cli, "simulate_traversal", _no_work)
+    monkeypatch.setattr(outputs, "SLAM", _no_work)
+    o = str(tmp_path / "o")
+    slam = ["slam", str(traversal), "--out", o, "--config"]
+    cases = [
+        (["simulate", "--steps", "1000000000", "--out", f"{o}.npz"], "--steps", "at most"),
+        (["demo", "--steps", "1000000000", "--out", o], "--steps", "at most"),
+        (["simulate", "--seed", str(2**32), "--out", f"{o}.npz"], "--seed", "at most"),
+        (["slam", str(traversal), "--out", o, "--seed", str(2**40)], "--seed", "at most"),
+        (["simulate", "--distractors", "10000000", "--out", f"{o}.npz"], "--distract", "at most"),
+        ([*slam, '{"emission": {"resolution": 1e308}}'], "emission.resolution", "at most"),
+        ([*slam, '{"beam_stride": 1000}'], "beam_stride 1000", "at most 19"),
+        ([*slam, '{"range_clip": 1e308}'], "range_clip", "at most"),
+        ([*slam, '{"transition": {"sigma": [0.1, 0.1, 0.1]}}'], "transition.sigma", "learned"),
+    ]
+    for argv, field, limit in cases:
+        assert _exit_status(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert field in err and limit in err, (argv, err)
+    assert list(tmp_path.iterdir()) == []
+
+
 # ------------------------------------------------------------------------------ pretrain
 PRETRAIN_FAST = ["--steps", "60", "--emission-steps", "2", "--transition-epochs", "1"]
 
@@ -507,6 +545,21 @@ def test_navigate_reads_a_given_traversal(mapped, tmp_path, capsys):
     assert rc == (0 if report["found"] else 1)
     assert cli.main([*argv, "--maze-seed", "7", "--overwrite"]) == 2
     assert "--maze-seed 7" in capsys.readouterr().err
+
+
+def test_navigate_refuses_other_maze(mapped, tmp_path, capsys):
+    """``navigate --from RUN --traversal FILE`` with a traversal of another maze than the run
+    mapped is refused before any planning, naming the walls and the run."""
+    _, run = mapped
+    other = tmp_path / "other.npz"
+    sim = ["simulate", "--maze", "simple-small", "--steps", "300", "--seed", "9", "--no-plot"]
+    assert cli.main([*sim, "--out", str(other)]) == 0
+    out = tmp_path / "n.png"
+    argv = ["navigate", "--from", str(run), "--traversal", str(other), "--out", str(out)]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "'walls' differs from the maze the run --from" in err and str(run) in err
+    assert not out.exists()
 
 
 # ------------------------------------------------------------------------------ help
