@@ -34,7 +34,10 @@ NOTEBOOKS = [
     "05_navigation_exploration.ipynb",
 ]
 FOUND = sorted(p.name for p in NOTEBOOK_DIR.glob("*.ipynb"))
-CELL_TIMEOUT_S = 300  # per cell; a smoke run of a whole notebook takes < 60 s on one core
+# No wall-clock limit decides a verdict: a cell may take as long as the machine needs (a smoke
+# run of a whole notebook takes < 60 s on one idle core). nbclient's kernel start and output
+# waits need a number of seconds; this one never expires.
+NEVER_S = 10**9
 
 
 def test_every_notebook_is_executed():
@@ -84,7 +87,9 @@ def test_notebook_executes(name, monkeypatch, kernel_dir):
     nb = nbformat.read(NOTEBOOK_DIR / name, as_version=4)
     client = nbclient.NotebookClient(
         nb,
-        timeout=CELL_TIMEOUT_S,
+        timeout=None,  # no limit per cell
+        startup_timeout=NEVER_S,
+        iopub_timeout=NEVER_S,
         kernel_name=KERNEL_NAME,
         resources={"metadata": {"path": str(NOTEBOOK_DIR)}},
     )

@@ -248,7 +248,7 @@ def _signalled_run(argv: list[str], name: str) -> subprocess.CompletedProcess:
     its first checkpoint."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "SIGNAL": name}
     script = [sys.executable, "-c", SIGNAL_AT_FIRST_CHECKPOINT, *argv]
-    return subprocess.run(script, env=env, capture_output=True, timeout=300)
+    return subprocess.run(script, env=env, capture_output=True)
 
 
 # the default preset (its transition noise follows the cloud's trust in the map), shrunk; the
@@ -390,7 +390,7 @@ def test_concurrent_runs_refused(traversal, tmp_path, capsys):
         assert "another run is writing into it" in err and str(out) in err
         assert cli.main([*args, "--overwrite"]) == 2
     finally:
-        holder.communicate(b"", timeout=120)
+        holder.communicate(b"")
     assert holder.returncode == 0
     assert cli.main(args) == 0
 
