@@ -2,7 +2,10 @@
 
 A cell that raises fails the test. ``NOTEBOOKS`` is the explicit list CI runs; a notebook that
 is added to ``notebooks/`` without being listed here fails ``test_every_notebook_is_executed``,
-so no tutorial can silently go untested. Notebooks are committed without outputs.
+so no tutorial can silently go untested. Notebooks are committed without outputs; each executed
+copy is kept in ``build/executed/notebooks/`` for the documentation's tutorial pages
+(``docs/hooks/notebooks.py`` publishes it, stamped with the source's SHA-256, instead of
+executing the notebook again).
 
 The kernel runs the interpreter that runs pytest (``sys.executable``, ipykernel from the same
 venv), via a kernel spec written for the test session -- the stock ``python3`` spec launches
@@ -14,6 +17,7 @@ a CI environment cannot silently leave the notebooks out.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
@@ -34,6 +38,8 @@ NOTEBOOKS = [
     "05_navigation_exploration.ipynb",
 ]
 FOUND = sorted(p.name for p in NOTEBOOK_DIR.glob("*.ipynb"))
+EXECUTED = ROOT / "build" / "executed" / "notebooks"  # what docs/hooks/notebooks.py publishes
+STAMP = "pyro_slam_source_sha256"  # its metadata key: the SHA-256 of the executed notebook
 # No wall-clock limit decides a verdict: a cell may take as long as the machine needs (a smoke
 # run of a whole notebook takes < 60 s on one idle core). nbclient's kernel start and output
 # waits need a number of seconds; this one never expires.
@@ -108,3 +114,13 @@ def test_notebook_executes(name, monkeypatch, kernel_dir):
     ]
     assert not errors, f"{name}: error outputs {errors}"
     print(f"{name}: executed in {elapsed:.1f} s")
+    _store_executed(nb, NOTEBOOK_DIR / name)
+
+
+def _store_executed(nb, source: Path) -> None:
+    """Keep the executed notebook for the docs, stamped with its source's SHA-256."""
+    nb.metadata[STAMP] = hashlib.sha256(source.read_bytes()).hexdigest()
+    EXECUTED.mkdir(parents=True, exist_ok=True)
+    tmp = EXECUTED / f".{source.name}.tmp"
+    nbformat.write(nb, tmp)
+    os.replace(tmp, EXECUTED / source.name)
