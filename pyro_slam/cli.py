@@ -577,13 +577,16 @@ def _add_run_options(p, out: str, what: str) -> None:
     )
     again = p.add_mutually_exclusive_group()
     again.add_argument(
-        "--resume", action="store_true", help="continue the run in OUT from OUT/checkpoint.pt"
+        "--resume",
+        action="store_true",
+        help="continue the interrupted run kept beside OUT (.OUT.partial), or the run in OUT, "
+        "from its checkpoint.pt",
     )
     again.add_argument(
         "--overwrite",
         action="store_true",
-        help="replace the run in a non-empty OUT, once the new one has read its "
-        "input and configuration (a failure before leaves OUT as it was)",
+        help="replace the run in a non-empty OUT once the new one has finished (a run is "
+        "written beside OUT and swapped in at its end: a failure leaves OUT as it was)",
     )
     p.add_argument(
         "--checkpoint-every",
