@@ -829,7 +829,10 @@ def main(argv=None) -> int:
         return 2
     except KeyboardInterrupt as e:  # SIGINT, or SIGTERM during a run (outputs.Interrupted)
         sig = getattr(e, "signal", "SIGINT")
-        print(f"pyro-slam {args.command}: {one_line(e) if str(e) else sig}", file=sys.stderr)
+        print(
+            f"pyro-slam {args.command}: {one_line(e) if str(e) else 'interrupted (SIGINT)'}",
+            file=sys.stderr,
+        )
         return 128 + getattr(signal, sig, signal.SIGINT)
 
 

@@ -1,8 +1,8 @@
 """mkdocs hook: publish MathJax with the site, so that the maths renders offline (no CDN).
 
 MathJax 3 comes from the ``[docs]`` extra's ``django-static-mathjax`` (a copy of MathJax's own
-distribution; despite its name it needs no Django). Its SVG output, ``es5/tex-svg.js``, is one
-file that draws the glyphs itself: no web fonts, which a browser refuses to load from a site
+distribution; despite its name it needs no Django). Its SVG output, ``es5/tex-svg-full.js``, is
+one file that draws the glyphs itself: no web fonts, which a browser refuses to load from a site
 opened from disk. The file and MathJax's licence become ``javascripts/mathjax/`` of the site;
 ``mkdocs.yml`` loads it after ``javascripts/mathjax.js`` (its configuration).
 """
@@ -16,7 +16,9 @@ from mkdocs.exceptions import PluginError
 from mkdocs.structure.files import File
 
 PACKAGE = "mathjax"  # the import name of django-static-mathjax
-PUBLISHED = {"es5/tex-svg.js": "tex-svg.js", "LICENSE": "LICENSE"}  # MathJax's -> the site's
+# MathJax's file -> the site's: the SVG output with every TeX extension built in (\boldsymbol
+# and the like need no further file)
+PUBLISHED = {"es5/tex-svg-full.js": "tex-svg-full.js", "LICENSE": "LICENSE"}
 
 
 def mathjax_dir() -> Path:

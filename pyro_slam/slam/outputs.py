@@ -52,7 +52,7 @@ class Interrupted(KeyboardInterrupt):
     """The run was stopped by a signal (SIGINT or SIGTERM); ``signal``: its name."""
 
     def __init__(self, signal_name: str):
-        super().__init__(signal_name)
+        super().__init__(f"interrupted ({signal_name})")
         self.signal = signal_name
 
 
