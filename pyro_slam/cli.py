@@ -54,7 +54,16 @@ from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets
 from .slam.build import check_hits, prepare_traversal
 from .slam.components import emission_kind
 from .slam.config import parse_overrides
-from .slam.outputs import check_settings, read_run, run_folder, run_slam, walls_fingerprint
+from .slam.outputs import (
+    check_settings,
+    make_parents,
+    read_run,
+    remove_empty,
+    run_folder,
+    run_slam,
+    terminate_as_interrupt,
+    walls_fingerprint,
+)
 from .slam.training import pretrain_emission
 
 DEFAULT_MAZE, DEFAULT_MAZE_SEED = "moderate-medium", 1001  # navigate's own maze
@@ -204,19 +213,49 @@ def _writable(path: Path, what: str, overwrite: bool = True) -> None:
 DEMO_INPUTS = ("traversal.npz", "traversal.png")
 
 
+def _parents(path: Path, what: str) -> list[Path]:
+    """Create the missing folders above ``path`` (:func:`~pyro_slam.slam.outputs.make_parents`),
+    an error naming ``what`` where that is impossible."""
+    try:
+        return make_parents(path)
+    except OSError as e:
+        raise DatasetError(f"{what} {path}: cannot create its folder ({e.strerror or e})") from None
+
+
+def _save_with_plot(tr: Traversal, out: Path, plot_path: Path | None) -> Path | None:
+    """``out`` and the plot ``plot_path`` together: the plot is drawn beside its place and
+    moved there only once ``out`` is written (a failure leaves both previous files)."""
+    if plot_path is None:
+        tr.save(out)
+        return None
+    drawn = plot_path.with_name(f".{plot_path.name}.partial.png")
+    try:
+        plot_traversal(tr, drawn)
+        tr.save(out)
+        os.replace(drawn, plot_path)
+    finally:
+        drawn.unlink(missing_ok=True)
+    return plot_path
+
+
 def cmd_simulate(args) -> int:
     """Simulate a traversal, save it (``.npz``) and a plot of it; print a one-line summary.
-    Both outputs are checked first and written atomically, so a failure loses no file."""
+    Both outputs are checked first and written together at the end, so a failure (or SIGINT,
+    SIGTERM) loses no file and leaves no folder it created."""
     out = Path(args.out)
     plot_path = None if args.no_plot else Path(args.plot or out.with_suffix(".png"))
-    _writable(out, "--out")
-    if plot_path is not None:
-        _writable(plot_path, "--plot")
-    tr = simulate_traversal(
-        args.maze, args.steps, args.seed, images=args.images, distractors=args.distractors
-    )
-    plot = None if plot_path is None else plot_traversal(tr, plot_path)
-    out = tr.save(out)
+    made = _parents(out, "--out") + ([] if plot_path is None else _parents(plot_path, "--plot"))
+    try:
+        _writable(out, "--out")
+        if plot_path is not None:
+            _writable(plot_path, "--plot")
+        tr = simulate_traversal(
+            args.maze, args.steps, args.seed, images=args.images, distractors=args.distractors
+        )
+        plot = _save_with_plot(tr, out, plot_path)
+    except BaseException:
+        remove_empty(made)
+        raise
     dead = integrate_controls(tr.poses[0], tr.controls)
     drift = float(np.linalg.norm(dead[-1, :2] - tr.poses[-1, :2]))
     print(
@@ -819,7 +858,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
+        with terminate_as_interrupt():  # SIGTERM cleans up as SIGINT does
+            return args.func(args)
     except (DatasetError, FileNotFoundError, ValueError, MissingExtra) as e:
         print(f"pyro-slam {args.command}: error: {e}", file=sys.stderr)
         return 2

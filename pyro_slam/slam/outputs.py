@@ -57,7 +57,7 @@ class Interrupted(KeyboardInterrupt):
 
 
 @contextlib.contextmanager
-def _terminate_as_interrupt():
+def terminate_as_interrupt():
     """Within the block, SIGTERM raises :class:`Interrupted` (as SIGINT raises
     ``KeyboardInterrupt``), so that a terminated run cleans up like an interrupted one. Only
     in the main thread (elsewhere signals cannot be handled)."""
@@ -193,7 +193,7 @@ def _copy_folder(src: Path, dst: Path) -> None:
         raise
 
 
-def _make_parent(out: Path) -> list[Path]:
+def make_parents(out: Path) -> list[Path]:
     """Create the missing folders above ``out``; returns them, deepest first."""
     made, p = [], out.absolute().parent
     while not p.exists():
@@ -248,31 +248,31 @@ def run_folder(
     if out.absolute().name in ("", ".", ".."):
         out = Path(os.path.abspath(out))
     try:
-        made = _make_parent(out)
+        made = make_parents(out)
     except OSError as e:
         raise DatasetError(f"--out {out}: cannot create it ({e.strerror or e})") from None
     lock = _sibling(out.absolute(), ".lock")
     try:
         fd = _lock(lock, out)
     except OSError as e:
-        _remove_empty(made)
+        remove_empty(made)
         raise DatasetError(f"--out {out}: cannot write there ({e.strerror or e})") from None
     try:
         folder = RunFolder(out, resume, (*OUTPUTS, *keep))
         _check_out(out, resume, overwrite, folder.work, keep)
         if not resume and folder.work.exists():  # a discarded or checkpoint-less leftover
             shutil.rmtree(folder.work)
-        with _terminate_as_interrupt():
+        with terminate_as_interrupt():
             yield folder
     finally:
         with contextlib.suppress(OSError):
             os.unlink(lock)
         os.close(fd)
         if not out.exists():
-            _remove_empty(made)
+            remove_empty(made)
 
 
-def _remove_empty(folders: list[Path]) -> None:
+def remove_empty(folders: list[Path]) -> None:
     for d in folders:  # deepest first
         with contextlib.suppress(OSError):
             d.rmdir()

@@ -186,6 +186,10 @@ def _files(folder: Path) -> dict[str, str]:
     }
 
 
+def _no_space(*_args, **_kw):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
 def _diverge(*_args, **_kw):
     raise FloatingPointError("SVI loss became nan")
 
@@ -357,7 +361,25 @@ def test_failed_run_leaves_no_empty_folder(traversal, tmp_path, capsys, monkeypa
         m.setattr(SLAM, "run", _diverge)
         assert cli.main(["demo", *late, "--steps", "20"]) == 2
     assert "SLAM diverged" in capsys.readouterr().err
+    with monkeypatch.context() as m:
+        m.setattr(cli, "simulate_traversal", _no_space)
+        assert cli.main(["simulate", "--out", str(out / "t.npz"), "--steps", "20"]) == 2
     assert list(tmp_path.iterdir()) == []
+
+
+def test_simulate_failure_keeps_previous_files(traversal, tmp_path, capsys, monkeypatch):
+    """``simulate`` onto a previous traversal and plot that fails writing the traversal (a
+    full disk) leaves both files as they were: the new plot is moved in only with it."""
+    out = tmp_path / "t.npz"
+    sim = ["simulate", "--maze", "simple-small", "--steps", "20", "--out", str(out)]
+    assert cli.main(sim) == 0
+    before = _files(tmp_path)
+
+    with monkeypatch.context() as m:
+        m.setattr(cli.Traversal, "save", _no_space)
+        assert cli.main([*sim, "--seed", "4"]) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert _files(tmp_path) == before
 
 
 HOLD_THE_FOLDER = textwrap.dedent(
