@@ -272,37 +272,42 @@ def cmd_slam(args) -> int:
     (written beside it and swapped in at the end: a failure leaves ``--out`` as it was)."""
     torch.manual_seed(args.seed)
     with run_folder(args.out, args.resume, args.overwrite) as folder:
-        tr = _read(args)
-        if args.steps:
-            tr = tr.slice(0, min(args.steps, tr.num_steps))
-        name, config = _config(args, tr)
-        source = str(Path(args.traversal).resolve())
-        check_hits(prepare_traversal(tr, config), config, source)
-        emission = None
-        if args.emission is not None:
-            kind = emission_kind(config.emission.kind)
-            if kind.load is None:
-                raise DatasetError(
-                    f"--emission loads a pretrained emission network; emission.kind "
-                    f"{kind.name!r} has none"
-                )
-            emission = kind.load(args.emission, tr)
-        transition = pretrained.load_transition(args.transition) if args.transition else None
-        report = run_slam(
-            tr,
-            folder,
-            args.mode,
-            config,
-            emission,
-            transition,
-            args.resume,
-            seed=args.seed,
-            preset=name,
-            source=source,
-            checkpoint_every=args.checkpoint_every,
-        )
+        report = _slam(args, folder)
     _print_report(report, args.out)
     return 0
+
+
+def _slam(args, folder) -> dict:
+    """``slam``'s work inside its run folder (:class:`~pyro_slam.slam.outputs.RunFolder`)."""
+    tr = _read(args)
+    if args.steps:
+        tr = tr.slice(0, min(args.steps, tr.num_steps))
+    name, config = _config(args, tr)
+    source = str(Path(args.traversal).resolve())
+    check_hits(prepare_traversal(tr, config), config, source)
+    emission = None
+    if args.emission is not None:
+        kind = emission_kind(config.emission.kind)
+        if kind.load is None:
+            raise DatasetError(
+                f"--emission loads a pretrained emission network; emission.kind {kind.name!r} "
+                "has none"
+            )
+        emission = kind.load(args.emission, tr)
+    transition = pretrained.load_transition(args.transition) if args.transition else None
+    return run_slam(
+        tr,
+        folder,
+        args.mode,
+        config,
+        emission,
+        transition,
+        args.resume,
+        seed=args.seed,
+        preset=name,
+        source=source,
+        checkpoint_every=args.checkpoint_every,
+    )
 
 
 def _pretrain_out(args) -> Path:

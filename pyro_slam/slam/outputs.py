@@ -273,7 +273,9 @@ def run_folder(
 
 
 def remove_empty(folders: list[Path]) -> None:
-    for d in folders:  # deepest first
+    """Remove those of ``folders`` (deepest first, as :func:`make_parents` lists them) that
+    are empty."""
+    for d in folders:
         with contextlib.suppress(OSError):
             d.rmdir()
 
