@@ -382,6 +382,20 @@ def test_simulate_failure_keeps_previous_files(traversal, tmp_path, capsys, monk
     assert _files(tmp_path) == before
 
 
+def test_run_slam_into_a_path_replaces_it_whole(traversal, tmp_path):
+    """``run_slam`` given a folder's path (as the benchmarks call it) writes the run there,
+    and a second run replaces the first one's outputs but keeps the folder's other files."""
+    out = tmp_path / "api"
+    config = presets.configure(None, load(traversal), TINY)[1]
+    outputs.run_slam(load(traversal), out, "online", config, progress=False, seed=1)
+    (out / "notes.txt").write_text("mine")
+    (out / "map.png").write_bytes(b"stale")  # an output this (simulated) run does not write
+    report = outputs.run_slam(load(traversal), out, "online", config, progress=False, seed=2)
+    assert report["seed"] == 2 == json.loads((out / "metrics.json").read_text())["seed"]
+    assert (out / "notes.txt").read_text() == "mine" and not (out / "map.png").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["api"]
+
+
 HOLD_THE_FOLDER = textwrap.dedent(
     """
     import sys
