@@ -165,7 +165,7 @@ def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
                 "uses its network's own (scale it with transition.scale), so it would be "
                 "ignored"
             )
-        check_settings(traversal, config, str(args.traversal))
+        check_settings(traversal, config, str(getattr(args, "traversal", "traversal")))
     except ConfigError as e:
         raise DatasetError(f"--config: {e}") from None
     return name, config
