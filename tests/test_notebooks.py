@@ -66,6 +66,27 @@ def test_notebook_is_committed_without_outputs(name):
 KERNEL_NAME = "pyro-slam-test"
 
 
+def _client(nb) -> nbclient.NotebookClient:
+    """The client that executes ``nb`` in the test kernel, with no wall-clock limit."""
+    return nbclient.NotebookClient(
+        nb,
+        timeout=None,  # no limit per cell
+        startup_timeout=NEVER_S,
+        iopub_timeout=NEVER_S,
+        kernel_name=KERNEL_NAME,
+        resources={"metadata": {"path": str(NOTEBOOK_DIR)}},
+    )
+
+
+def test_no_wall_clock_limit_decides_a_verdict():
+    """A slow machine takes longer; it never fails a notebook: no limit on a cell, and the
+    kernel's start and its output are waited for as long as it takes."""
+    client = _client(nbformat.v4.new_notebook())
+    assert client.timeout is None or client.timeout < 0
+    assert client._get_timeout(None) is None
+    assert min(client.startup_timeout, client.iopub_timeout) >= 10**9  # about 30 years
+
+
 @pytest.fixture(scope="session")
 def kernel_dir(tmp_path_factory):
     """A JUPYTER_PATH entry holding a kernel spec for this very interpreter."""
@@ -91,14 +112,7 @@ def test_notebook_executes(name, monkeypatch, kernel_dir):
         "PYTHONPATH", os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
     )
     nb = nbformat.read(NOTEBOOK_DIR / name, as_version=4)
-    client = nbclient.NotebookClient(
-        nb,
-        timeout=None,  # no limit per cell
-        startup_timeout=NEVER_S,
-        iopub_timeout=NEVER_S,
-        kernel_name=KERNEL_NAME,
-        resources={"metadata": {"path": str(NOTEBOOK_DIR)}},
-    )
+    client = _client(nb)
     start = time.perf_counter()
     try:
         client.execute()
