@@ -22,6 +22,7 @@ import json
 import logging
 import math
 import os
+import signal
 import sys
 import textwrap
 from pathlib import Path
@@ -62,7 +63,17 @@ from .runtime import DEFAULT_THREADS
 from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets
 from .slam.build import check_hits, prepare_traversal
 from .slam.components import emission_kind
-from .slam.outputs import prepare_out_dir, read_run, run_slam
+from .slam.config import parse_overrides
+from .slam.outputs import (
+    check_settings,
+    make_parents,
+    read_run,
+    remove_empty,
+    run_folder,
+    run_slam,
+    terminate_as_interrupt,
+    walls_fingerprint,
+)
 from .slam.training import pretrain_emission
 
 DEFAULT_MAZE, DEFAULT_MAZE_SEED = "moderate-medium", 1001  # navigate's own maze
@@ -86,8 +97,9 @@ class _Help(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpF
         return super()._get_help_string(action)
 
 
-def _number(kind, low: float, inclusive: bool = True):
-    """An argparse type: ``kind`` (int or float), finite, at least (or above) ``low``."""
+def _number(kind, low: float, inclusive: bool = True, high: float = math.inf):
+    """An argparse type: ``kind`` (int or float), finite, at least (or above) ``low`` and at
+    most ``high``."""
 
     def parse(text: str):
         try:
@@ -97,6 +109,8 @@ def _number(kind, low: float, inclusive: bool = True):
         if not math.isfinite(value) or value < low or (value == low and not inclusive):
             bound = f">= {low:g}" if inclusive else f"> {low:g}"
             raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
+        if value > high:
+            raise argparse.ArgumentTypeError(f"must be at most {high:.0f}, got {text}")
         return value
 
     parse.__name__ = kind.__name__
@@ -106,6 +120,11 @@ def _number(kind, low: float, inclusive: bool = True):
 COUNT = _number(int, 0)  # 0 or more
 POSITIVE = _number(int, 1)
 FINITE = _number(float, -math.inf)
+MAX_SEED = 2**32 - 1  # numpy's legacy seeding takes 32-bit seeds
+SEED = _number(int, 0, high=MAX_SEED)
+MAX_STEPS = 1_000_000  # a simulated traversal's steps (about 1 GB with camera frames)
+STEPS = _number(int, 1, high=MAX_STEPS)
+MAX_DISTRACTORS = 1000
 
 
 def _bag_options(args, kind: str, path: Path) -> dict:
@@ -153,12 +172,22 @@ def _read(args) -> Traversal:
 def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
     """The preset named by ``--preset`` (default: ``real`` for a real log, else the default
     preset) for this traversal, with the ``--config`` JSON overrides (a string or a file):
-    :func:`pyro_slam.slam.presets.configure`, as the benchmarks choose theirs. An option that
-    the chosen preset does not use (``--odometry-noise`` outside the real-log presets) is
+    :func:`pyro_slam.slam.presets.configure`, as the benchmarks choose theirs. Settings the
+    chosen components would ignore (``--odometry-noise`` outside the real-log presets,
+    ``transition.sigma`` of a learned transition), or that do not fit the traversal, are
     refused."""
     noise = getattr(args, "odometry_noise", None)
     try:
         name, config = presets.configure(args.preset, traversal, args.config or None, noise)
+        given = parse_overrides(args.config) if args.config else {}
+        tran = given.get("transition") if isinstance(given, dict) else None
+        if isinstance(tran, dict) and "sigma" in tran and config.transition.kind == "learned":
+            raise ConfigError(
+                "transition.sigma is the kinematic transition's std; transition.kind 'learned' "
+                "uses its network's own (scale it with transition.scale), so it would be "
+                "ignored"
+            )
+        check_settings(traversal, config, str(getattr(args, "traversal", "traversal")))
     except ConfigError as e:
         raise DatasetError(f"--config: {e}") from None
     if noise is not None and presets.get(name).adapt is not presets.adapt_real_log:
@@ -216,19 +245,49 @@ def _writable(path: Path, what: str, overwrite: bool = True) -> None:
 DEMO_INPUTS = ("traversal.npz", "traversal.png")
 
 
+def _parents(path: Path, what: str) -> list[Path]:
+    """Create the missing folders above ``path`` (:func:`~pyro_slam.slam.outputs.make_parents`),
+    an error naming ``what`` where that is impossible."""
+    try:
+        return make_parents(path)
+    except OSError as e:
+        raise DatasetError(f"{what} {path}: cannot create its folder ({e.strerror or e})") from None
+
+
+def _save_with_plot(tr: Traversal, out: Path, plot_path: Path | None) -> Path | None:
+    """``out`` and the plot ``plot_path`` together: the plot is drawn beside its place and
+    moved there only once ``out`` is written (a failure leaves both previous files)."""
+    if plot_path is None:
+        tr.save(out)
+        return None
+    drawn = plot_path.with_name(f".{plot_path.name}.partial.png")
+    try:
+        plot_traversal(tr, drawn)
+        tr.save(out)
+        os.replace(drawn, plot_path)
+    finally:
+        drawn.unlink(missing_ok=True)
+    return plot_path
+
+
 def cmd_simulate(args) -> int:
     """Simulate a traversal, save it (``.npz``) and a plot of it; print a one-line summary.
-    Both outputs are checked first and written atomically, so a failure loses no file."""
+    Both outputs are checked first and written together at the end, so a failure (or SIGINT,
+    SIGTERM) loses no file and leaves no folder it created."""
     out = Path(args.out)
     plot_path = None if args.no_plot else Path(args.plot or out.with_suffix(".png"))
-    _writable(out, "--out")
-    if plot_path is not None:
-        _writable(plot_path, "--plot")
-    tr = simulate_traversal(
-        args.maze, args.steps, args.seed, images=args.images, distractors=args.distractors
-    )
-    plot = None if plot_path is None else plot_traversal(tr, plot_path)
-    out = tr.save(out)
+    made = _parents(out, "--out") + ([] if plot_path is None else _parents(plot_path, "--plot"))
+    try:
+        _writable(out, "--out")
+        if plot_path is not None:
+            _writable(plot_path, "--plot")
+        tr = simulate_traversal(
+            args.maze, args.steps, args.seed, images=args.images, distractors=args.distractors
+        )
+        plot = _save_with_plot(tr, out, plot_path)
+    except BaseException:
+        remove_empty(made)
+        raise
     dead = integrate_controls(tr.poses[0], tr.controls)
     drift = float(np.linalg.norm(dead[-1, :2] - tr.poses[-1, :2]))
     print(
@@ -242,9 +301,16 @@ def cmd_simulate(args) -> int:
 
 def cmd_slam(args) -> int:
     """Read the input, the configuration and the networks, then run SLAM into ``--out``
-    (with ``--overwrite`` the previous run there is replaced only after all of that)."""
+    (written beside it and swapped in at the end: a failure leaves ``--out`` as it was)."""
     torch.manual_seed(args.seed)
-    prepare_out_dir(args.out, args.resume, args.overwrite)
+    with run_folder(args.out, args.resume, args.overwrite) as folder:
+        report = _slam(args, folder)
+    _print_report(report, args.out)
+    return 0
+
+
+def _slam(args, folder) -> dict:
+    """``slam``'s work inside its run folder (:class:`~pyro_slam.slam.outputs.RunFolder`)."""
     tr = _read(args)
     if args.steps:
         tr = tr.slice(0, min(args.steps, tr.num_steps))
@@ -261,9 +327,9 @@ def cmd_slam(args) -> int:
             )
         emission = kind.load(args.emission, tr)
     transition = pretrained.load_transition(args.transition) if args.transition else None
-    report = run_slam(
+    return run_slam(
         tr,
-        args.out,
+        folder,
         args.mode,
         config,
         emission,
@@ -271,14 +337,11 @@ def cmd_slam(args) -> int:
         args.resume,
         seed=args.seed,
         preset=name,
-        overwrite=args.overwrite,
         source=source,
         checkpoint_every=args.checkpoint_every,
         threads=args.threads,
         argv=args.argv,
     )
-    _print_report(report, args.out)
-    return 0
 
 
 def _pretrain_out(args) -> Path:
@@ -349,25 +412,24 @@ def cmd_demo(args) -> int:
     """Simulate the default maze, run SLAM with the default preset, write plots and metrics."""
     torch.manual_seed(args.seed)
     out = Path(args.out)
-    prepare_out_dir(out, args.resume, args.overwrite, keep=DEMO_INPUTS)
-    tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
-    config = presets.get(args.preset).for_traversal(tr)
-    inputs = {"traversal.npz": tr.save, "traversal.png": lambda p: plot_traversal(tr, p)}
-    report = run_slam(
-        tr,
-        out,
-        args.mode,
-        config,
-        resume=args.resume,
-        seed=args.seed,
-        preset=args.preset,
-        overwrite=args.overwrite,
-        inputs=inputs,
-        source=str((out / "traversal.npz").resolve()),
-        checkpoint_every=args.checkpoint_every,
-        threads=args.threads,
-        argv=args.argv,
-    )
+    with run_folder(out, args.resume, args.overwrite, keep=DEMO_INPUTS) as folder:
+        tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
+        config = presets.get(args.preset).for_traversal(tr)
+        inputs = {"traversal.npz": tr.save, "traversal.png": lambda p: plot_traversal(tr, p)}
+        report = run_slam(
+            tr,
+            folder,
+            args.mode,
+            config,
+            resume=args.resume,
+            seed=args.seed,
+            preset=args.preset,
+            inputs=inputs,
+            source=str((out / "traversal.npz").resolve()),
+            checkpoint_every=args.checkpoint_every,
+            threads=args.threads,
+            argv=args.argv,
+        )
     _print_report(report, out)
     return 0
 
@@ -401,6 +463,23 @@ def _maze_of(tr: Traversal, src, args):
     return maze
 
 
+def _same_maze(report: dict, tr: Traversal, path, run_dir) -> None:
+    """Refuse a traversal ``tr`` of another maze than the one the run in ``run_dir`` mapped
+    (its ``metrics.json``: the walls' fingerprint, or, in older runs, the maze's name and
+    seed)."""
+    walls, maze = report.get("walls"), (report.get("metadata") or {}).get("maze")
+    if isinstance(walls, str):
+        same = walls == walls_fingerprint(tr.walls)
+    else:
+        same = maze is None or maze == tr.metadata.get("maze")
+    if not same:
+        what = "" if maze is None else f" (maze {maze.get('name')} seed {maze.get('seed')})"
+        raise DatasetError(
+            f"{path}: field 'walls' differs from the maze the run --from {run_dir} mapped"
+            f"{what}: give the traversal that run mapped"
+        )
+
+
 def _navigation_data(args):
     """``(maze, mapping traversal, run)``: simulated here (``--seed``), given
     (``--traversal``), or a finished SLAM run's (``--from``; ``run`` from
@@ -427,6 +506,8 @@ def _navigation_data(args):
     tr = read_any(path)
     if run is not None and run["metrics"]["steps"] != tr.num_steps:
         tr = tr.slice(0, min(run["metrics"]["steps"], tr.num_steps))  # (a run of --steps N)
+    if run is not None:
+        _same_maze(run["metrics"], tr, path, args.from_run)
     if run is not None and run["pose_mean"].shape[0] != tr.num_steps:
         raise DatasetError(
             f"{path}: {tr.num_steps} steps, but the run --from "
@@ -551,11 +632,18 @@ def _add_simulate(sub) -> None:
         "camera): the data set SLAM runs on, and a plot of it.",
     )
     p.add_argument("--maze", default="moderate-medium", choices=sorted(SCALES), help="maze scale")
-    p.add_argument("--steps", type=POSITIVE, default=3000, help="number of time steps T")
-    p.add_argument("--seed", type=COUNT, default=1, help="seeds maze, noise and driver")
+    p.add_argument(
+        "--steps", type=STEPS, default=3000, help=f"number of time steps T (at most {MAX_STEPS})"
+    )
+    p.add_argument("--seed", type=SEED, default=1, help="seeds maze, noise and driver")
     p.add_argument("--out", type=Path, default=Path("traversal.npz"), help="output .npz")
     p.add_argument("--images", action="store_true", help="also render 32x24 camera frames")
-    p.add_argument("--distractors", type=COUNT, default=0, help="boxes not in the floor map")
+    p.add_argument(
+        "--distractors",
+        type=_number(int, 0, high=MAX_DISTRACTORS),
+        default=0,
+        help=f"boxes not in the floor map (at most {MAX_DISTRACTORS})",
+    )
     p.add_argument("--plot", type=Path, default=None, help="output PNG (default: next to --out)")
     p.add_argument("--no-plot", action="store_true", help="do not write a PNG")
     p.set_defaults(func=cmd_simulate)
@@ -573,13 +661,16 @@ def _add_run_options(p, out: str, what: str) -> None:
     )
     again = p.add_mutually_exclusive_group()
     again.add_argument(
-        "--resume", action="store_true", help="continue the run in OUT from OUT/checkpoint.pt"
+        "--resume",
+        action="store_true",
+        help="continue the interrupted run kept beside OUT (.OUT.partial), or the run in OUT, "
+        "from its checkpoint.pt",
     )
     again.add_argument(
         "--overwrite",
         action="store_true",
-        help="replace the run in a non-empty OUT, once the new one has read its "
-        "input and configuration (a failure before leaves OUT as it was)",
+        help="replace the run in a non-empty OUT once the new one has finished (a run is "
+        "written beside OUT and swapped in at its end: a failure leaves OUT as it was)",
     )
     p.add_argument(
         "--checkpoint-every",
@@ -611,7 +702,7 @@ def _add_slam(sub) -> None:
     s.add_argument("traversal", type=Path, help="the input: .npz, .clf / .log, .bag or a folder")
     _add_run_options(s, "run", "the run's outputs")
     s.add_argument("--steps", type=COUNT, default=0, help="use only the first N steps (0: all)")
-    s.add_argument("--seed", type=COUNT, default=0, help="seeds Pyro and the particle filter")
+    s.add_argument("--seed", type=SEED, default=0, help="seeds Pyro and the particle filter")
     s.add_argument(
         "--preset",
         choices=list(presets.PRESETS),
@@ -694,8 +785,8 @@ def _add_pretrain(sub) -> None:
     )
     t.add_argument("--overwrite", action="store_true", help="replace network files in OUT")
     t.add_argument("--maze", default="moderate-medium", choices=sorted(SCALES), help="maze scale")
-    t.add_argument("--seed", type=COUNT, default=100, help="maze and training seed")
-    t.add_argument("--steps", type=POSITIVE, default=6000, help="steps of the training traversal")
+    t.add_argument("--seed", type=SEED, default=100, help="maze and training seed")
+    t.add_argument("--steps", type=STEPS, default=6000, help="steps of the training traversal")
     t.add_argument("--emission-steps", type=POSITIVE, default=3000, help="emission SGD steps")
     t.add_argument("--transition-epochs", type=POSITIVE, default=30, help="transition epochs")
     t.set_defaults(func=cmd_pretrain)
@@ -711,8 +802,10 @@ def _add_demo(sub) -> None:
     )
     _add_run_options(d, "out", "the traversal and the run's outputs")
     d.add_argument("--maze", default="moderate-medium", choices=sorted(SCALES), help="maze scale")
-    d.add_argument("--steps", type=POSITIVE, default=3000, help="number of time steps T")
-    d.add_argument("--seed", type=COUNT, default=1, help="seeds the simulation and SLAM")
+    d.add_argument(
+        "--steps", type=STEPS, default=3000, help=f"number of time steps T (at most {MAX_STEPS})"
+    )
+    d.add_argument("--seed", type=SEED, default=1, help="seeds the simulation and SLAM")
     d.add_argument(
         "--preset", choices=list(presets.PRESETS), default=presets.DEFAULT, help="SLAM preset"
     )
@@ -743,7 +836,7 @@ def _add_navigate_inputs(p) -> None:
     )
     p.add_argument(
         "--maze-seed",
-        type=COUNT,
+        type=SEED,
         help=f"maze seed (default: {DEFAULT_MAZE_SEED}, or the traversal's)",
     )
     p.add_argument(
@@ -752,8 +845,8 @@ def _add_navigate_inputs(p) -> None:
         help="q(M) fitted at the true poses, or at the pose means of an online SLAM run with "
         "the 'paper' preset (default: known_poses; with --from the run's own map)",
     )
-    p.add_argument("--seed", type=COUNT, default=1, help="seeds the simulation, fits and actuation")
-    p.add_argument("--traversal-steps", type=POSITIVE, default=3000, help="mapping traversal T")
+    p.add_argument("--seed", type=SEED, default=1, help="seeds the simulation, fits and actuation")
+    p.add_argument("--traversal-steps", type=STEPS, default=3000, help="mapping traversal T")
     p.add_argument("--fit-steps", type=POSITIVE, default=1500, help="SVI steps fitting q(M)")
     p.add_argument(
         "--emission-steps",
@@ -865,7 +958,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     args.argv = ["pyro-slam", *(sys.argv[1:] if argv is None else argv)]  # for metrics.json
     try:
-        with _logging(args):
+        with _logging(args), terminate_as_interrupt():  # SIGTERM cleans up as SIGINT does
             return args.func(args)
     except (DatasetError, FileNotFoundError, ValueError, MissingExtra) as e:
         print(f"pyro-slam {args.command}: error: {e}", file=sys.stderr)
@@ -874,6 +967,13 @@ def main(argv=None) -> int:
         why = f"{type(e).__name__}: {one_line(e)}"
         print(f"pyro-slam {args.command}: error: {why}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as e:  # SIGINT, or SIGTERM during a run (outputs.Interrupted)
+        sig = getattr(e, "signal", "SIGINT")
+        print(
+            f"pyro-slam {args.command}: {one_line(e) if str(e) else 'interrupted (SIGINT)'}",
+            file=sys.stderr,
+        )
+        return 128 + getattr(signal, sig, signal.SIGINT)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ occupancy-grid export). The extras add:
 ``[eval]``                evo: absolute trajectory error (ATE) in ``metrics.json`` and
                           :func:`pyro_slam.metrics.ate` / :func:`~pyro_slam.metrics.aligned_error`
 ``[ros]``                 rosbags: ROS 1 / ROS 2 bags (:func:`pyro_slam.io.read_rosbag`)
-``[notebooks]``           JupyterLab and a kernel for the tutorials in ``notebooks/``
+``[notebooks]``           JupyterLab, a kernel and evo for the tutorials in ``notebooks/``
 ``[docs]``                mkdocs and its plugins for the documentation site
 ``[dev]``                 pytest, hypothesis, ruff and the notebook runner of the test suite
 ========================  ===============================================================

@@ -212,6 +212,7 @@ def option_cases() -> list[Case]:
         ("--odometry-noise", "inf"),
         ("--mode", "both"),
         ("--preset", "nope"),
+        ("--seed", str(2**40)),
     ]:
         cases.append(Case(f"slam {opt} {bad}", [*s, opt, bad], opt))
     for opt, bad in [
@@ -221,6 +222,9 @@ def option_cases() -> list[Case]:
         ("--seed", "-1"),
         ("--distractors", "-2"),
         ("--maze", "huge"),
+        ("--steps", "1000000000"),
+        ("--seed", str(2**32)),
+        ("--distractors", "10000000"),
     ]:
         cases.append(Case(f"simulate {opt} {bad}", [*sim, opt, bad], opt))
     pre = ["pretrain", "--out", "p"]
@@ -237,6 +241,8 @@ def option_cases() -> list[Case]:
         ("--seed", "-1"),
         ("--mode", "sideways"),
         ("--preset", "best"),
+        ("--steps", "1000000000"),
+        ("--seed", str(2**32)),
     ]:
         cases.append(Case(f"demo {opt} {bad}", ["demo", "--out", "d", opt, bad], opt))
     nav = ["navigate", "--out", "n.png"]
@@ -245,7 +251,9 @@ def option_cases() -> list[Case]:
         ("--fit-steps", "-1"),
         ("--n-world", "5"),
         ("--maze-seed", "-1"),
+        ("--maze-seed", str(2**32)),
         ("--traversal-steps", "0"),
+        ("--traversal-steps", "1000000000"),
         ("--inverse-steps", "0"),
         ("--planner", "oracle"),
         ("--map", "none"),
@@ -279,6 +287,7 @@ def config_cases(shared) -> list[Case]:
         ("emission", "resolution", 0),
         ("emission", "resolution", -0.1),
         ("emission", "resolution", 1e-5),
+        ("emission", "resolution", 1e308),
         ("emission", "kind", "laser"),
         ("emission", "margin", -1),
         ("emission", "sigma", 0),
@@ -292,6 +301,7 @@ def config_cases(shared) -> list[Case]:
         ("transition", "scale", "big"),
         ("transition", "scale_trusted", [1, 1, None]),
         ("transition", "kind", "neural"),
+        ("transition", "sigma", [0.1, 0.1, 0.1]),  # the (default) learned transition ignores it
         ("training", "particles", 0),
         ("training", "chunks", -1),
         ("training", "chunk_length", 0),
@@ -331,6 +341,8 @@ def config_cases(shared) -> list[Case]:
         ("config a missing file", "missing.json", "missing.json"),
         ("config a very long non-JSON string", "x" * 5000, "--config"),
         ("config range_clip negative", '{"range_clip": -3}', "range_clip"),
+        ("config range_clip beyond the sensor", '{"range_clip": 1e308}', "range_clip"),
+        ("config beam_stride beyond the beams", '{"beam_stride": 1000}', "beam_stride"),
     ]:
         cases.append(Case(name, [*s, "--config", text], expect))
     return cases
@@ -508,6 +520,12 @@ def resume_cases(shared) -> list[Case]:
         Case("resume other preset", [*r, "--preset", "paper"], "emission.kind", _copy_run(shared)),
         Case("resume as offline", [*r, "--mode", "offline"], "online run", _copy_run(shared)),
         Case("a second run into a finished folder", r[:-1], "not empty", _copy_run(shared)),
+        Case(
+            "navigate a run with another maze's traversal",
+            ["navigate", "--from", "run", "--traversal", "other.npz", "--out", "n.png"],
+            "'walls'",
+            lambda d: (_copy_run(shared)(d), _sim(d, 5)),
+        ),
         Case(
             "demo into a finished folder",
             ["demo", "--out", "run", "--steps", "20"],

@@ -57,3 +57,90 @@ def test_notebook_readme_lists_every_notebook():
     text = (ROOT / "notebooks" / "README.md").read_text()
     missing = [p.name for p in sorted((ROOT / "notebooks").glob("*.ipynb")) if p.name not in text]
     assert not missing, f"notebooks/README.md does not list {missing}"
+
+
+# ------------------------------------------------------------------------------ the site
+def _orphan_table_rows(text: str) -> list[int]:
+    """Line numbers of table rows that follow a blank line inside a table: rows without a
+    header of their own (a blank line ends a Markdown table, so they are no table at all)."""
+    lines, found, fenced = text.splitlines(), [], False
+    for i, line in enumerate(lines):
+        if line.startswith("```"):
+            fenced = not fenced
+        if fenced or not line.startswith("|") or i < 2 or lines[i - 1].strip():
+            continue
+        header = i + 1 < len(lines) and re.match(r"^\|[\s:|-]+\|$", lines[i + 1].strip())
+        if lines[i - 2].startswith("|") and not header:
+            found.append(i + 1)
+    return found
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_tables_in_the_docs_are_not_split_by_a_blank_line(page):
+    rows = _orphan_table_rows(page.read_text())
+    assert not rows, f"{page.name}: table rows after a blank line at lines {rows}"
+
+
+def test_the_site_works_from_disk_and_offline():
+    """Links end in .html (no web server needed), and nothing is fetched from the network:
+    no script, style or font from another site."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):  # mkdocs.yml's !ENV tags: their default
+        pass
+
+    Loader.add_constructor("!ENV", lambda loader, node: None)
+    config = yaml.load((ROOT / "mkdocs.yml").read_text(), Loader=Loader)
+    assert config["use_directory_urls"] is False
+    assert config["theme"].get("font") is False  # the theme's default loads a font CDN
+    remote = [u for u in config.get("extra_javascript", []) + config.get("extra_css", [])]
+    assert not [u for u in remote if "://" in str(u)], remote
+    assert "docs/hooks/mathjax.py" in config["hooks"]
+
+
+def test_the_notebooks_extra_has_what_the_tutorials_use():
+    """A tutorial that reads the ATE needs evo (``metrics.json`` has no ATE without it)."""
+    import configparser
+
+    cfg = configparser.ConfigParser()
+    cfg.read(ROOT / "setup.cfg")
+    extra = cfg["options.extras_require"]["notebooks"]
+    notebooks = sorted((ROOT / "notebooks").glob("*.ipynb"))
+    uses_ate = [p.name for p in notebooks if "['ate']" in p.read_text()]
+    assert uses_ate, "no tutorial reads the ATE: this test checks nothing"
+    assert "evo" in extra, f"{uses_ate} read the ATE, which needs evo in the [notebooks] extra"
+
+
+def _hook(name: str):
+    pytest.importorskip("mkdocs")  # the [docs] extra
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"hook_{name}", ROOT / "docs" / "hooks" / name)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_mathjax_hook_names_the_package_it_needs(monkeypatch):
+    from mkdocs.exceptions import PluginError
+
+    hook = _hook("mathjax.py")
+    assert (hook.mathjax_dir() / "es5" / "tex-svg-full.js").is_file()
+    monkeypatch.setattr(hook.importlib.util, "find_spec", lambda _name: None)
+    with pytest.raises(PluginError, match="django-static-mathjax"):
+        hook.mathjax_dir()
+
+
+def test_notebook_pages_use_an_executed_copy_only_of_the_current_notebook(tmp_path, monkeypatch):
+    nbformat = pytest.importorskip("nbformat")
+    hook = _hook("notebooks.py")
+    monkeypatch.setattr(hook, "EXECUTED", tmp_path / "executed")
+    source = tmp_path / "n.ipynb"
+    nb = nbformat.v4.new_notebook(cells=[nbformat.v4.new_code_cell("1 + 1")])
+    nbformat.write(nb, source)
+    assert not hook.is_current(source)
+    hook.store_executed(nb, source)
+    assert hook.is_current(source)
+    nb.cells[0].source = "2 + 2"  # the notebook changed since its copy was executed
+    nbformat.write(nb, source)
+    assert not hook.is_current(source)

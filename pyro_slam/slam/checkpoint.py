@@ -2,8 +2,9 @@
 so a file can never run code), written atomically, and stamped with what they belong to.
 
 A checkpoint records a fingerprint of the data the run filters (a hash of the prepared
-observations, controls, mask, beam angles and start pose), the configuration, the seed and the
-mode. :func:`check` refuses a checkpoint whose fingerprint differs and names what differs.
+observations, controls, mask, beam angles, start pose and walls), the model it started from (its
+networks and map grid), the configuration, the seed and the mode. :func:`check` refuses a
+checkpoint whose fingerprint differs and names what differs.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from ..inference import Particles
 from .assemble import inserter
 from .loop import SLAMState
 
-FORMAT = 3
+FORMAT = 4
 
 
 class CheckpointError(DatasetError):
@@ -39,6 +40,13 @@ def data_fingerprint(*tensors) -> str:
         t = torch.as_tensor(t).detach().contiguous().cpu()
         h.update(f"{t.dtype}{tuple(t.shape)}".encode())
         h.update(t.numpy().tobytes())
+    return h.hexdigest()[:32]
+
+
+def state_fingerprint(state: dict) -> str:
+    """A SHA-256 of a ``state_dict``'s names and tensors."""
+    h = hashlib.sha256(",".join(state).encode())
+    h.update(data_fingerprint(*state.values()).encode())
     return h.hexdigest()[:32]
 
 
@@ -111,7 +119,9 @@ def check(path, saved: dict, expected: dict) -> None:
     """Raise :class:`CheckpointError` naming every field of the fingerprint that differs."""
     problems = []
     if saved.get("data") != expected["data"]:
-        problems.append("the data set (another traversal, length or sensor preparation)")
+        problems.append("the data set (another traversal, length, walls or sensor preparation)")
+    if saved.get("model") != expected["model"]:
+        problems.append("the model it started from (another --emission or --transition network)")
     problems += [f"config {d}" for d in _diff(saved.get("config"), expected["config"])]
     for key in ("seed", "mode"):
         if key in saved and key in expected and saved[key] != expected[key]:

@@ -4,29 +4,32 @@ checkpoint, written into one folder (what ``pyro-slam slam`` and ``pyro-slam dem
 from __future__ import annotations
 
 import contextlib
+import fcntl
+import hashlib
 import json
 import logging
 import math
 import os
 import shutil
-import tempfile
+import signal
+import threading
 import time
-from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 
 from .. import metrics, plotting
 from ..data import DatasetError, Traversal, atomic_write, one_line
+from ..inference import ParticleFilterFailed
 from ..io.ros_map import occupancy_grid, write_map
 from ..runtime import provenance, torch_threads
 from .build import MAX_BYTES, path_integration
-from .config import SLAMConfig
+from .config import ConfigError, SLAMConfig, TrainingConfig
 from .runner import SLAM
 
 log = logging.getLogger(__name__)
 
-# what a run writes into its folder (an --overwrite run removes these first)
+# what a run writes into its folder (an --overwrite run does not carry these over)
 OUTPUTS = (
     "checkpoint.pt",
     "metrics.json",
@@ -45,31 +48,184 @@ OUTPUTS = (
 INPUT_CHOICES = ("odometry_source", "laser_offset", "laser_offset_source", "frames")
 MAP_CELL = 0.05  # the finest cell of the exported occupancy grid (metres on real logs)
 MAP_BYTES_PER_CELL = 32  # the export's working set per cell (log odds, probabilities, image)
+MIN_CELLS_PER_RANGE = 4  # the coarsest map: the sensor's range spans this many grid cells
 
 
-def prepare_out_dir(
-    out: Path, resume: bool = False, overwrite: bool = False, keep: tuple[str, ...] = ()
-) -> None:
-    """Make ``out`` ready for a run, before any work: a writable folder that holds no other
-    run's results. A non-empty folder is refused unless ``resume`` (continue the run in it) or
-    ``overwrite`` (remove its run outputs first; other files stay); ``keep``: files this
-    command wrote there itself."""
-    out = Path(out)
+class Interrupted(KeyboardInterrupt):
+    """The run was stopped by a signal (SIGINT or SIGTERM); ``signal``: its name."""
+
+    def __init__(self, signal_name: str):
+        super().__init__(f"interrupted ({signal_name})")
+        self.signal = signal_name
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt():
+    """Within the block, SIGTERM raises :class:`Interrupted` (as SIGINT raises
+    ``KeyboardInterrupt``), so that a terminated run cleans up like an interrupted one. Only
+    in the main thread (elsewhere signals cannot be handled)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, _frame):
+        raise Interrupted(signal.Signals(signum).name)
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _sibling(out: Path, suffix: str) -> Path:
+    """The hidden path beside the folder ``out`` (``PARENT/.NAME<suffix>``)."""
+    return out.parent / f".{out.name}{suffix}"
+
+
+def _lock(path: Path, out: Path):
+    """An open file holding an exclusive ``flock`` on ``path`` (created if missing); a
+    :class:`DatasetError` naming ``out`` when another process holds it."""
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise DatasetError(
+                f"--out {out}: another run is writing into it (it holds {path}); wait for it "
+                "to finish or choose another folder"
+            ) from None
+        try:  # the holder before us may have removed the file: lock the one on disk
+            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                return fd
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+
+
+class RunFolder:
+    """The output folder ``out`` of one run, made ready by :func:`run_folder`.
+
+    A run writes into the hidden sibling folder ``work`` (``PARENT/.NAME.partial``), and only
+    :meth:`writing` finishing swaps it in as ``out``, whole: until then ``out`` keeps the
+    previous run, if any, as it was. Files of ``out`` that are not run outputs (``owned``) are
+    carried over into the new folder. An interrupted run (SIGINT, SIGTERM, a full disk) keeps
+    ``work`` where it holds a checkpoint, for ``--resume``; any other failure removes it.
+    """
+
+    def __init__(self, out: Path, resume: bool, owned: tuple[str, ...]):
+        self.out, self.resume, self.owned = Path(out), resume, owned
+        self.work = _sibling(self.out.absolute(), ".partial")
+        self.checkpoint = self.work / "checkpoint.pt"
+
+    @property
+    def resume_from(self) -> Path:
+        """The checkpoint ``--resume`` continues: the interrupted run's kept beside ``out``,
+        else the finished run's in ``out``."""
+        return self.checkpoint if self.checkpoint.is_file() else self.out / "checkpoint.pt"
+
+    @contextlib.contextmanager
+    def writing(self):
+        """The block that writes the run into :attr:`work` (yielded); swapped in as ``out``
+        at its end. A failure leaves ``out`` as it was; :attr:`work` stays only where it was
+        there before (a resumed interrupted run) or, after an interruption or a write error,
+        where it holds a checkpoint."""
+        existed = self.work.exists()
+        if self.resume and not existed and (self.out / "checkpoint.pt").is_file():
+            _copy_folder(self.out, self.work)  # continue a finished run: on a copy of it
+        self.work.mkdir(exist_ok=True)
+        try:
+            yield self.work
+            self._swap()
+        except BaseException as e:
+            stopped = isinstance(e, (KeyboardInterrupt, OSError))
+            kept = (existed or stopped) and self.checkpoint.is_file()
+            if not kept:
+                shutil.rmtree(self.work, ignore_errors=True)
+            if isinstance(e, OSError):
+                raise DatasetError(self._describe(e, kept)) from None
+            if isinstance(e, KeyboardInterrupt):
+                e.args = (self._describe(e, kept),)
+            raise
+
+    def _describe(self, e: BaseException, kept: bool) -> str:
+        """One line: what stopped the run, that ``out`` is unchanged, what was kept."""
+        if isinstance(e, OSError):
+            where = f" ({e.filename})" if e.filename else ""
+            what = f"cannot write the run: {e.strerror or one_line(e)}{where}"
+        else:
+            what = f"interrupted ({getattr(e, 'signal', 'SIGINT')})"
+        line = f"--out {self.out}: {what}; the folder is as it was before this run"
+        if kept:
+            line += f"; the run so far is kept in {self.work} (--resume continues it)"
+        return line
+
+    def _swap(self) -> None:
+        """Make :attr:`work` ``out``: carry the previous folder's own files over, then two
+        renames (the previous folder is removed only once the new one is in place)."""
+        if not self.out.exists():
+            os.rename(self.work, self.out)
+            return
+        for p in self.out.iterdir():
+            if p.name not in self.owned and not (self.work / p.name).exists():
+                _copy_entry(p, self.work / p.name)
+        old = _sibling(self.out.absolute(), f".previous-{os.getpid()}")
+        os.rename(self.out, old)
+        try:
+            os.rename(self.work, self.out)
+        except BaseException:
+            os.rename(old, self.out)
+            raise
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _copy_entry(src: Path, dst: Path) -> None:
+    if src.is_dir() and not src.is_symlink():
+        shutil.copytree(src, dst, symlinks=True)
+    else:
+        shutil.copy2(src, dst, follow_symlinks=False)
+
+
+def _copy_folder(src: Path, dst: Path) -> None:
+    """Copy the folder ``src`` into a new folder ``dst`` (removed again if the copy fails)."""
+    try:
+        shutil.copytree(src, dst, symlinks=True)
+    except BaseException:
+        shutil.rmtree(dst, ignore_errors=True)
+        raise
+
+
+def make_parents(out: Path) -> list[Path]:
+    """Create the missing folders above ``out``; returns them, deepest first."""
+    made, p = [], out.absolute().parent
+    while not p.exists():
+        made.append(p)
+        p = p.parent
+    for d in reversed(made):
+        d.mkdir()
+    return made
+
+
+def _check_out(out: Path, resume: bool, overwrite: bool, work: Path, keep) -> None:
+    """Refuse ``out`` (before any work) where it is no folder, holds another run's results
+    (without ``resume`` / ``overwrite``), or where resuming has no checkpoint."""
     if out.exists() and not out.is_dir():
         raise DatasetError(f"--out {out}: exists and is not a folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / f".write-test-{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as e:
-        raise DatasetError(f"--out {out}: cannot write there ({e.strerror or e})") from None
-    present = sorted(
-        p.name for p in out.iterdir() if not p.name.startswith(".") and p.name not in keep
-    )
+    present = []
+    if out.is_dir():
+        present = sorted(
+            p.name for p in out.iterdir() if not p.name.startswith(".") and p.name not in keep
+        )
+    interrupted = (work / "checkpoint.pt").is_file()
     if resume:
-        if not (out / "checkpoint.pt").is_file():
+        if not interrupted and not (out / "checkpoint.pt").is_file():
             raise DatasetError(f"{out / 'checkpoint.pt'}: no checkpoint to resume from")
+    elif interrupted and not overwrite:
+        raise DatasetError(
+            f"--out {out}: an interrupted run into it is kept in {work}; use --resume to "
+            "continue it, or --overwrite to discard it"
+        )
     elif present and not overwrite:
         shown = ", ".join(present[:4]) + (", ..." if len(present) > 4 else "")
         raise DatasetError(
@@ -79,29 +235,52 @@ def prepare_out_dir(
 
 
 @contextlib.contextmanager
-def replacing(out: Path, names: Iterable[str], overwrite: bool = True):
-    """Replace the files ``names`` of a previous run in the folder ``out`` (``overwrite``;
-    otherwise the block just runs) only once the new run has written one of its own.
+def run_folder(
+    out: Path, resume: bool = False, overwrite: bool = False, keep: tuple[str, ...] = ()
+):
+    """Make ``out`` ready for a run, before any work, and hold it for the block: a
+    :class:`RunFolder` (write the run inside ``folder.writing()``).
 
-    Enter the block after the input and configuration have been read: the previous files are
-    moved into a hidden folder ``out/.previous-*`` when it starts and deleted when it ends. If
-    it fails before it wrote any of ``names``, they are moved back: ``out`` is as it was. (A
-    process killed in between leaves them in that hidden folder.)"""
-    out, names = Path(out), tuple(names)
-    old = [n for n in names if (out / n).exists()] if overwrite else []
-    backup = Path(tempfile.mkdtemp(prefix=".previous-", dir=out)) if old else None
-    for n in old:
-        os.replace(out / n, backup / n)
+    ``out`` is refused when it is no folder, when another process holds its lock (the file
+    ``PARENT/.NAME.lock``), or when it holds other results unless ``resume`` (continue the run
+    in it, or the interrupted one kept beside it) or ``overwrite`` (replace it once the new run
+    has finished; files that are not run outputs stay). ``keep``: files the command itself
+    writes there (not counted as another run's). Folders created for ``out`` and not used are
+    removed again at the end of the block."""
+    out = Path(out)
+    if out.absolute().name in ("", ".", ".."):
+        out = Path(os.path.abspath(out))
     try:
-        yield
-    except BaseException:
-        if backup is not None and not any((out / n).exists() for n in names):
-            for n in old:
-                os.replace(backup / n, out / n)
-        raise
+        made = make_parents(out)
+    except OSError as e:
+        raise DatasetError(f"--out {out}: cannot create it ({e.strerror or e})") from None
+    lock = _sibling(out.absolute(), ".lock")
+    try:
+        fd = _lock(lock, out)
+    except OSError as e:
+        remove_empty(made)
+        raise DatasetError(f"--out {out}: cannot write there ({e.strerror or e})") from None
+    try:
+        folder = RunFolder(out, resume, (*OUTPUTS, *keep))
+        _check_out(out, resume, overwrite, folder.work, keep)
+        if not resume and folder.work.exists():  # a discarded or checkpoint-less leftover
+            shutil.rmtree(folder.work)
+        with terminate_as_interrupt():
+            yield folder
     finally:
-        if backup is not None:
-            shutil.rmtree(backup, ignore_errors=True)
+        with contextlib.suppress(OSError):
+            os.unlink(lock)
+        os.close(fd)
+        if not out.exists():
+            remove_empty(made)
+
+
+def remove_empty(folders: list[Path]) -> None:
+    """Remove those of ``folders`` (deepest first, as :func:`make_parents` lists them) that
+    are empty."""
+    for d in folders:
+        with contextlib.suppress(OSError):
+            d.rmdir()
 
 
 def _write_trajectories(out: Path, traversal: Traversal, res: dict) -> None:
@@ -136,6 +315,12 @@ def _json_safe(value):
     return value
 
 
+def walls_fingerprint(walls: np.ndarray) -> str:
+    """A SHA-256 of the walls ``[W, 2, 2]`` (float64): which maze a run mapped."""
+    a = np.ascontiguousarray(walls, dtype=np.float64)
+    return hashlib.sha256(f"{a.shape}".encode() + a.tobytes()).hexdigest()[:32]
+
+
 def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, run: dict):
     """What ``metrics.json`` holds: nothing that differs between two runs of the same command
     (the timings are in ``timing.json``); ``run``: ``preset``, ``seed``, ``input`` (path) and
@@ -146,6 +331,7 @@ def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, run: dict):
         "steps": traversal.num_steps,
         "config": slam.cfg.to_dict(),
         "metadata": {k: traversal.metadata.get(k) for k in ("source", "seed", "maze")},
+        "walls": walls_fingerprint(traversal.walls),
     }
     for key in INPUT_CHOICES:  # a real log's: where odometry and the laser's mount came from
         if key in traversal.metadata:
@@ -230,6 +416,35 @@ def read_run(out: Path) -> dict:
     return {"metrics": report, **arrays}
 
 
+def check_settings(traversal: Traversal, config: SLAMConfig, src: str = "traversal") -> None:
+    """Refuse, before any work, settings that cannot mean anything for this (raw) traversal,
+    naming the field and its limit: a ``beam_stride`` that leaves fewer than two beams, a
+    ``range_clip`` beyond the sensor's range, and an ``emission.resolution`` whose grid cell is
+    not small against what the sensor sees (a beam must cross at least
+    ``MIN_CELLS_PER_RANGE`` cells)."""
+    lidar = config.emission.observation == "lidar"
+    n = traversal.num_beams
+    if lidar and config.beam_stride >= max(n, 2):
+        raise ConfigError(
+            f"beam_stride {config.beam_stride} leaves fewer than 2 of the {n} beams of {src} "
+            f"(at most {max(n - 1, 1)})"
+        )
+    top = math.ceil(traversal.max_range * 100) / 100  # (the real-log preset rounds its clip)
+    if config.range_clip is not None and config.range_clip > top:
+        raise ConfigError(
+            f"range_clip {config.range_clip:g} is beyond the sensor's range "
+            f"{traversal.max_range:g} in {src} (at most {top:g})"
+        )
+    reach = float(config.range_clip or traversal.max_range)
+    limit = reach / MIN_CELLS_PER_RANGE
+    if config.emission.resolution > limit:
+        raise ConfigError(
+            f"emission.resolution {config.emission.resolution:g} is too coarse for the "
+            f"sensor's range {reach:g} in {src}: a beam must cross at least "
+            f"{MIN_CELLS_PER_RANGE} grid cells (at most {limit:g})"
+        )
+
+
 def check_map_extent(slam: SLAM, path: np.ndarray, src: str = "traversal") -> None:
     """Refuse, before SLAM runs, a traversal whose exported occupancy grid (``map.pgm``) would
     not fit in memory: the dead-reckoned ``path [T, 3]`` plus the sensor's range, at the
@@ -247,9 +462,25 @@ def check_map_extent(slam: SLAM, path: np.ndarray, src: str = "traversal") -> No
         )
 
 
+def diverged(e: Exception, cfg: SLAMConfig) -> DatasetError:
+    """A one-line error for a run whose SVI loss or particle weights stopped being finite
+    (``e``), naming the settings that most likely caused it."""
+    t, em = cfg.training, cfg.emission
+    lr = f"training.lr {t.lr:g}"
+    if isinstance(e, FloatingPointError) or t.lr > 1:  # an SVI step of that size breaks q(M)
+        default = TrainingConfig().lr
+        cause = f"{lr} too large (default {default:g}), or training.lr_emission {t.lr_emission:g}"
+    else:
+        cause = (
+            f"emission.sigma {em.sigma:g} too small for the sensor's noise, "
+            f"filter.particles {cfg.filter.particles} too few, or {lr} too large"
+        )
+    return DatasetError(f"SLAM diverged ({one_line(e)}): most likely {cause}")
+
+
 def run_slam(
     traversal: Traversal,
-    out: Path,
+    out: Path | RunFolder,
     mode: str,
     config: SLAMConfig,
     emission=None,
@@ -258,7 +489,7 @@ def run_slam(
     progress: bool = True,
     seed: int = 0,
     preset: str | None = None,
-    overwrite: bool = False,
+    overwrite: bool = True,
     source: str | None = None,
     checkpoint_every: int = 1000,
     inputs: dict | None = None,
@@ -266,22 +497,28 @@ def run_slam(
     argv: list[str] | None = None,
 ) -> dict:
     """SLAM on ``traversal`` writing plots, trajectories, metrics and a checkpoint (every
-    ``checkpoint_every`` steps) into the folder ``out`` (made ready by :func:`prepare_out_dir`
-    first; ``overwrite``: the previous run's outputs are replaced only once SLAM has been set
-    up, see :func:`replacing`). ``source``: the input's path, recorded in ``metrics.json`` with
-    its SHA-256; ``inputs``: files the command writes into ``out`` first, ``{name:
-    write(path)}`` (the demo's traversal); ``threads``: torch intra-op threads for the whole
-    run (:func:`~pyro_slam.runtime.thread_count`); ``argv``: the command line recorded in
-    ``metrics.json``. Returns the report written to ``metrics.json`` together with the
-    timings written to ``timing.json`` (``wall_time_s``, summed over the sessions of a resumed
-    run, ``seconds_per_step``, ``wall_time_session_s`` and ``resumed``)."""
+    ``checkpoint_every`` steps) into the folder ``out``: a :class:`RunFolder` made ready by
+    :func:`run_folder` (a path: made ready here, with ``resume`` / ``overwrite``). The run is
+    written beside it and swapped in at the end (a failure leaves ``out`` as it was; a
+    diverged filter raises :func:`diverged`'s error). ``source``: the input's path, recorded
+    in ``metrics.json`` with its SHA-256; ``inputs``: files the command writes into the run
+    first, ``{name: write(path)}`` (the demo's traversal); ``threads``: torch intra-op threads
+    for the whole run (:func:`~pyro_slam.runtime.thread_count`); ``argv``: the command line
+    recorded in ``metrics.json``. Returns the report written to ``metrics.json`` together with
+    the timings written to ``timing.json`` (``wall_time_s``, summed over the sessions of a
+    resumed run, ``seconds_per_step``, ``wall_time_session_s`` and ``resumed``)."""
+    if not isinstance(out, RunFolder):
+        kw = dict(locals())
+        with run_folder(out, resume, overwrite and not resume, tuple(inputs or ())) as folder:
+            return run_slam(**{**kw, "out": folder})
+    check_settings(traversal, config, source or "traversal")
     with torch_threads(threads) as n:
         slam = SLAM(
             traversal,
             config,
             transition,
             emission,
-            Path(out) / "checkpoint.pt",
+            out.checkpoint,
             checkpoint_every=checkpoint_every,
             seed=seed,
             threads=n,
@@ -289,39 +526,36 @@ def run_slam(
         dead_reckoning = path_integration(traversal, slam.model.transition)
         check_map_extent(slam, dead_reckoning, source or "traversal")
         if resume:
-            slam.resume(Path(out) / "checkpoint.pt")
-        with replacing(out, (*(inputs or {}), *OUTPUTS), overwrite):
-            run = {"preset": preset, "seed": seed, "input": source, "resumed": resume}
-            return _run_and_write(
-                slam, traversal, Path(out), mode, dead_reckoning, run, argv, inputs or {}, progress
-            )
+            slam.resume(out.resume_from)
+        run = {"preset": preset, "seed": seed, "input": source}
+        with out.writing() as work:
+            for name, write in (inputs or {}).items():
+                write(work / name)
+            t0 = time.perf_counter()
+            try:
+                res = slam.run(mode, progress=progress)
+            except (FloatingPointError, ParticleFilterFailed) as e:
+                raise diverged(e, slam.cfg) from None
+            timing = {
+                "wall_time_s": slam.state.wall_time_s,  # summed over the sessions
+                "seconds_per_step": slam.state.wall_time_s / traversal.num_steps,
+                "wall_time_session_s": time.perf_counter() - t0,
+                "resumed": bool(resume),
+            }
+            res.update(mode=mode, path_integration=dead_reckoning)
+            run.update(provenance(slam.threads, argv, source))
+            return _write_run(work, slam, traversal, res, run, timing, progress)
 
 
-def _run_and_write(slam, traversal, out, mode, dead_reckoning, run, argv, inputs, progress):
-    """The body of :func:`run_slam` once SLAM is set up: write ``inputs``, run, write the
-    outputs; returns the report and the timings."""
-    for name, write in inputs.items():
-        write(out / name)
-    t0 = time.perf_counter()
-    res = slam.run(mode, progress=progress)
-    session = time.perf_counter() - t0
-    wall = slam.state.wall_time_s  # summed over the sessions of a resumed run
-    resumed = run.pop("resumed")
-    res["mode"] = mode
-    res["path_integration"] = dead_reckoning
-    _write_trajectories(out, traversal, res)
-    run = {**run, **provenance(slam.threads, argv, run["input"])}
-    report = _json_safe(_report(slam, traversal, res, mode, run))
-    timing = {
-        "wall_time_s": wall,
-        "seconds_per_step": wall / traversal.num_steps,
-        "wall_time_session_s": session,
-        "resumed": resumed,
-    }
+def _write_run(work: Path, slam: SLAM, traversal: Traversal, res: dict, run, timing, progress):
+    """Write a finished run's files into ``work``: trajectories, ``metrics.json``,
+    ``timing.json``, plots, the occupancy grid; returns the report and the timings."""
+    _write_trajectories(work, traversal, res)
+    report = _json_safe(_report(slam, traversal, res, res["mode"], run))
     for name, data in (("metrics.json", report), ("timing.json", timing)):
         text = json.dumps(data, indent=2, default=float)
-        atomic_write(out / name, lambda f, text=text: f.write(text.encode()))
-    _plots(out, slam, traversal, res)
+        atomic_write(work / name, lambda f, text=text: f.write(text.encode()))
+    _plots(work, slam, traversal, res)
     if slam.cfg.emission.observation == "lidar":
-        _occupancy(out, slam, res, progress)
+        _occupancy(work, slam, res, progress)
     return {**report, **timing}

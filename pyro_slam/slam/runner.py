@@ -27,6 +27,7 @@ from ..runtime import thread_count, torch_threads
 from . import checkpoint, loop, presets
 from .assemble import assemble
 from .build import check_size, prepare_traversal, traversal_tensors
+from .checkpoint import state_fingerprint
 from .config import SLAMConfig
 from .loop import Phase, SLAMState
 
@@ -102,6 +103,8 @@ class SLAM:
         self.scope = ParamScope()  # this run's parameters (``with slam.scope():``)
         with self.scope():
             assemble(self, transition, emission, learn_emission, guide, prior, noise, smc)
+        # the networks and map grid the run starts from (given, shipped or drawn from the seed)
+        self.model_fingerprint = state_fingerprint(self.model.state_dict())
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
         self.particles: Particles | None = None
         self.state: SLAMState | None = None
@@ -189,11 +192,22 @@ class SLAM:
 
     # --------------------------------------------------------------------------- checkpoints
     def fingerprint(self) -> dict:
-        """What a checkpoint of this run belongs to: the data, the configuration, the seed."""
+        """What a checkpoint of this run belongs to: the data (with the walls, which shape the
+        map grid), the configuration, the seed and the model it started from."""
         data = checkpoint.data_fingerprint(
-            self.obs, self.ctl, self.mask, self.init_pose, torch.as_tensor(self.tr.beam_angles)
+            self.obs,
+            self.ctl,
+            self.mask,
+            self.init_pose,
+            torch.as_tensor(self.tr.beam_angles),
+            torch.as_tensor(self.tr.walls),
         )
-        return {"data": data, "config": self.cfg.to_dict(), "seed": self.seed}
+        return {
+            "data": data,
+            "config": self.cfg.to_dict(),
+            "seed": self.seed,
+            "model": self.model_fingerprint,
+        }
 
     def state_dict(self) -> dict:
         """Everything :meth:`resume` needs: tensors and plain data only

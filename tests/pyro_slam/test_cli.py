@@ -2,6 +2,7 @@
 bad input."""
 
 import argparse
+import errno
 import hashlib
 import json
 import os
@@ -19,7 +20,7 @@ from pyro_slam import cli, pretrained
 from pyro_slam.data import load
 from pyro_slam.planning import GroundTruthEnv, plan
 from pyro_slam.runtime import package_version
-from pyro_slam.slam import SLAM, SLAMConfig, checkpoint, presets, runner
+from pyro_slam.slam import SLAM, SLAMConfig, checkpoint, outputs, presets, runner
 from simulators import make_maze
 
 REPO = Path(__file__).resolve().parents[2]
@@ -205,6 +206,10 @@ def _files(folder: Path) -> dict[str, str]:
     }
 
 
+def _no_space(*_args, **_kw):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
 def _diverge(*_args, **_kw):
     raise FloatingPointError("SVI loss became nan")
 
@@ -234,18 +239,18 @@ def test_overwrite_keeps_previous_run_on_bad_input(traversal, tmp_path, capsys, 
         assert cli.main(argv) == 2, argv
         assert named in capsys.readouterr().err
         assert _files(out) == before, argv
-    # a failure after the input was read but before the new run wrote anything: put back
+    # a failure after the input was read: a one-line error, the previous run untouched
     with monkeypatch.context() as m:
         m.setattr(SLAM, "run", _diverge)
-        with pytest.raises(FloatingPointError):
-            cli.main([*args, "--overwrite"])
+        assert cli.main([*args, "--overwrite"]) == 2
+    assert "SLAM diverged" in capsys.readouterr().err
     assert _files(out) == before
     assert cli.main([*args, "--overwrite", "--seed", "5"]) == 0
     assert json.loads((out / "metrics.json").read_text())["seed"] == 5
     assert sorted(_files(out)) == sorted(before)  # the same outputs, none left behind
 
 
-KILL_AT_FIRST_CHECKPOINT = textwrap.dedent(
+SIGNAL_AT_FIRST_CHECKPOINT = textwrap.dedent(
     """
     import os, signal, sys
     import torch
@@ -253,13 +258,23 @@ KILL_AT_FIRST_CHECKPOINT = textwrap.dedent(
     from pyro_slam import cli
     from pyro_slam.slam import SLAM
     save = SLAM.save
-    def save_and_die(self, path):
+    def save_and_signal(self, path):
         save(self, path)
-        os.kill(os.getpid(), signal.SIGKILL)
-    SLAM.save = save_and_die
+        os.kill(os.getpid(), getattr(signal, os.environ["SIGNAL"]))
+    SLAM.save = save_and_signal
     sys.exit(cli.main(sys.argv[1:]))
     """
 )
+
+
+def _signalled_run(argv: list[str], name: str) -> subprocess.CompletedProcess:
+    """``pyro-slam ARGV`` in a new process that sends itself the signal ``name`` right after
+    its first checkpoint."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "SIGNAL": name}
+    script = [sys.executable, "-c", SIGNAL_AT_FIRST_CHECKPOINT, *argv]
+    return subprocess.run(script, env=env, capture_output=True)
+
+
 # the default preset (its transition noise follows the cloud's trust in the map), shrunk; the
 # first checkpoint (step 5) follows an SVI step (step 4), so the map has changed since the last
 # weighing: the trust must come from the checkpoint, not be recomputed
@@ -276,11 +291,11 @@ def _assert_resume_is_byte_identical(traversal, tmp_path, mode):
     args = [str(traversal), "--mode", mode, "--config", RESUME_CONFIG, "--checkpoint-every", "5"]
     ref, killed = tmp_path / "uninterrupted", tmp_path / "killed"
     assert cli.main(["slam", *args, "--out", str(ref)]) == 0
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    argv = [sys.executable, "-c", KILL_AT_FIRST_CHECKPOINT, "slam", *args, "--out", str(killed)]
-    proc = subprocess.run(argv, env=env, capture_output=True, timeout=300)
+    proc = _signalled_run(["slam", *args, "--out", str(killed)], "SIGKILL")
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
-    assert sorted(p.name for p in killed.iterdir()) == ["checkpoint.pt"]  # killed at step 5
+    # killed at step 5: no output folder yet, the run so far beside it
+    assert not killed.exists()
+    assert sorted(p.name for p in (tmp_path / ".killed.partial").iterdir()) == ["checkpoint.pt"]
     # a fresh run object that knows only the checkpoint file
     assert cli.main(["slam", *args, "--out", str(killed), "--resume"]) == 0
     for name in ("trajectory_slam.tum", "map.pgm"):
@@ -299,6 +314,195 @@ def test_resume_is_byte_identical_online(traversal, tmp_path):
 def test_resume_is_byte_identical_offline(traversal, tmp_path):
     """The same for offline SLAM, killed inside the online sweep it starts with."""
     _assert_resume_is_byte_identical(traversal, tmp_path, "offline")
+
+
+# ------------------------------------------------------------------------------ failing runs
+ABSURD_LR = json.dumps(
+    {**json.loads(TINY), "training": {**json.loads(TINY)["training"], "lr": 1e30}}
+)
+
+
+def test_overwrite_survives_late_failure(traversal, tmp_path, capsys):
+    """A new ``--overwrite`` run that fails late leaves the previous run byte for byte: the
+    filter diverging (an absurd learning rate, after the first checkpoint) is one line naming
+    ``training.lr``; SIGINT and SIGTERM right after the first checkpoint keep the run so far
+    beside the folder, and ``--resume`` finishes it and only then replaces the previous one."""
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+    assert cli.main(args) == 0
+    before, folder = _files(out), _files(tmp_path)
+    capsys.readouterr()
+    late = ["--overwrite", "--checkpoint-every", "5"]
+    assert cli.main([*args[:4], "--config", ABSURD_LR, *late]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(err) == 1 and "SLAM diverged" in err[0] and "training.lr 1e+30" in err[0]
+    assert _files(tmp_path) == folder  # nothing left beside it either
+    partial = tmp_path / ".run.partial"
+    for name, rc in (("SIGINT", 130), ("SIGTERM", 143)):
+        proc = _signalled_run([*args, *late, "--seed", "5"], name)
+        err = proc.stderr.decode()
+        assert proc.returncode == rc, err[-2000:]
+        assert "Traceback" not in err and f"interrupted ({name})" in err
+        assert _files(out) == before, name
+        assert (partial / "checkpoint.pt").is_file(), name  # the run so far, for --resume
+    assert cli.main([*args, "--seed", "5", "--checkpoint-every", "5", "--resume"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["seed"] == 5
+    assert not partial.exists() and sorted(_files(out)) == sorted(before)
+
+
+def test_full_disk_keeps_previous_run(traversal, tmp_path, capsys, monkeypatch):
+    """A write failing for a full disk (ENOSPC) while the outputs are written: one line naming
+    the file, the previous run unchanged, the finished checkpoint kept for ``--resume``."""
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+    assert cli.main(args) == 0
+    before = _files(out)
+
+    def full(_tr, _res, _grid, path):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    with monkeypatch.context() as m:
+        m.setattr(outputs.plotting, "plot_slam", full)
+        assert cli.main([*args, "--overwrite", "--seed", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "slam.png" in err and str(out) in err
+    assert _files(out) == before
+    assert cli.main([*args, "--seed", "2", "--resume"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["seed"] == 2
+
+
+def test_failed_run_leaves_no_empty_folder(traversal, tmp_path, capsys, monkeypatch):
+    """A run into a new folder (with new parents) that fails, at any point, leaves nothing."""
+    out = tmp_path / "new" / "run"
+    late = ["--out", str(out), "--checkpoint-every", "5"]
+    assert cli.main(["slam", str(traversal), *late, "--config", ABSURD_LR]) == 2
+    assert cli.main(["slam", str(tmp_path / "missing.npz"), *late]) == 2
+    with monkeypatch.context() as m:
+        m.setattr(SLAM, "run", _diverge)
+        assert cli.main(["demo", *late, "--steps", "20"]) == 2
+    assert "SLAM diverged" in capsys.readouterr().err
+    with monkeypatch.context() as m:
+        m.setattr(cli, "simulate_traversal", _no_space)
+        assert cli.main(["simulate", "--out", str(out / "t.npz"), "--steps", "20"]) == 2
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_simulate_failure_keeps_previous_files(traversal, tmp_path, capsys, monkeypatch):
+    """``simulate`` onto a previous traversal and plot that fails writing the traversal (a
+    full disk) leaves both files as they were: the new plot is moved in only with it."""
+    out = tmp_path / "t.npz"
+    sim = ["simulate", "--maze", "simple-small", "--steps", "20", "--out", str(out)]
+    assert cli.main(sim) == 0
+    before = _files(tmp_path)
+
+    with monkeypatch.context() as m:
+        m.setattr(cli.Traversal, "save", _no_space)
+        assert cli.main([*sim, "--seed", "4"]) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert _files(tmp_path) == before
+
+
+def test_run_slam_into_a_path_replaces_it_whole(traversal, tmp_path):
+    """``run_slam`` given a folder's path (as the benchmarks call it) writes the run there,
+    and a second run replaces the first one's outputs but keeps the folder's other files."""
+    out = tmp_path / "api"
+    config = presets.configure(None, load(traversal), TINY)[1]
+    outputs.run_slam(load(traversal), out, "online", config, progress=False, seed=1)
+    (out / "notes.txt").write_text("mine")
+    (out / "map.png").write_bytes(b"stale")  # an output this (simulated) run does not write
+    report = outputs.run_slam(load(traversal), out, "online", config, progress=False, seed=2)
+    assert report["seed"] == 2 == json.loads((out / "metrics.json").read_text())["seed"]
+    assert (out / "notes.txt").read_text() == "mine" and not (out / "map.png").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["api"]
+
+
+HOLD_THE_FOLDER = textwrap.dedent(
+    """
+    import sys
+    from pyro_slam.slam.outputs import run_folder
+    with run_folder(sys.argv[1]):
+        print("holding", flush=True)
+        sys.stdin.read()
+    """
+)
+
+
+def test_concurrent_runs_refused(traversal, tmp_path, capsys):
+    """While another process runs into a folder, a second run into it is refused before any
+    work, naming the folder; once the first has finished, it runs."""
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLD_THE_FOLDER, str(out)],
+        env=env,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+    )
+    try:
+        assert holder.stdout.readline() == b"holding\n"
+        args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+        assert cli.main(args) == 2
+        err = capsys.readouterr().err
+        assert "another run is writing into it" in err and str(out) in err
+        assert cli.main([*args, "--overwrite"]) == 2
+    finally:
+        holder.communicate(b"")
+    assert holder.returncode == 0
+    assert cli.main(args) == 0
+
+
+def test_resume_refuses_other_walls(traversal, tmp_path, capsys):
+    """``--resume`` with an input whose walls differ (here: enlarge the map) is refused
+    naming the data set's walls, not continued with a map of another size."""
+    out = tmp_path / "run"
+    assert cli.main(["slam", str(traversal), "--out", str(out), "--config", TINY]) == 0
+    arrays = dict(np.load(traversal))
+    walls = arrays["walls"].copy()
+    walls[0] -= 0.5  # one wall moved outside the maze: a larger map grid
+    other = tmp_path / "other.npz"
+    np.savez(other, **{**arrays, "walls": walls})
+    before = _files(out)
+    assert cli.main(["slam", str(other), "--out", str(out), "--config", TINY, "--resume"]) == 2
+    assert "walls" in capsys.readouterr().err
+    assert _files(out) == before
+
+
+def _no_work(*_a, **_kw):
+    pytest.fail("the command started working before refusing its input")
+
+
+def _exit_status(argv: list[str]) -> int:
+    """``cli.main(argv)``'s exit status, also where argparse exits."""
+    try:
+        return cli.main(argv)
+    except SystemExit as e:
+        return e.code
+
+
+def test_huge_sizes_refused_fast(traversal, tmp_path, capsys, monkeypatch):
+    """A size or number that cannot mean anything is refused before any work (nothing is
+    simulated, no SLAM is set up, nothing is written), exit status 2, naming the option or
+    field and its limit."""
+    monkeypatch.setattr(cli, "simulate_traversal", _no_work)
+    monkeypatch.setattr(outputs, "SLAM", _no_work)
+    o = str(tmp_path / "o")
+    slam = ["slam", str(traversal), "--out", o, "--config"]
+    cases = [
+        (["simulate", "--steps", "1000000000", "--out", f"{o}.npz"], "--steps", "at most"),
+        (["demo", "--steps", "1000000000", "--out", o], "--steps", "at most"),
+        (["simulate", "--seed", str(2**32), "--out", f"{o}.npz"], "--seed", "at most"),
+        (["slam", str(traversal), "--out", o, "--seed", str(2**40)], "--seed", "at most"),
+        (["simulate", "--distractors", "10000000", "--out", f"{o}.npz"], "--distract", "at most"),
+        ([*slam, '{"emission": {"resolution": 1e308}}'], "emission.resolution", "at most"),
+        ([*slam, '{"beam_stride": 1000}'], "beam_stride 1000", "at most 19"),
+        ([*slam, '{"range_clip": 1e308}'], "range_clip", "at most"),
+        ([*slam, '{"transition": {"sigma": [0.1, 0.1, 0.1]}}'], "transition.sigma", "learned"),
+    ]
+    for argv, field, limit in cases:
+        assert _exit_status(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert field in err and limit in err, (argv, err)
+    assert list(tmp_path.iterdir()) == []
 
 
 # ------------------------------------------------------------------------------ pretrain
@@ -397,6 +601,21 @@ def test_navigate_reads_a_given_traversal(mapped, tmp_path, capsys):
     assert rc == (0 if report["found"] else 1)
     assert cli.main([*argv, "--maze-seed", "7", "--overwrite"]) == 2
     assert "--maze-seed 7" in capsys.readouterr().err
+
+
+def test_navigate_refuses_other_maze(mapped, tmp_path, capsys):
+    """``navigate --from RUN --traversal FILE`` with a traversal of another maze than the run
+    mapped is refused before any planning, naming the walls and the run."""
+    _, run = mapped
+    other = tmp_path / "other.npz"
+    sim = ["simulate", "--maze", "simple-small", "--steps", "300", "--seed", "9", "--no-plot"]
+    assert cli.main([*sim, "--out", str(other)]) == 0
+    out = tmp_path / "n.png"
+    argv = ["navigate", "--from", str(run), "--traversal", str(other), "--out", str(out)]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "'walls' differs from the maze the run --from" in err and str(run) in err
+    assert not out.exists()
 
 
 # ------------------------------------------------------------------------------ help
