@@ -297,7 +297,7 @@ def test_bad_particle_counts_are_rejected_by_name(value):
         ({"emission": {"ray_spacing": 0}}, "emission.ray_spacing must be a positive number"),
         ({"emission": {"insert": {"kind": "tsdf"}}}, "emission.insert.kind must be one of"),
         ({"emission": {"insert": {"occupancy": -2}}}, "emission.insert.occupancy must be a pos"),
-        ({"emission": {"insert": {"scale": 0}}}, "emission.insert.scale must be a positive"),
+        ({"emission": {"insert": {"noise": 0}}}, "emission.insert.noise must be a positive"),
         ({"emission": {"insert": {"occupancy": "high"}}}, "emission.insert.occupancy must be"),
         ({"transition": {"scale": [1, 1]}}, r"transition.scale must be 3 positive numbers"),
         ({"transition": {"sigma": [1, 0, 1]}}, r"transition.sigma must be 3 positive numbers"),
