@@ -188,7 +188,7 @@ class RayEmission(Emission):
         out = torch.where(near, torch.tensor(wall), torch.tensor(free))
         return out.to(torch.get_default_dtype()).unsqueeze(-1)
 
-    def _stops(self, grid, M: torch.Tensor, z: torch.Tensor):
+    def stops(self, grid, M: torch.Tensor, z: torch.Tensor):
         """Points ``[..., B, S, 2]`` along the beams at poses ``z [..., 3]``, the probability
         that each beam stops in each segment ``[..., B, S]`` and that it passes ``[..., B]``.
         Only feature 0 of ``M`` (the occupancy logit) is read."""
@@ -205,7 +205,7 @@ class RayEmission(Emission):
 
     def _range(self, grid, M: torch.Tensor, z: torch.Tensor):
         """Each beam's expected range and the probability that it passes, both ``[..., B]``."""
-        _, stop, passes = self._stops(grid, M, z)
+        _, stop, passes = self.stops(grid, M, z)
         return (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range, passes
 
     def expected_range(self, grid, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -225,7 +225,7 @@ class RayEmission(Emission):
         (``scale``) where the ray stops under ``loc``, averaged over the stopping point
         (passing rays: the last point). A beam that ends on a mapped wall is known even where
         the pose is new; one that runs into unmapped space is not."""
-        pts, stop, passes = self._stops(grid, loc, z)  # [..., B, S, 2], [..., B, S], [..., B]
+        pts, stop, passes = self.stops(grid, loc, z)  # [..., B, S, 2], [..., B, S], [..., B]
         var = grid.relative_variance(scale[..., :1], pts)[..., 0]  # [..., B, S] occupancy's
         rng = (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range
         return rng, (stop * var).sum(-1) + passes * var[..., -1]

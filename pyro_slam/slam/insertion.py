@@ -139,7 +139,7 @@ class ScanInserter:
         em, grid = self.model.emission, self.model.grid
         with torch.no_grad():
             loc = self.leaves.loc.detach()
-            pts, stop, _ = em._stops(grid, loc, z.to(loc.dtype))  # [B, S, 2], [B, S]
+            pts, stop, _ = em.stops(grid, loc, z.to(loc.dtype))  # [B, S, 2], [B, S]
             field = torch.stack([self.placement, (self.site_prec > 0).double()], -1)
             read = grid.attend(field.to(loc.dtype), pts)  # [B, S, 2]
             seen = (stop * read[..., 1]).sum()
@@ -186,7 +186,7 @@ class ScanInserter:
 
 
 class OccupancyInserter(ScanInserter):
-    """Walls and free space written once per grid point (module doc, ``"occupancy"``)."""
+    """Walls and free space read once per grid point (module doc, ``"occupancy"``)."""
 
     def __init__(self, config: ScanInsertionConfig, model, leaves):
         super().__init__(config, model, leaves)
