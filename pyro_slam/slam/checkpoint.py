@@ -26,6 +26,7 @@ from .config import ConfigError, from_dict
 from .loop import SLAMState
 
 FORMAT = 4
+CHECKPOINT_EVERY = 1000  # steps between two checkpoints, by default
 
 
 class CheckpointError(DatasetError):

@@ -88,7 +88,7 @@ class SLAM:
         transition: Transition | None = None,
         emission: Emission | EmissionMLP | None = None,
         checkpoint: str | Path | None = None,
-        checkpoint_every: int = 1000,
+        checkpoint_every: int = checkpoint.CHECKPOINT_EVERY,
         seed: int = 0,
         learn_emission: bool | None = None,
         guide=None,
