@@ -982,7 +982,6 @@ def test_navigation_benchmark_defaults_are_the_benchmark_preset():
     """The navigation benchmark's defaults are :data:`NAVIGATION_BENCHMARK`'s (its figures ran
     with them)."""
     from benchmarks.navigation import _parser
-
     from pyro_slam.planning import NAVIGATION_BENCHMARK
 
     args = _parser().parse_args([])
