@@ -22,7 +22,7 @@ import typing
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
-from .components import EMISSIONS
+from .kinds import EMISSIONS
 
 TRANSITIONS = ("kinematic", "learned")
 PROPOSALS = ("transition", "scan-match")

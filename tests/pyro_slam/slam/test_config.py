@@ -7,7 +7,10 @@ import dataclasses
 import inspect
 import json
 import math
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pyro
@@ -333,6 +336,22 @@ def test_config_errors_are_value_errors_and_configs_are_frozen():
         cfg.beam_stride = 2
     with pytest.raises(dataclasses.FrozenInstanceError):
         cfg.filter.particles = 2
+
+
+def test_the_configuration_imports_no_torch():
+    """Reading the configuration (plain data) loads neither torch nor the networks."""
+    code = (
+        "import sys; import pyro_slam.slam.config as c; c.SLAMConfig(); "
+        "print(sorted(m for m in sys.modules if m == 'torch' or m.startswith('pyro_slam.')))"
+    )
+    root = Path(__file__).resolve().parents[3]
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=60
+    )
+    assert out.returncode == 0, out.stderr
+    loaded = eval(out.stdout)
+    assert "torch" not in loaded, loaded
+    assert loaded == ["pyro_slam.slam", "pyro_slam.slam.config", "pyro_slam.slam.kinds"]
 
 
 def test_the_configuration_has_at_most_39_fields():
