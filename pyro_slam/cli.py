@@ -62,7 +62,6 @@ from .planning.inverse import fit_inverse
 from .plotting import plot_navigation
 from .runtime import DEFAULT_THREADS
 from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets
-from .slam.build import check_hits, prepare_traversal
 from .slam.checkpoint import CHECKPOINT_EVERY
 from .slam.components import emission_kind
 from .slam.config import parse_overrides
@@ -318,7 +317,6 @@ def _slam(args, folder) -> dict:
         tr = tr.slice(0, min(args.steps, tr.num_steps))
     name, config = _config(args, tr)
     source = str(Path(args.traversal).resolve())
-    check_hits(prepare_traversal(tr, config), config, source)
     emission = None
     if args.emission is not None:
         kind = emission_kind(config.emission.kind)
