@@ -414,7 +414,7 @@ def cmd_demo(args) -> int:
     out = Path(args.out)
     with run_folder(out, args.resume, args.overwrite, keep=DEMO_INPUTS) as folder:
         tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
-        config = presets.get(args.preset).for_traversal(tr)
+        _, config = presets.configure(args.preset, tr)
         inputs = {"traversal.npz": tr.save, "traversal.png": lambda p: plot_traversal(tr, p)}
         report = run_slam(
             tr,
