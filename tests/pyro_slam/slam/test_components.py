@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from pyro_slam.model import Emission
-from pyro_slam.slam import SLAM, ConfigError, EmissionConfig, SLAMConfig, build_model, kinds
+from pyro_slam.slam import SLAM, ConfigError, EmissionConfig, SLAMConfig, build_model
 from pyro_slam.slam.components import EMISSIONS, EmissionKind, register_emission
 from simulators import simulate_traversal
 
@@ -58,13 +58,3 @@ def test_an_unregistered_kind_is_refused_naming_the_registered_ones():
         EmissionConfig("wall-ahead")
     with pytest.raises(ValueError, match="observation must be 'lidar' or 'image'"):
         register_emission(EmissionKind("sonar", lambda tr, cfg, reach: None, observation="sonar"))
-
-
-def test_the_shipped_kinds_have_the_traits_the_configuration_checks():
-    """The configuration's plain table of the shipped kinds (:mod:`pyro_slam.slam.kinds`) says
-    what their registered :class:`EmissionKind` says, in the one registry."""
-    assert EMISSIONS is kinds.EMISSIONS
-    for traits in kinds.BUILTIN:
-        kind = EMISSIONS[traits.name]
-        assert isinstance(kind, EmissionKind), traits.name
-        assert (kind.observation, kind.rays) == (traits.observation, traits.rays), traits.name
