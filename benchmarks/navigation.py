@@ -78,7 +78,15 @@ from benchmarks._common import (
     slam_config,
 )
 from pyro_slam import metrics
-from pyro_slam.planning import GroundTruthEnv, execute, free_grid, learned_env, lookalikes, plan
+from pyro_slam.planning import (
+    NAVIGATION_BENCHMARK,
+    GroundTruthEnv,
+    execute,
+    free_grid,
+    learned_env,
+    lookalikes,
+    plan,
+)
 from pyro_slam.planning.evaluation import (
     PLANNERS,
     mean_or_none,
@@ -142,21 +150,28 @@ def _parser() -> argparse.ArgumentParser:
 
 def _add_model_args(p: argparse.ArgumentParser) -> None:
     """The learned model's fits, the planner, the targets and the verdicts' tolerances."""
-    p.add_argument("--max-expansions", type=int, default=1200)
-    p.add_argument("--fit-steps", type=int, default=1500)
-    p.add_argument("--traversal-steps", type=int, default=6000, help="mapping traversal length")
+    nav = NAVIGATION_BENCHMARK
+    p.add_argument("--max-expansions", type=int, default=nav.max_expansions)
+    p.add_argument("--fit-steps", type=int, default=nav.fit_steps)
+    p.add_argument(
+        "--traversal-steps", type=int, default=nav.traversal_steps, help="mapping traversal length"
+    )
     p.add_argument(
         "--emission-steps",
         type=int,
-        default=3000,
+        default=nav.emission_steps,
         help="fit the emission per maze for this many steps (0: shipped, frozen)",
     )
-    p.add_argument("--n-world", type=int, default=60, help="world directions of a fitted emission")
-    p.add_argument("--max-std", type=float, default=0.6, help="explored: chart std below this")
+    p.add_argument(
+        "--n-world", type=int, default=nav.n_world, help="world directions of a fitted emission"
+    )
+    p.add_argument(
+        "--max-std", type=float, default=nav.max_std, help="explored: chart std below this"
+    )
     p.add_argument(
         "--hit-margin",
         type=float,
-        default=0.02,
+        default=nav.hit_margin,
         help="the learned planner keeps this far from the mapping scans' returns (0: off)",
     )
     p.add_argument(

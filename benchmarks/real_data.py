@@ -72,8 +72,8 @@ from pyro_slam.io import (
     relations_from_reference,
     write_carmen,
 )
-from pyro_slam.io.common import compose, relative
-from pyro_slam.slam import presets, with_overrides
+from pyro_slam.io.common import relative
+from pyro_slam.slam import presets
 from pyro_slam.slam.outputs import run_slam
 
 REPO = Path(__file__).resolve().parents[1]
@@ -96,18 +96,12 @@ def noisy_odometry(tr, seed=0, trans_frac=0.05, trans_floor=0.01, rot_frac=0.03,
     return replace(tr, controls=u, metadata=meta)
 
 
-def integrate_odometry(tr, origin):
-    poses = [np.asarray(origin, dtype=np.float64)]
-    for u in np.asarray(tr.controls, dtype=np.float64):
-        poses.append(compose(poses[-1], u))
-    return np.stack(poses)
-
-
 # ----------------------------------------------------------------------------------- systems
 def log_config(tr, preset: str = "real", overrides: dict | None = None):
     """The SLAM configuration for log ``tr``: ``preset`` adapted to the log (the ``real``
-    preset's beam stride, range clip and odometry noise), then the ``--config`` overrides."""
-    return with_overrides(presets.get(preset).for_traversal(tr), overrides or {})
+    preset's beam stride, range clip and odometry noise), then the ``--config`` overrides
+    (:func:`pyro_slam.slam.presets.configure`, as the command line chooses it)."""
+    return presets.configure(preset, tr, overrides)[1]
 
 
 def run_dvbf(tr, out: Path, cfg, preset: str, seed: int = 0, mode: str = "online", threads=None):
@@ -332,7 +326,7 @@ def benchmark_log(
     rows, trajs = {}, {}
 
     t0 = time.perf_counter()
-    odo = integrate_odometry(tr, origin)
+    odo = odometry_poses(tr, origin)
     odo_wall = time.perf_counter() - t0
     trajs["odometry"] = odo
     rows["odometry"] = evaluate(tr, tr_eval, odo, ref, rel)

@@ -47,6 +47,7 @@ from .extras import MissingExtra
 from .io import input_kind, read_any
 from .model import pretrain_transition
 from .planning import (
+    NAVIGATION,
     GroundTruthEnv,
     check_endpoints,
     execute,
@@ -61,7 +62,7 @@ from .planning.inverse import fit_inverse
 from .plotting import plot_navigation
 from .runtime import DEFAULT_THREADS
 from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets
-from .slam.build import check_hits, prepare_traversal
+from .slam.checkpoint import CHECKPOINT_EVERY
 from .slam.components import emission_kind
 from .slam.config import parse_overrides
 from .slam.outputs import (
@@ -316,7 +317,6 @@ def _slam(args, folder) -> dict:
         tr = tr.slice(0, min(args.steps, tr.num_steps))
     name, config = _config(args, tr)
     source = str(Path(args.traversal).resolve())
-    check_hits(prepare_traversal(tr, config), config, source)
     emission = None
     if args.emission is not None:
         kind = emission_kind(config.emission.kind)
@@ -414,7 +414,7 @@ def cmd_demo(args) -> int:
     out = Path(args.out)
     with run_folder(out, args.resume, args.overwrite, keep=DEMO_INPUTS) as folder:
         tr = simulate_traversal(args.maze, steps=args.steps, seed=args.seed)
-        config = presets.get(args.preset).for_traversal(tr)
+        _, config = presets.configure(args.preset, tr)
         inputs = {"traversal.npz": tr.save, "traversal.png": lambda p: plot_traversal(tr, p)}
         report = run_slam(
             tr,
@@ -675,7 +675,7 @@ def _add_run_options(p, out: str, what: str) -> None:
     p.add_argument(
         "--checkpoint-every",
         type=POSITIVE,
-        default=1000,
+        default=CHECKPOINT_EVERY,
         metavar="N",
         help="write OUT/checkpoint.pt every N steps (and at the end)",
     )
@@ -734,7 +734,7 @@ def _add_slam(sub) -> None:
         "--odometry-noise",
         type=_number(float, 0.0, inclusive=False),
         help="the real preset: transition std as this fraction of the RMS odometry step "
-        "(default 0.1; refused with another preset)",
+        f"(default {presets.REAL_LOG.odometry_noise:g}; refused with another preset)",
     )
     s.add_argument(
         "--scan-topic",
@@ -846,17 +846,27 @@ def _add_navigate_inputs(p) -> None:
         "the 'paper' preset (default: known_poses; with --from the run's own map)",
     )
     p.add_argument("--seed", type=SEED, default=1, help="seeds the simulation, fits and actuation")
-    p.add_argument("--traversal-steps", type=STEPS, default=3000, help="mapping traversal T")
-    p.add_argument("--fit-steps", type=POSITIVE, default=1500, help="SVI steps fitting q(M)")
+    p.add_argument(
+        "--traversal-steps",
+        type=STEPS,
+        default=NAVIGATION.traversal_steps,
+        help="mapping traversal T",
+    )
+    p.add_argument(
+        "--fit-steps", type=POSITIVE, default=NAVIGATION.fit_steps, help="SVI steps fitting q(M)"
+    )
     p.add_argument(
         "--emission-steps",
         type=COUNT,
-        default=0,
+        default=NAVIGATION.emission_steps,
         help="fit the emission on the mapping traversal for this many steps (0: the shipped "
         "one, frozen)",
     )
     p.add_argument(
-        "--n-world", type=_number(int, 20), default=20, help="world directions of a fitted emission"
+        "--n-world",
+        type=_number(int, 20),
+        default=NAVIGATION.n_world,
+        help="world directions of a fitted emission",
     )
 
 
@@ -901,7 +911,12 @@ def _add_navigate(sub) -> None:
         default="learned",
         help="plan in the learned map, or in the simulator's truth",
     )
-    p.add_argument("--max-expansions", type=POSITIVE, default=3000, help="A* node expansions")
+    p.add_argument(
+        "--max-expansions",
+        type=POSITIVE,
+        default=NAVIGATION.max_expansions,
+        help="A* node expansions",
+    )
     p.add_argument("--noise", action="store_true", help="execute with actuation noise")
     p.add_argument("--out", type=Path, default=Path("navigate.png"), help="output plot (PNG)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")

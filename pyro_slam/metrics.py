@@ -43,48 +43,6 @@ def heading_error(a, b) -> np.ndarray:
     return np.abs(wrap_angle(np.asarray(a) - np.asarray(b)))
 
 
-def heading_only_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
-    """The position error ``[T]`` that the heading error alone would cause.
-
-    The true trajectory's steps are rotated by the estimate's heading error at their start and
-    integrated from the true start: ``x'_t = x_0 + sum_{s<t} R(h^est_s - h^true_s) (x_{s+1} -
-    x_s)``. Where it matches :func:`localisation_error`, the position error is the heading's
-    error carried along the path (as in path integration); where it is larger, the estimate's
-    position has been corrected independently of its heading (e.g. by a map). ``est, true [T,
-    3]``."""
-    est, true = np.asarray(est, dtype=np.float64), np.asarray(true, dtype=np.float64)
-    if est.shape != true.shape or est.ndim != 2 or est.shape[1] != 3:
-        raise ValueError(f"need two [T, 3] trajectories, got {est.shape} and {true.shape}")
-    dh = wrap_angle(est[:-1, 2] - true[:-1, 2])  # [T-1]
-    step = np.diff(true[:, 0] + 1j * true[:, 1])  # [T-1] as complex numbers
-    drift = np.concatenate([[0.0], np.cumsum(step * np.exp(1j * dh))])  # [T]
-    start = true[0, 0] + 1j * true[0, 1]
-    return np.abs(start + drift - (true[:, 0] + 1j * true[:, 1]))
-
-
-def along_track_error(est: np.ndarray, true: np.ndarray) -> np.ndarray:
-    """The position error's component along the direction of travel, accumulated ``[T]``.
-
-    ``a_t = sum_{s<t} (e_{s+1} - e_s) . u_s`` with ``e = est - true`` in ``xy`` and ``u_s`` the
-    unit direction of the true step ``s -> s+1`` (steps that do not move count 0): negative where
-    the estimate falls behind the truth (it travels less far), positive where it runs ahead.
-    Unlike a projection of ``e_t`` itself, an offset that was made in one corridor keeps its sign
-    after the path turns. ``est, true [T, 2 or 3]``."""
-    est, true = np.asarray(est, dtype=np.float64), np.asarray(true, dtype=np.float64)
-    if (
-        est.ndim != 2
-        or true.ndim != 2
-        or est.shape[0] != true.shape[0]
-        or min(est.shape[1], true.shape[1]) < 2
-    ):
-        raise ValueError(f"need two [T, 2+] trajectories, got {est.shape} and {true.shape}")
-    step = np.diff(true[:, :2], axis=0)  # [T-1, 2]
-    n = np.linalg.norm(step, axis=1, keepdims=True)
-    u = np.divide(step, n, out=np.zeros_like(step), where=n > 0)  # [T-1, 2]
-    de = np.diff(est[:, :2] - true[:, :2], axis=0)  # [T-1, 2]
-    return np.concatenate([[0.0], np.cumsum((de * u).sum(1))])
-
-
 def distance_travelled(true: np.ndarray) -> np.ndarray:
     """Cumulative path length ``[T]`` (0 at the start)."""
     steps = np.linalg.norm(np.diff(np.asarray(true)[:, :2], axis=0), axis=1)

@@ -976,3 +976,19 @@ def test_slam_speed_times_pyros_smcfilter_on_the_same_run():
     row = last_json(run("slam_speed", *args))["presets"]["manhattan"]
     for key in ("online", "online_smc"):
         assert row[key]["steps_per_s"] > 0 and 0 <= row[key]["final_error"] < 0.1
+
+
+def test_navigation_benchmark_defaults_are_the_benchmark_preset():
+    """The navigation benchmark's defaults are :data:`NAVIGATION_BENCHMARK`'s (its figures ran
+    with them)."""
+    from benchmarks.navigation import _parser
+    from pyro_slam.planning import NAVIGATION_BENCHMARK
+
+    args = _parser().parse_args([])
+    for name in ("max_expansions", "traversal_steps", "fit_steps", "emission_steps", "n_world"):
+        assert getattr(args, name) == getattr(NAVIGATION_BENCHMARK, name), name
+    assert (args.max_std, args.hit_margin) == (
+        NAVIGATION_BENCHMARK.max_std,
+        NAVIGATION_BENCHMARK.hit_margin,
+    )
+    assert NAVIGATION_BENCHMARK.max_expansions == 1200

@@ -4,13 +4,13 @@ those of the exploration configuration, files of the repository, every notebook.
 from __future__ import annotations
 
 import re
-from dataclasses import fields
+from dataclasses import fields, replace
 from pathlib import Path
 
 import pytest
 
 from pyro_slam.planning.exploration import ExploreConfig
-from pyro_slam.slam import SLAMConfig
+from pyro_slam.slam import SLAMConfig, presets
 from pyro_slam.slam.config import COMPONENTS, component_fields
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -144,3 +144,90 @@ def test_notebook_pages_use_an_executed_copy_only_of_the_current_notebook(tmp_pa
     nb.cells[0].source = "2 + 2"  # the notebook changed since its copy was executed
     nbformat.write(nb, source)
     assert not hook.is_current(source)
+
+
+# ------------------------------------------------------------------ preset tables
+PRESET_NAME = re.compile(r"`([a-z][a-z-]*)`")
+KINDS = (("row MLPs", "image_mlp"), ("ray camera", "ray_camera"), ("emission MLP", "mlp"))
+KINDS += (("ray-cast", "raycast"),)
+
+
+def _tables(text: str):
+    """The markdown tables of ``text``: lists of rows, each a list of its cells' text."""
+    rows: list[list[str]] = []
+    for line in [*text.splitlines(), ""]:
+        if line.startswith("|"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if not all(set(c) <= set("-: ") for c in cells):  # (the header's rule)
+                rows.append(cells)
+        elif rows:
+            yield rows
+            rows = []
+
+
+def _preset_rows(page: Path):
+    """``(table, name, summary, whole)`` for each row of a table whose rows are presets: its
+    preset, the row's statement of it (its ``model`` column, or what follows the name in the
+    first cell) and whether the table lists every preset (it has a ``model`` column);
+    ``(table, name, cell, True)`` for each column of a table whose columns are presets and
+    for each preset an option table lists for ``--preset NAME`` (up to its "see")."""
+    for n, table in enumerate(_tables(page.read_text(encoding="utf-8"))):
+        head = table[0]
+        for row in table:
+            if row[0] == "`--preset NAME`":
+                listed = row[1].split("(see")[0]
+                for found in PRESET_NAME.finditer(listed):
+                    yield -n - 1, found.group(1), listed[found.end() :].split(",")[0], True
+        if head[0] == "component":  # presets as columns
+            for cell in head[1:]:
+                yield n, PRESET_NAME.search(cell).group(1), cell, True
+        elif head[0] == "preset":
+            model = head.index("model") if "model" in head else None
+            for row in table[1:]:
+                found = PRESET_NAME.search(row[0])
+                if found:
+                    rest = row[0][found.end() :]
+                    summary = row[model] if model is not None else rest
+                    yield n, found.group(1), f"{rest} {summary}", model is not None
+
+
+def _check_summary(name: str, summary: str) -> list[str]:
+    """What the statement ``summary`` of the preset ``name`` says that its configuration is
+    not: the default, the emission kind it names, a heading factor, and the preset it says
+    it adds the heading factor to (``plus``) or takes it from (``without``)."""
+    cfg, bad = presets.PRESETS[name].config, []
+    if bool(re.search(r"\((the library's )?default", summary)) != (name == presets.DEFAULT):
+        bad.append("the default marker")
+    for words, kind in KINDS:
+        if words in summary:
+            if cfg.emission.kind != kind:
+                bad.append(f"{words!r}: emission.kind is {cfg.emission.kind!r}")
+            break
+    base = re.match(r"\s*`([a-z-]+)` (without|plus) the heading factor", summary)
+    if base:
+        other = presets.PRESETS[base.group(1)].config
+        same = replace(cfg, heading=None) == replace(other, heading=None)
+        if not same or (cfg.heading is None) != (base.group(2) == "without"):
+            bad.append(f"{base.group(0).strip()!r}")
+    elif re.search(r"\b(without|no) (the )?heading factor", summary):
+        if cfg.heading is not None:
+            bad.append("no heading factor: heading is set")
+    elif "heading factor" in summary and cfg.heading is None:
+        bad.append("the heading factor: heading is None")
+    return bad
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_docs_preset_tables_match_presets(page):
+    """Every table of presets names presets that exist; one that describes them all names
+    each once; a row's statement of its preset (the default, its emission, the heading factor
+    and the preset it is stated against) holds for its configuration."""
+    tables: dict[int, list[str]] = {}
+    for table, name, summary, whole in _preset_rows(page):
+        assert name in presets.PRESETS, f"{page.name}: `{name}` is not a preset"
+        problems = _check_summary(name, summary)
+        assert not problems, f"{page.name}: `{name}`: {'; '.join(problems)}"
+        if whole:
+            tables.setdefault(table, []).append(name)
+    for names in tables.values():
+        assert sorted(names) == sorted(presets.PRESETS), f"{page.name}: {names}"

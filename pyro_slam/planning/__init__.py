@@ -3,6 +3,7 @@ environments (:mod:`.envs`), the inverse model ``q(z | x)`` for observation targ
 (:mod:`.inverse`), the measures that judge a navigation run (:mod:`.evaluation`),
 mutual-information exploration (:mod:`.exploration`) and PEMA (:mod:`.pema`)."""
 
+from .config import NAVIGATION, NAVIGATION_BENCHMARK, NavigationConfig
 from .envs import (
     GroundTruthEnv,
     LearnedEnv,
@@ -26,8 +27,11 @@ from .planner import (
 )
 
 __all__ = [
+    "NAVIGATION",
+    "NAVIGATION_BENCHMARK",
     "GroundTruthEnv",
     "LearnedEnv",
+    "NavigationConfig",
     "PlanResult",
     "Primitives",
     "ScanHits",

@@ -22,15 +22,15 @@ from ..model import DVBFLM, EmissionMLP, KinematicTransition
 from ..model.networks import LIDAR_MAP_DIM
 from ..pretrained import EMISSION_FILE, PRETRAINED, load_emission
 from ..slam import (
-    EmissionConfig,
     SLAMConfig,
-    TransitionConfig,
     build_model,
     fit_map,
     prepare_traversal,
     pretrain_emission,
 )
 from ..slam.components import emission_kind
+from ..slam.presets import NAVIGATION_MAPPING
+from .config import NAVIGATION
 from .planner import SAFETY_DELTA, inside_scan
 
 
@@ -370,28 +370,21 @@ def lookalikes(poses, diffs, target, tol: float = 1e-6, radius: float = 0.05) ->
 
 
 # --------------------------------------------------------------------------- learned map
-# the model the planner maps with: the paper's LiDAR emission MLP on its 32 x 32 grid, with the
-# paper's Gaussian noise of 0.1 (the transition is the planner's own)
-MAPPING = SLAMConfig(
-    emission=EmissionConfig("mlp", resolution=1 / 31, sigma=0.1, outlier_prob=0.0),
-    transition=TransitionConfig("kinematic", scale=(1.0, 1.0, 1.0)),
-    heading=None,
-)
 
 
 def learned_env(
     maze,
     traversal=None,
-    steps: int = 3000,
+    steps: int = NAVIGATION.traversal_steps,
     seed: int = 1,
-    fit_steps: int = 1500,
+    fit_steps: int = NAVIGATION.fit_steps,
     poses=None,
     progress: bool = False,
-    max_std: float = 0.6,
-    emission_steps: int = 0,
-    n_world: int = 20,
+    max_std: float = NAVIGATION.max_std,
+    emission_steps: int = NAVIGATION.emission_steps,
+    n_world: int = NAVIGATION.n_world,
     tour=None,
-    hit_margin: float = 0.02,
+    hit_margin: float = NAVIGATION.hit_margin,
     *,
     prior=None,
     noise=None,
@@ -451,17 +444,23 @@ def learned_env(
 
 
 def _mapping_model(traversal, poses, emission_steps, n_world, seed, progress, prior, noise):
-    """The model :func:`learned_env` maps with: :data:`MAPPING`'s, with the shipped emission or
-    one pretrained on ``traversal`` (see there), the map ``prior`` and the emission ``noise``."""
+    """The model :func:`learned_env` maps with: the configuration
+    :data:`~pyro_slam.slam.presets.NAVIGATION_MAPPING`, with the shipped emission or one
+    pretrained on ``traversal`` (see there), the map ``prior`` and the emission ``noise``."""
     if emission_steps > 0:
         fit_on = traversal if poses is None else replace(traversal, poses=np.asarray(poses))
         em = EmissionMLP(LIDAR_MAP_DIM, n_world, scale=traversal.max_range)
         em, _ = pretrain_emission(
-            [fit_on], MAPPING, emission=em, steps=emission_steps, seed=seed, progress=progress
+            [fit_on],
+            NAVIGATION_MAPPING,
+            emission=em,
+            steps=emission_steps,
+            seed=seed,
+            progress=progress,
         )
     else:
         em = load_emission(PRETRAINED / EMISSION_FILE, traversal)
-    return build_model(traversal, MAPPING, emission=em, prior=prior, noise=noise)[0]
+    return build_model(traversal, NAVIGATION_MAPPING, emission=em, prior=prior, noise=noise)[0]
 
 
 def run_env(

@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from .config import NAVIGATION
+
 SAFETY_MU, SAFETY_DELTA, SAFETY_SIGMA = 1e4, 0.03, 1e2
 
 
@@ -114,7 +116,7 @@ def plan(
     start,
     goal,
     *,
-    max_expansions: int = 2000,
+    max_expansions: int = NAVIGATION.max_expansions,
     cell: float = 0.025,
     goal_tol: float = 0.025,
     primitives: Primitives | None = None,

@@ -5,10 +5,13 @@
 from __future__ import annotations
 
 import copy
+import functools
+import hashlib
 import math
 from dataclasses import replace
 
 import numpy as np
+import pyro.distributions as dist
 import torch
 
 from ..data import DatasetError, Traversal
@@ -25,7 +28,78 @@ from ..model import (
     Transition,
 )
 from .components import RAY_SAMPLES, emission_kind, ray_settings
-from .config import ConfigError, SLAMConfig
+from .config import MAP_PRIORS, NOISES, ConfigError, SLAMConfig
+
+PRIOR_STD_WIDE = 2.0  # the "wide" map prior's std
+PRIOR_DF = 4.0  # the "student-t" map prior's degrees of freedom (finite variance, 2)
+NOISE_DF = 3.0  # the "student-t" emission noise's degrees of freedom
+
+
+def map_prior(name: str, dim: int):
+    """The named map prior ``p(M)`` per cell (event ``[dim]``; ``emission.prior``): None for
+    ``"normal"``, the model's own ``N(0, 1)``; ``"wide"`` ``N(0, 2^2)``; ``"student-t"``
+    Student-t with :data:`PRIOR_DF` degrees of freedom, location 0 and scale 1."""
+    if name not in MAP_PRIORS:
+        raise ConfigError(f"emission.prior must be one of {list(MAP_PRIORS)}, got {name!r}")
+    if name == "normal":
+        return None
+    zeros = torch.zeros(dim)
+    if name == "wide":
+        return dist.Normal(zeros, torch.full((dim,), PRIOR_STD_WIDE)).to_event(1)
+    return dist.StudentT(torch.full((dim,), PRIOR_DF), zeros, torch.ones(dim)).to_event(1)
+
+
+def emission_noise(name: str):
+    """The named emission noise (``emission.noise``), a callable ``(loc, scale) ->
+    distribution``: None for ``"normal"``, the model's own Gaussian; ``"student-t"`` Student-t
+    with :data:`NOISE_DF` degrees of freedom."""
+    if name not in NOISES:
+        raise ConfigError(f"emission.noise must be one of {list(NOISES)}, got {name!r}")
+    return None if name == "normal" else functools.partial(dist.StudentT, NOISE_DF)
+
+
+def _describe_value(v) -> str:
+    """A tensor (or number) as text: its values rounded to 6 digits, or, beyond 16 entries,
+    its shape and a hash of the rounded values."""
+    if not torch.is_tensor(v):
+        return repr(round(v, 6) if isinstance(v, float) else v)
+    t = v.detach().cpu().double().round(decimals=6)
+    if t.numel() <= 16:
+        return repr(t.tolist())
+    digest = hashlib.sha256(t.contiguous().numpy().tobytes()).hexdigest()[:16]
+    return f"<{tuple(t.shape)} {digest}>"
+
+
+def describe_prior(prior) -> str:
+    """A map prior as text for a checkpoint's fingerprint: class name and parameters, e.g.
+    ``Independent(Normal(loc=[0.0], scale=[2.0]), 1)``; ``"Normal(0, 1)"`` for None (the
+    model's default)."""
+    if prior is None:
+        return "Normal(0, 1)"
+    if isinstance(prior, dist.Independent):
+        base = describe_prior(prior.base_dist)
+        return f"Independent({base}, {prior.reinterpreted_batch_ndims})"
+    names = getattr(prior, "arg_constraints", {}) or {}
+    params = [
+        f"{n}={_describe_value(getattr(prior, n))}" for n in sorted(names) if hasattr(prior, n)
+    ]
+    return f"{type(prior).__name__}({', '.join(params)})"
+
+
+def describe_noise(noise) -> str:
+    """An emission noise (a callable ``(loc, scale) -> distribution``) as text for a
+    checkpoint's fingerprint: ``"Normal"`` for None (the model's default), a partial's function
+    and arguments (``StudentT(3.0)``), a class's or function's qualified name otherwise."""
+    if noise is None:
+        return "Normal"
+    if isinstance(noise, functools.partial):
+        args = [_describe_value(a) for a in noise.args]
+        args += [f"{k}={_describe_value(v)}" for k, v in sorted(noise.keywords.items())]
+        return f"{describe_noise(noise.func)}({', '.join(args)})"
+    if isinstance(noise, type):
+        return noise.__name__
+    name = getattr(noise, "__qualname__", None) or type(noise).__qualname__
+    return f"{getattr(noise, '__module__', '')}.{name}".lstrip(".")
 
 
 def prepare_traversal(traversal: Traversal, config: SLAMConfig) -> Traversal:
@@ -154,8 +228,10 @@ def build_model(
     model's map prior and emission noise (see :class:`~pyro_slam.model.DVBFLM`; the guide
     starts at the prior's std).
 
-    ``emission``: a (pretrained) emission, or None for a new one of the configured kind
-    (:func:`make_emission`); ``transition``: None for the configured kinematic one. SLAM filters
+    ``prior``/``noise`` None: the configured ones (``emission.prior``, ``emission.noise``;
+    :func:`map_prior`, :func:`emission_noise`). ``emission``: a (pretrained) emission, or None
+    for a new one of the configured kind (:func:`make_emission`); ``transition``: None for the
+    configured kinematic one. SLAM filters
     with ``sigma_T`` times ``config.transition.scale`` (the transition passed in is copied, not
     changed)."""
     if emission is None:
@@ -165,6 +241,8 @@ def build_model(
     e = config.emission
     map_dim = emission.map_dim
     grid = MapGrid.covering(*_extent(traversal, config), e.resolution, map_dim, e.margin)
+    prior = map_prior(e.prior, map_dim) if prior is None else prior
+    noise = emission_noise(e.noise) if noise is None else noise
     if transition is None:
         control_model = traversal.metadata.get("control_model", "rotate_forward")
         transition = KinematicTransition(config.transition.sigma, control_model)

@@ -3,7 +3,8 @@ so a file can never run code), written atomically, and stamped with what they be
 
 A checkpoint records a fingerprint of the data the run filters (a hash of the prepared
 observations, controls, mask, beam angles, start pose and walls), the model it started from (its
-networks and map grid), the configuration, the seed and the mode. :func:`check` refuses a
+networks and map grid), its map prior and emission noise, the configuration, the seed and the
+mode. :func:`check` refuses a
 checkpoint whose fingerprint differs and names what differs.
 """
 
@@ -21,9 +22,11 @@ from pyro.distributions import constraints
 from ..data import DatasetError, atomic_write, load_tensors
 from ..inference import Particles
 from .assemble import inserter
+from .config import ConfigError, from_dict
 from .loop import SLAMState
 
 FORMAT = 4
+CHECKPOINT_EVERY = 1000  # steps between two checkpoints, by default
 
 
 class CheckpointError(DatasetError):
@@ -115,6 +118,15 @@ def _diff(a, b, where: str = "") -> list[str]:
     return [] if a == b else [f"{where[:-1]} ({a!r} in the checkpoint, {b!r} now)"]
 
 
+def _completed(config):
+    """A saved configuration dict with the fields it lacks at their defaults (a field added
+    since it was written); as it is where it is not a valid configuration."""
+    try:
+        return from_dict(config).to_dict()
+    except (ConfigError, TypeError):
+        return config
+
+
 def check(path, saved: dict, expected: dict) -> None:
     """Raise :class:`CheckpointError` naming every field of the fingerprint that differs."""
     problems = []
@@ -122,8 +134,8 @@ def check(path, saved: dict, expected: dict) -> None:
         problems.append("the data set (another traversal, length, walls or sensor preparation)")
     if saved.get("model") != expected["model"]:
         problems.append("the model it started from (another --emission or --transition network)")
-    problems += [f"config {d}" for d in _diff(saved.get("config"), expected["config"])]
-    for key in ("seed", "mode"):
+    problems += [f"config {d}" for d in _diff(_completed(saved.get("config")), expected["config"])]
+    for key in ("prior", "noise", "seed", "mode"):
         if key in saved and key in expected and saved[key] != expected[key]:
             problems.append(f"{key} ({saved[key]!r} in the checkpoint, {expected[key]!r} now)")
     if problems:

@@ -32,6 +32,7 @@ from ..model.networks import (
     MIN_WORLD_DIRECTIONS,
 )
 from ..pretrained import load_emission, shipped_emission
+from .kinds import EMISSIONS
 
 RAY_SAMPLES = 48  # points per ray of the ray-cast emissions (their constructors' default)
 # the occupancy's density per grid spacing of the ray-cast emissions (their constructors' 100
@@ -72,11 +73,9 @@ class EmissionKind:
         return self.map_dim(traversal) if callable(self.map_dim) else int(self.map_dim)
 
 
-EMISSIONS: dict[str, EmissionKind] = {}
-
-
 def register_emission(kind: EmissionKind) -> EmissionKind:
-    """Make ``kind`` available as ``emission.kind = kind.name`` (replacing one of that name)."""
+    """Make ``kind`` available as ``emission.kind = kind.name`` (replacing one of that name) in
+    the registry :data:`~pyro_slam.slam.kinds.EMISSIONS`."""
     if kind.observation not in ("lidar", "image"):
         raise ValueError(f"observation must be 'lidar' or 'image', got {kind.observation!r}")
     EMISSIONS[kind.name] = kind

@@ -22,12 +22,15 @@ import typing
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
-from .components import EMISSIONS
+from .kinds import EMISSIONS
 
 TRANSITIONS = ("kinematic", "learned")
 PROPOSALS = ("transition", "scan-match")
 ESTIMATES = ("forward", "cache")
 INSERTION_KINDS = ("occupancy", "fusion")
+# the named map priors and emission noises (built by :mod:`pyro_slam.slam.build`)
+MAP_PRIORS = ("normal", "wide", "student-t")
+NOISES = ("normal", "student-t")
 
 
 class ConfigError(ValueError):
@@ -115,6 +118,11 @@ class EmissionConfig:
     scan insertion (``"raycast"``); ``ray_spacing``: the ray-cast emissions' points along a
     ray, in grid spacings (None: 48 points over the range), with the occupancy's density per
     unit length scaled to the grid (the same per grid spacing at every resolution).
+    ``prior``: the map prior ``p(M)`` per cell, ``"normal"`` (``N(0, 1)``), ``"wide"``
+    (``N(0, 2^2)``) or ``"student-t"`` (Student-t, 4 degrees of freedom, scale 1);
+    ``noise``: the emission noise about the predicted reading, ``"normal"`` or
+    ``"student-t"`` (3 degrees of freedom), both with std (scale) ``sigma``
+    (:func:`pyro_slam.slam.build.map_prior`, :func:`pyro_slam.slam.build.emission_noise`).
     """
 
     kind: str = "raycast"
@@ -124,9 +132,13 @@ class EmissionConfig:
     outlier_prob: float = 0.1
     insert: ScanInsertionConfig | None = None
     ray_spacing: float | None = None
+    prior: str = "normal"
+    noise: str = "normal"
 
     def __post_init__(self):
         _choice("emission.kind", self.kind, EMISSIONS)
+        _choice("emission.prior", self.prior, MAP_PRIORS)
+        _choice("emission.noise", self.noise, NOISES)
         kind = EMISSIONS[self.kind]
         _positive("emission.resolution", self.resolution)
         _non_negative("emission.margin", self.margin)

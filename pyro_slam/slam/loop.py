@@ -31,14 +31,13 @@ from ..model import MapBelief
 
 class Phase(StrEnum):
     """Where a run is: the online sweep of an online run (``ONLINE``) or of offline SLAM
-    (``SWEEP``), an offline round's SVI steps (``SVI``) or its filter pass (``FILTER``), the
-    final poses (``FINAL``), or finished (``DONE``). Its value is what checkpoints store."""
+    (``SWEEP``), an offline round's SVI steps (``SVI``) or its filter pass (``FILTER``), or
+    finished (``DONE``). Its value is what checkpoints store."""
 
     ONLINE = "online"
     SWEEP = "online-init"
     SVI = "offline-svi"
     FILTER = "offline-filter"
-    FINAL = "offline-final"
     DONE = "done"
 
 
@@ -214,7 +213,6 @@ def offline(run, progress: bool) -> None:
         _checkpoint(run, every=False)
     while st.round < run.cfg.offline.rounds:
         offline_round(run, progress)
-    st.phase = Phase.FINAL
     final = cache_pass if run.cfg.offline.estimate == "cache" else filter_pass
     st.estimates, st.stds, st.anchors = final(run, progress, "final filter pass")
 

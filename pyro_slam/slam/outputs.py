@@ -24,6 +24,7 @@ from ..inference import ParticleFilterFailed
 from ..io.ros_map import occupancy_grid, write_map
 from ..runtime import provenance, torch_threads
 from .build import MAX_BYTES, path_integration
+from .checkpoint import CHECKPOINT_EVERY
 from .config import ConfigError, SLAMConfig, TrainingConfig
 from .runner import SLAM
 
@@ -491,7 +492,7 @@ def run_slam(
     preset: str | None = None,
     overwrite: bool = True,
     source: str | None = None,
-    checkpoint_every: int = 1000,
+    checkpoint_every: int = CHECKPOINT_EVERY,
     inputs: dict | None = None,
     threads: int | None = None,
     argv: list[str] | None = None,

@@ -81,13 +81,27 @@ def odometry_sigma(controls, trans_frac: float = 0.1, rot_frac: float = 0.1, flo
     return (s_xy, s_xy, s_h)
 
 
+@dataclass(frozen=True)
+class RealLogAdaptation:
+    """The numbers :func:`adapt_real_log` reads a real log with: at most ``target_beams``
+    beams, readings clipped at the ``range_quantile`` percentile, transition std the fraction
+    ``odometry_noise`` of the RMS odometry step."""
+
+    target_beams: int = 46
+    range_quantile: float = 99.0
+    odometry_noise: float = 0.1
+
+
+REAL_LOG = RealLogAdaptation()
+
+
 def adapt_real_log(
     traversal: Traversal,
     config: SLAMConfig,
     *,
-    target_beams: int = 46,
-    range_quantile: float = 99.0,
-    odometry_noise: float = 0.1,
+    target_beams: int = REAL_LOG.target_beams,
+    range_quantile: float = REAL_LOG.range_quantile,
+    odometry_noise: float = REAL_LOG.odometry_noise,
 ) -> SLAMConfig:
     """``config`` for a metric real log: every ``beam_stride``-th beam so that at most
     ``target_beams`` remain (361 -> every 8th); readings clipped at the ``range_quantile``
@@ -160,6 +174,15 @@ REAL = SLAMConfig(
     filter=FilterConfig(particles=64, proposal="transition"),
     training=TrainingConfig(particles=8, chunks=4, every=32),
     offline=OfflineConfig(estimate="forward"),
+)
+
+# the model the planner maps with (:func:`pyro_slam.planning.learned_env`): the paper's LiDAR
+# emission MLP on its 32 x 32 grid, with the paper's Gaussian noise of 0.1 (the transition is
+# the planner's own)
+NAVIGATION_MAPPING = SLAMConfig(
+    emission=EmissionConfig("mlp", resolution=1 / 31, sigma=0.1, outlier_prob=0.0),
+    transition=TransitionConfig("kinematic", scale=(1.0, 1.0, 1.0)),
+    heading=None,
 )
 
 PRESETS: dict[str, Preset] = {

@@ -26,7 +26,13 @@ from ..model.guide import ParamScope
 from ..runtime import thread_count, torch_threads
 from . import checkpoint, loop, presets
 from .assemble import assemble
-from .build import check_size, prepare_traversal, traversal_tensors
+from .build import (
+    check_size,
+    describe_noise,
+    describe_prior,
+    prepare_traversal,
+    traversal_tensors,
+)
 from .checkpoint import state_fingerprint
 from .config import SLAMConfig
 from .loop import Phase, SLAMState
@@ -52,7 +58,9 @@ class SLAM:
             the mean-field :class:`~pyro_slam.model.MapGuide`; Pyro's autoguides through
             :func:`~pyro_slam.model.autoguide`).
         prior, noise: the map prior and the emission noise of the model
-            (:class:`~pyro_slam.model.DVBFLM`), for everything that reads the model.
+            (:class:`~pyro_slam.model.DVBFLM`), for everything that reads the model, instead
+            of the configured ones (``emission.prior``, ``emission.noise``); a checkpoint
+            records them by description, and a resume under another is refused.
         smc: filter with Pyro's :class:`pyro.infer.SMCFilter` on the same model and proposal
             (:class:`~pyro_slam.inference.PyroSMCFilter`; slower) instead of our batched filter;
             training keeps ours.
@@ -80,7 +88,7 @@ class SLAM:
         transition: Transition | None = None,
         emission: Emission | EmissionMLP | None = None,
         checkpoint: str | Path | None = None,
-        checkpoint_every: int = 1000,
+        checkpoint_every: int = checkpoint.CHECKPOINT_EVERY,
         seed: int = 0,
         learn_emission: bool | None = None,
         guide=None,
@@ -193,7 +201,10 @@ class SLAM:
     # --------------------------------------------------------------------------- checkpoints
     def fingerprint(self) -> dict:
         """What a checkpoint of this run belongs to: the data (with the walls, which shape the
-        map grid), the configuration, the seed and the model it started from."""
+        map grid), the configuration, the seed, the model it started from and its map prior
+        and emission noise (named ones or objects passed in, described by
+        :func:`~pyro_slam.slam.build.describe_prior` and
+        :func:`~pyro_slam.slam.build.describe_noise`)."""
         data = checkpoint.data_fingerprint(
             self.obs,
             self.ctl,
@@ -207,6 +218,8 @@ class SLAM:
             "config": self.cfg.to_dict(),
             "seed": self.seed,
             "model": self.model_fingerprint,
+            "prior": describe_prior(self.model.prior),
+            "noise": describe_noise(self.model.noise),
         }
 
     def state_dict(self) -> dict:

@@ -624,6 +624,25 @@ def _subparsers(parser: argparse.ArgumentParser) -> dict:
     return action.choices
 
 
+def test_checkpoint_interval_and_real_log_numbers_have_one_default():
+    """``--checkpoint-every`` and :class:`SLAM` / :func:`run_slam` share
+    :data:`~pyro_slam.slam.checkpoint.CHECKPOINT_EVERY`; ``--odometry-noise``'s help and
+    :func:`~pyro_slam.slam.presets.adapt_real_log` read :data:`~pyro_slam.slam.presets.REAL_LOG`."""
+    import inspect
+
+    every = checkpoint.CHECKPOINT_EVERY
+    slam = _subparsers(cli.build_parser())["slam"]
+    action = next(a for a in slam._actions if "--checkpoint-every" in a.option_strings)
+    assert action.default == every
+    assert inspect.signature(SLAM).parameters["checkpoint_every"].default == every
+    assert inspect.signature(outputs.run_slam).parameters["checkpoint_every"].default == every
+    noise = next(a for a in slam._actions if "--odometry-noise" in a.option_strings)
+    assert f"default {presets.REAL_LOG.odometry_noise:g}" in noise.help
+    adapt = inspect.signature(presets.adapt_real_log).parameters
+    for name in ("target_beams", "range_quantile", "odometry_noise"):
+        assert adapt[name].default == getattr(presets.REAL_LOG, name), name
+
+
 def test_every_option_has_help_and_shows_its_default(capsys):
     """Walk the parser: every option and argument of every sub-command has help text, shows
     its default (or says in words what happens without one), every sub-command has a

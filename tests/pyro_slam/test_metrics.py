@@ -11,12 +11,10 @@ from pyro_slam.data import Traversal
 from pyro_slam.io import odometry_poses
 from pyro_slam.metrics import (
     aligned_error,
-    along_track_error,
     ate,
     calibration,
     distance_travelled,
     frame_error,
-    heading_only_error,
     localisation_error,
     relative_error,
     std_over_error,
@@ -170,37 +168,6 @@ def test_tum_export_roundtrips_through_evo(tmp_path):
     q = traj.orientations_quat_wxyz  # yaw-only rotations
     yaw = 2 * np.arctan2(q[:, 3], q[:, 0])
     np.testing.assert_allclose(np.cos(yaw - SQUARE[:, 2]), 1, atol=1e-9)
-
-
-def test_heading_only_error_integrates_the_heading_error_along_the_true_path():
-    np.testing.assert_allclose(heading_only_error(SQUARE, SQUARE), 0, atol=1e-12)
-    # a straight path of unit steps walked with a constant heading error d drifts by
-    # 2 n sin(d / 2) after n steps, whatever the estimate's positions are
-    line = np.stack([np.arange(6.0), np.zeros(6), np.zeros(6)], 1)
-    d = 0.1
-    est = line + np.array([5.0, -3.0, d])
-    np.testing.assert_allclose(heading_only_error(est, line), 2 * np.arange(6) * math.sin(d / 2))
-    # headings are wrapped: an error of 2 pi + d is an error of d
-    est2 = line + np.array([0.0, 0.0, 2 * math.pi + d])
-    np.testing.assert_allclose(heading_only_error(est2, line), heading_only_error(est, line))
-    with pytest.raises(ValueError, match=r"\[T, 3\] trajectories"):
-        heading_only_error(line[:, :2], line)
-
-
-def test_along_track_error_is_signed_and_keeps_its_sign_around_corners():
-    line = np.stack([np.arange(6.0), np.zeros(6), np.zeros(6)], 1)
-    # an estimate that covers 0.9 of each unit step lags 0.1 per step; a sideways offset is 0
-    lag = line * [0.9, 1, 1] + [0.0, 0.3, 0.0]
-    np.testing.assert_allclose(along_track_error(lag, line), -0.1 * np.arange(6), atol=1e-12)
-    np.testing.assert_allclose(along_track_error(line * [1.1, 1, 1], line), 0.1 * np.arange(6))
-    # around the square's corners the lag keeps accumulating with its sign
-    sq = np.concatenate([SQUARE, SQUARE[:1]])  # [5, 3] closed loop
-    short = sq[:1] + np.cumsum(np.concatenate([[[0, 0, 0]], 0.9 * np.diff(sq, axis=0)]), 0)
-    np.testing.assert_allclose(along_track_error(short, sq), -0.1 * np.arange(5), atol=1e-12)
-    with pytest.raises(ValueError, match=r"\[T, 2\+\] trajectories"):
-        along_track_error(line[:3], line)
-    with pytest.raises(ValueError, match=r"\[T, 2\+\] trajectories"):
-        along_track_error(line, line[:, 0])
 
 
 def test_ate_aligned_and_unaligned():

@@ -15,7 +15,6 @@ from linear_gaussian import S0, H, LinearGaussian, Q, R, RandomWalk, T, kalman, 
 
 from pyro_slam.inference import (
     HeadingProposal,
-    ParticleCache,
     ParticleFilter,
     ParticleFilterFailed,
     Particles,
@@ -159,42 +158,6 @@ def test_check_weights_flags_any_collapsed_row():
     assert info.value.step is None and not str(info.value).startswith("step")
 
 
-@pytest.mark.parametrize("scheme", ["systematic", "multinomial"])
-def test_resampling_keeps_shapes_and_follows_weights(scheme):
-    g = torch.Generator().manual_seed(0)
-    K = 8
-    logw = torch.randn(2, 3, K, generator=g) * 2
-    z = torch.randn(2, 3, K, 3, generator=g)
-    p = Particles(z, resampling.normalize(logw), torch.randn(2, 3, K, 5, generator=g))
-    state = g.get_state()
-    idx = resampling.SCHEMES[scheme](logw, g)
-    assert idx.shape == (2, 3, K) and idx.dtype == torch.long
-    assert idx.min() >= 0 and idx.max() < K
-    g.set_state(state)  # the same draw again, inside Particles.resample
-    r = p.resample(g, scheme)
-    assert r.z.shape == z.shape and r.scan.shape == (2, 3, K, 5) and r.logw.shape == (2, 3, K)
-    torch.testing.assert_close(r.logw, torch.full_like(logw, -math.log(K)))
-    # every resampled particle is one of the old ones, with its scan
-    for i in range(2):
-        for j in range(3):
-            torch.testing.assert_close(r.z[i, j], z[i, j, idx[i, j]])
-            torch.testing.assert_close(r.scan[i, j], p.scan[i, j, idx[i, j]])
-
-
-def test_systematic_counts_are_within_one_of_expectation():
-    g = torch.Generator().manual_seed(1)
-    K = 50
-    logw = torch.randn(20, K, generator=g) * 1.5
-    idx = resampling.systematic(logw, g)
-    counts = torch.zeros(20, K).scatter_add_(1, idx, torch.ones(20, K))
-    expected = K * torch.softmax(logw, -1)
-    assert ((counts - expected).abs() < 1 + 1e-5).all()
-    # multinomial resampling is unbiased: average counts over many draws approach K w
-    many = torch.stack([resampling.multinomial(logw[:1], g) for _ in range(400)])
-    freq = torch.zeros(K).scatter_add_(0, many.flatten(), torch.ones(many.numel())) / 400
-    assert (freq - expected[0]).abs().max() < 0.5
-
-
 def test_ess_resampling_only_in_degenerate_rows():
     """Rows with ESS < threshold are resampled, others keep their particles and weights."""
     model = LinearGaussian(torch.float64)
@@ -216,38 +179,3 @@ def test_ess_resampling_only_in_degenerate_rows():
     torch.testing.assert_close(q.logw[1], resampling.normalize(lik[1]))  # uniform prior weights
     torch.testing.assert_close(q.logw[0], torch.full((K,), -math.log(K), dtype=torch.float64))
     torch.testing.assert_close(inc, torch.logsumexp(lik - math.log(K), -1))
-
-
-def test_particle_cache_store_and_propose():
-    g = torch.Generator().manual_seed(0)
-    cache = ParticleCache(10, num_particles=400)
-    z = torch.tensor([1.0, 2.0, 0.5]) + torch.tensor([0.1, 0.2, 0.05]) * torch.randn(
-        2, 800, 3, generator=g
-    )
-    cache.store(torch.tensor([3, 4]), Particles(z, torch.full((2, 800), -math.log(800))), g)
-    assert cache.filled.tolist() == [False] * 3 + [True] * 2 + [False] * 5
-    loc, scale = cache.moments(torch.tensor([3, 4]))
-    torch.testing.assert_close(loc, torch.tensor([[1.0, 2.0, 0.5]] * 2), atol=0.03, rtol=0)
-    torch.testing.assert_close(scale, torch.tensor([[0.1, 0.2, 0.05]] * 2), rtol=0.15, atol=0)
-    for kind in ("gaussian", "categorical"):
-        prop = cache.propose(torch.tensor([3, 4, 3]), 7, kind, generator=g)
-        assert prop.shape == (3, 7, 3) and torch.isfinite(prop).all()
-    # a cloud facing west straddles +-pi: its heading moments are circular (mean ~pi, std
-    # 0.01), not the raw values' (mean ~0, std ~pi), and the proposal stays near +-pi
-    west = torch.tensor([0.5, 0.5, math.pi]) + torch.tensor([0.0, 0.0, 0.01]) * torch.randn(
-        1, 800, 3, generator=g
-    )
-    west[..., 2] = torch.remainder(west[..., 2] + math.pi, 2 * math.pi) - math.pi
-    cache.store(torch.tensor([6]), Particles(west, torch.full((1, 800), -math.log(800))), g)
-    loc, scale = cache.moments(torch.tensor([6]))
-    assert abs(abs(float(loc[0, 2])) - math.pi) < 0.003 and float(scale[0, 2]) < 0.012
-    prop = cache.propose(torch.tensor([6]), 100, generator=g)[..., 2]  # [1, 100]
-    assert float(prop.abs().min()) > math.pi - 0.05 and float(prop.abs().max()) <= math.pi
-    p = Particles(west[0], torch.full((800,), -math.log(800)))
-    assert float(p.std()[2]) < 0.012 and abs(abs(float(p.mean()[2])) - math.pi) < 0.003
-    with pytest.raises(ValueError, match=r"no particles at steps \[5\]"):
-        cache.propose(torch.tensor([4, 5]), 7)
-    with pytest.raises(ValueError, match="unknown proposal"):
-        cache.propose(torch.tensor([4]), 7, "nope")
-    with pytest.raises(ValueError, match="unknown resampling scheme"):
-        ParticleFilter(LinearGaussian(torch.float32), scheme="stratified")

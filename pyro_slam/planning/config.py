@@ -1,0 +1,36 @@
+"""Navigation's defaults, written once: the library's planner and learned map, the
+``pyro-slam navigate`` command and the navigation benchmark read them from here."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class NavigationConfig:
+    """The defaults of navigating in a learned map.
+
+    ``max_expansions``: hybrid A*'s node expansions (:func:`~pyro_slam.planning.plan`);
+    ``traversal_steps``: the mapping traversal's length; ``fit_steps``: SVI steps fitting
+    ``q(M)``; ``emission_steps``: steps fitting the emission on the mapping traversal (0: the
+    shipped one, frozen), with ``n_world`` world directions; ``max_std``: a chart counts as
+    explored below this std of ``q(M)``; ``hit_margin``: the learned planner keeps this far
+    from the mapping scans' returns (0: off) (:func:`~pyro_slam.planning.learned_env`).
+    """
+
+    max_expansions: int = 2000
+    traversal_steps: int = 3000
+    fit_steps: int = 1500
+    emission_steps: int = 0
+    n_world: int = 20
+    max_std: float = 0.6
+    hit_margin: float = 0.02
+
+
+# the library's and the command line's defaults
+NAVIGATION = NavigationConfig()
+# the navigation benchmark's (docs/navigation.md): a smaller A* budget, a longer mapping
+# traversal and an emission fitted per maze with 60 world directions
+NAVIGATION_BENCHMARK = NavigationConfig(
+    max_expansions=1200, traversal_steps=6000, emission_steps=3000, n_world=60
+)
