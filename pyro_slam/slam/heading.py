@@ -140,25 +140,14 @@ class ManhattanHeading:
         return HeadingEvidence(d, self.sigma, self.frame.mean, self.frame.var)
 
     def refine(self, t: int, heading: float, heading_std: float) -> None:
-        """Refine ``q(phi)`` with step ``t``'s posterior heading (mean and std), once the
-        step's own wall direction is taken out of it: the filter's heading already used ``h_t``
-        (a Gaussian factor of std ``sigma_t`` about ``phi - h_t``), so its cavity, the
-        posterior divided by that factor, is what the rest of the data says of the heading
-        (variance ``1 / (1 / heading_std^2 - 1 / sigma_t^2)``; none where ``h_t`` gave it all).
-        ``cavity + direction`` (modulo a quarter turn) observes the frame with variance
-        ``sigma_t^2 + cavity variance``: one scalar Kalman update of the frame's mean and
-        variance, so each wall direction counts once."""
+        """Refine ``q(phi)`` with step ``t``'s posterior heading (mean and std): ``heading +
+        direction`` (modulo a quarter turn) observes the frame with variance ``sigma_t^2 +
+        heading_std^2``; one scalar Kalman update of the frame's mean and variance."""
         f = self.frame
         if not bool(self.ok[t]) or math.isnan(f.mean):
             return
-        s2, v_post = float(self.sigma[t]) ** 2, heading_std**2 + 1e-30
-        rest = 1 / v_post - 1 / (s2 + f.var)  # precision of what the rest of the data says
-        if rest <= 1e-6 / v_post:  # (to rounding) the wall direction said it all
-            return
-        seen = f.mean - float(self.direction[t])  # the heading h_t points to
-        cavity = heading + float(wrap_angle(heading - seen, QUARTER)) * (1 / (s2 + f.var)) / rest
-        v = s2 + 1 / rest
-        r = float(wrap_angle(cavity + float(self.direction[t]) - f.mean, QUARTER))
+        v = float(self.sigma[t]) ** 2 + heading_std**2
+        r = float(wrap_angle(heading + float(self.direction[t]) - f.mean, QUARTER))
         gain = f.var / (f.var + v)
         f.mean = float(torch.remainder(torch.tensor(f.mean + gain * r), QUARTER))
         f.var *= 1 - gain
