@@ -99,8 +99,10 @@ class PlanResult:
 
 def check_endpoints(bounds, start, goal, names=("start", "goal")) -> None:
     """Refuse a ``start [3]`` or ``goal [2+]`` position outside ``bounds`` ``(x0, x1, y0, y1)``
-    (where the search never goes) or not finite: :class:`ValueError` naming it (``names``)."""
+    (where the search never goes; to within 1e-6, the bounds' own rounding) or not finite:
+    :class:`ValueError` naming it (``names``)."""
     x0, x1, y0, y1 = (float(b) for b in bounds)
+    x0, x1, y0, y1 = x0 - 1e-6, x1 + 1e-6, y0 - 1e-6, y1 + 1e-6
     for name, pose in zip(names, (start, goal)):
         p = np.asarray(pose, dtype=np.float64).reshape(-1)
         if not np.isfinite(p).all() or not (x0 <= p[0] <= x1 and y0 <= p[1] <= y1):

@@ -255,6 +255,8 @@ SIGNAL_AT_FIRST_CHECKPOINT = textwrap.dedent(
     import os, signal, sys
     import torch
     torch.set_num_threads(1)
+    # a process started in the background may inherit SIGINT ignored: restore Python's own
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     from pyro_slam import cli
     from pyro_slam.slam import SLAM
     save = SLAM.save
@@ -556,7 +558,7 @@ def test_navigate_from_a_slam_run_plans_in_its_map(mapped, tmp_path, capsys):
     found ("found": false)."""
     tr_path, run = mapped
     poses = np.load(tr_path)["poses"]
-    start, goal = poses[0], poses[130, :2]  # a place the robot passed, inside the mapped corridor
+    start, goal = poses[0], poses[60, :2]  # a place the robot passed, inside the mapped corridor
     out = tmp_path / "nav.png"
     argv = [
         "navigate",
