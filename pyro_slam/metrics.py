@@ -136,10 +136,11 @@ def coverage(std: np.ndarray, est: np.ndarray, true: np.ndarray, k: float = 2.0)
 
 def calibration(std: np.ndarray, est: np.ndarray, true: np.ndarray, start: int = 0) -> dict:
     """How the posterior's spread compares with its error over one run, from step ``start``
-    on (from the first step in a run no longer than twice ``start``): the time-averaged position std (``std [T, 3]``) over the time-averaged position error
-    of ``est [T, 3]``, raw and after the rigid alignment of :func:`aligned_error` (1:
-    calibrated; below 1: overconfident; :func:`std_over_error`), and the 2-sigma
-    :func:`coverage` of the true positions (0.865 for a calibrated Gaussian)."""
+    on (from the first step in a run no longer than twice ``start``): the time-averaged
+    position std (``std [T, 3]``) over the time-averaged position error of ``est [T, 3]``, raw
+    and after the rigid alignment of :func:`aligned_error` (1: calibrated; below 1:
+    overconfident; :func:`std_over_error`), and the 2-sigma :func:`coverage` of the true
+    positions (0.865 for a calibrated Gaussian)."""
     start = start if len(true) > 2 * start else 0
     aligned = aligned_error(est, true)[0][start:]
     std, est, true = std[start:], est[start:], true[start:]
