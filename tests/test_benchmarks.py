@@ -280,7 +280,8 @@ def test_pin_cache_learns_the_map_at_the_given_poses_and_writes_the_scans_there(
         fresh.insert(slam.obs[t], valid, torch.as_tensor(poses[t], dtype=slam.obs.dtype))
     assert bool(fresh.inserted.any())
     for key, value in fresh.state_dict().items():
-        assert torch.equal(slam.inserter.state_dict()[key], value)
+        if key != "placement":  # (the run placed each scan with its pose's variance)
+            assert torch.equal(slam.inserter.state_dict()[key], value), key
 
 
 @pytest.mark.slow
