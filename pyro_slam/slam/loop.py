@@ -123,8 +123,7 @@ def online_sweep(run, progress: bool) -> None:
         t = st.t
         with torch.no_grad():
             filter_step(run, t, run.map_belief())
-        mean = run.particles.mean()
-        std, anchor = world_std(run, mean, run.particles.std())
+        mean, std, anchor = _cloud(run)
         if st.phase == Phase.ONLINE:
             st.estimates.append(mean.tolist())
             st.stds.append(std.tolist())
@@ -158,10 +157,16 @@ def filter_pass(run, progress: bool, desc: str):
     return out
 
 
+def _cloud(run) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """The cloud's mean ``[3]``, world-frame std ``[3]`` and placement variance
+    (:func:`world_std`)."""
+    mean = run.particles.mean()
+    return mean, *world_std(run, mean, run.particles.std())
+
+
 def _record(run, out: tuple) -> None:
     """Append the cloud's mean, world-frame std and placement variance to ``out``."""
-    mean = run.particles.mean()
-    std, anchor = world_std(run, mean, run.particles.std())
+    mean, std, anchor = _cloud(run)
     out[0].append(mean.tolist())
     out[1].append(std.tolist())
     out[2].append(anchor)
