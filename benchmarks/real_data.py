@@ -105,10 +105,11 @@ def log_config(tr, preset: str = "real", overrides: dict | None = None):
 
 
 def run_dvbf(tr, out: Path, cfg, preset: str, seed: int = 0, mode: str = "online", threads=None):
-    """DVBF-LM on ``tr`` into the folder ``out``: ``([T, 3] pose means, wall seconds)``."""
+    """DVBF-LM on ``tr`` into the folder ``out``: ``([T, 3] pose means, [T, 3] pose stds, wall
+    seconds)``."""
     rep = run_slam(tr, out, mode, cfg, progress=False, seed=seed, preset=preset, threads=threads)
     with np.load(out / "posterior.npz") as post:
-        return post["pose_mean"], rep["wall_time_s"]
+        return post["pose_mean"], post["pose_std"], rep["wall_time_s"]
 
 
 def mrpt_available() -> str | None:
@@ -175,10 +176,11 @@ def run_mrpt(tr, work: Path):
 
 
 # ----------------------------------------------------------------------------------- metrics
-def evaluate(tr, tr_eval, poses, ref=None, relations=None):
+def evaluate(tr, tr_eval, poses, ref=None, relations=None, std=None):
     """A system's row on the log ``tr`` (``tr_eval``: its :func:`metrics.consistency_scans`):
     the quoted scan consistency, the path length and, with a reference, the relation error and
-    the aligned ATE."""
+    the aligned ATE, and, for a posterior (its pose stds ``std [T, 3]``), its calibration
+    against the reference (:func:`metrics.calibration`)."""
     # a trajectory that collapses onto itself scores well on scan consistency (its scans pile
     # up on each other); the path length (odometry measures it well) exposes that
     out = {
@@ -188,6 +190,8 @@ def evaluate(tr, tr_eval, poses, ref=None, relations=None):
     if ref is not None:
         out["relation_error"] = relation_error(tr_eval.timestamps, poses, relations)
         out["ate_aligned"] = metrics.ate(poses, ref, align=True)
+        if std is not None:
+            out["calibration"] = metrics.calibration(std, poses, ref, metrics.CALIBRATION_START)
     return out
 
 
@@ -287,8 +291,8 @@ def seeded_rows(name, tr, tr_eval, out: Path, cfg, preset, modes, seeds, ref, re
             if kept.is_file():
                 runs[seed] = json.loads(kept.read_text())
             else:
-                poses, wall = run_dvbf(tr, folder, cfg, preset, seed, mode, threads)
-                row = {**evaluate(tr, tr_eval, poses, ref, rel)}
+                poses, std, wall = run_dvbf(tr, folder, cfg, preset, seed, mode, threads)
+                row = {**evaluate(tr, tr_eval, poses, ref, rel, std)}
                 row["seconds_per_scan"] = wall / tr.num_steps
                 text = json.dumps(row, indent=1, default=float)
                 kept.parent.mkdir(parents=True, exist_ok=True)
@@ -401,6 +405,9 @@ def seed_table(result: dict) -> list[str]:
         ("scan consistency", ("scan_consistency", "mean"), "m"),
         ("path", ("path_length_m",), "m"),
         ("relation error", ("relation_error", "trans_mean"), "m"),
+        ("std/error", ("calibration", "std_over_error"), ""),
+        ("aligned", ("calibration", "std_over_aligned_error"), ""),
+        ("2-sigma coverage", ("calibration", "coverage_2sigma"), ""),
         ("s/scan", ("seconds_per_scan",), ""),
     )
     lines = []

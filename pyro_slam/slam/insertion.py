@@ -35,7 +35,12 @@ Two kinds (``emission.insert.kind``):
     wall, sampled at half a grid spacing), give the grid points nearest to it that no earlier
     scan hit a wall reading; the grid points each beam crosses up to a grid spacing short of
     its return (up to the range for a miss) that no scan has read yet get a free reading:
-    known free space, whose site a later hit replaces. Each grid point is read once (a wall
+    known free space, whose site a later hit replaces. A reading lies at the grid point
+    nearest to where the scan puts it, up to half a spacing ``s`` away: besides its pose's
+    placement, each wall carries its own rounding (variance ``s^2 / 12`` per axis, uniform),
+    one shift along its length and independent between walls, of which a pose fitted to
+    several walls gets a share (:meth:`OccupancyInserter.rounding_at`). Each grid point is read
+    once (a wall
     once, its free reading before that at most once): the scans of one place are not
     independent readings of it, as the same pose error places them all. For walls without
     thickness (the simulated mazes).
@@ -134,16 +139,28 @@ class ScanInserter:
 
     def placement_at(self, z: torch.Tensor) -> float:
         """The placement variance (per axis) of the map where the beams of pose ``z [3]`` stop
-        under ``q(M)``'s mean: the stop-weighted mean over the readings that hit inserted grid
-        points (0 where none does)."""
+        under ``q(M)``'s mean: the stop-weighted mean of the placements of the readings that
+        hit inserted grid points (shared by them, as nearby poses placed them), plus the share
+        of the readings' own rounding that reaches the pose (:meth:`rounding_at`); 0 where no
+        beam stops on an inserted point."""
         em, grid = self.model.emission, self.model.grid
         with torch.no_grad():
             loc = self.leaves.loc.detach()
             pts, stop, _ = em.stops(grid, loc, z.to(loc.dtype))  # [B, S, 2], [B, S]
             field = torch.stack([self.placement, (self.site_prec > 0).double()], -1)
             read = grid.attend(field.to(loc.dtype), pts)  # [B, S, 2]
-            seen = (stop * read[..., 1]).sum()
-            return float((stop * read[..., 0]).sum() / seen) if seen > 1e-6 else 0.0
+            on = stop * read[..., 1]  # [B, S] stopping on an inserted point
+            seen = on.sum()
+            if seen <= 1e-6:
+                return 0.0
+            shared = float((stop * read[..., 0]).sum() / seen)
+            return shared + self.rounding_at(z.to(loc.dtype), pts, on)
+
+    def rounding_at(self, z: torch.Tensor, pts: torch.Tensor, on: torch.Tensor) -> float:
+        """The variance (per axis) that the readings' own rounding gives pose ``z [3]`` whose
+        beams stop at ``pts [B, S, 2]`` on inserted points with probability ``on [B, S]``:
+        none here (a kind that places readings exactly)."""
+        return 0.0
 
     def _to_grid(self, p: torch.Tensor) -> torch.Tensor:
         """Positions ``[..., 2]`` in grid coordinates (spacings from the origin)."""
@@ -191,6 +208,7 @@ class OccupancyInserter(ScanInserter):
     def __init__(self, config: ScanInsertionConfig, model, leaves):
         super().__init__(config, model, leaves)
         w, h = model.grid.cells
+        self.rounding = self.spacing**2 / 12  # a reading's variance (per axis) from its rounding
         self.walls = torch.zeros((w, h), dtype=torch.bool)  # [w, h] hit by a scan
         self.freed = torch.zeros((w, h), dtype=torch.bool)  # [w, h] crossed by a beam
 
@@ -211,6 +229,39 @@ class OccupancyInserter(ScanInserter):
         f = torch.linspace(0, 1, n, dtype=x.dtype)[:, None, None]  # [n, 1, 1]
         on = pts[seg] + f * (pts[nxt][seg] - pts[seg])  # [n, S, 2] along joined pairs
         return self._nearest(torch.cat([pts[hit], on.reshape(-1, 2)]))
+
+    def rounding_at(self, z: torch.Tensor, pts: torch.Tensor, on: torch.Tensor) -> float:
+        """The share of the walls' rounding that reaches pose ``z [3]`` (per axis): each wall
+        the beams stop on (neighbouring beams' stops closer than ``gap`` are one wall, as
+        inserted) is shifted along its normal ``n_k`` by its own rounding (variance ``r``,
+        independent between walls); a pose fitted to the ``w_k`` beams on each wall moves by
+        the weighted mean of the shifts, covariance ``r A^+ C A^+`` with ``A = sum w_k n_k
+        n_k^T`` and ``C = sum w_k^2 n_k n_k^T``; its mean over the axes, at most ``r``."""
+        mass = on.sum(-1)  # [B]
+        hit = mass > 0.5
+        if not bool(hit.any()):
+            return 0.0
+        p = (on[..., None] * pts).sum(-2) / mass.clamp_min(1e-12)[:, None]  # [B, 2] its stop
+        B = p.shape[0]
+        nxt, prv = torch.roll(torch.arange(B), -1), torch.roll(torch.arange(B), 1)
+        join = hit & hit[nxt] & ((p[nxt] - p).norm(dim=-1) < self.cfg.gap)  # [B]
+        first = hit & ~join[prv]  # [B] a wall's first beam
+        if not bool(first.any()):  # one wall all round
+            first = hit & (torch.arange(B) == int(torch.nonzero(hit)[0]))
+        label = torch.cumsum(first.long(), 0)  # beams before the first start: the last wall
+        label = torch.where(label == 0, label.max(), label)
+        A, C = p.new_zeros(2, 2), p.new_zeros(2, 2)
+        for k in range(1, int(label.max()) + 1):
+            beams = torch.nonzero(hit & (label == k)).flatten()
+            a, b = p[beams[0]], p[beams[-1]]
+            if len(beams) > 1 and float((b - a).norm()) > 0:
+                n = torch.stack([a[1] - b[1], b[0] - a[0]]) / (b - a).norm()
+            else:
+                n = (a - z[:2]) / (a - z[:2]).norm().clamp_min(1e-12)
+            nn_ = torch.outer(n, n)
+            A, C = A + len(beams) * nn_, C + len(beams) ** 2 * nn_
+        Ai = torch.linalg.pinv(A)
+        return min(self.rounding * float(torch.trace(Ai @ C @ Ai)) / 2, self.rounding)
 
     def free_cells(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor):
         """Grid points ``(i [P], j [P])`` the beams of scan ``x [B]`` (``valid [B]``) cross from

@@ -183,21 +183,57 @@ def test_occupancy_insertion_reads_walls_once_and_free_space_a_hit_replaces(smal
 
 def test_placement_variance_is_handed_on_from_wall_to_pose(small_traversal):
     """Each grid point keeps the position variance of the pose its reading was placed from; a
-    pose whose beams stop on those walls gets that variance added to its world-frame std on x
-    and y (not on the heading), and a pose looking at no inserted wall gets none."""
+    pose whose beams stop on those walls gets that variance, plus its share of the walls' own
+    rounding, added to its world-frame std on x and y (not on the heading), and a pose looking
+    at no inserted wall gets none."""
     tr = small_traversal
     slam = insertion_slam(tr)
     z = first_scan(slam, tr, var=4e-6)
     ins = slam.inserter
     assert torch.allclose(ins.placement[ins.walls], torch.tensor(4e-6, dtype=torch.float64))
-    assert ins.placement_at(z) == pytest.approx(4e-6, rel=1e-3)
+    share = ins.placement_at(z) - 4e-6  # the rounding's share: several walls, less than one's
+    assert ins.rounding / 6 < share < ins.rounding
     std = torch.tensor([1e-3, 1e-3, 1e-3])
     out, var = world_std(slam, z, std)
-    assert var == pytest.approx(4e-6, rel=1e-3)
-    assert out[:2].tolist() == pytest.approx([math.sqrt(1e-6 + 4e-6)] * 2, rel=1e-3)
+    assert var == pytest.approx(4e-6 + share, rel=1e-6)
+    assert out[:2].tolist() == pytest.approx([math.sqrt(1e-6 + 4e-6 + share)] * 2, rel=1e-3)
     assert float(out[2]) == float(std[2])
     fresh = insertion_slam(tr)
     assert fresh.inserter.placement_at(z) == 0.0
+
+
+def wall_stops(*walls):
+    """Stops ``[B, 1, 2]`` (each beam certain, ``on [B, 1]``) of beams running along straight
+    walls in order: each wall ``(a [2], b [2], beams)`` gets ``beams`` stops evenly from a to b,
+    closer together than the inserter's ``gap``."""
+    pts = [torch.stack([torch.linspace(a[i], b[i], n) for i in (0, 1)], -1) for a, b, n in walls]
+    pts = torch.cat(pts).double()[:, None]
+    return pts, torch.ones(pts.shape[:2], dtype=torch.float64)
+
+
+def test_rounding_share_follows_the_walls_a_pose_is_fitted_to(small_traversal):
+    """A wall's rounding (variance ``r = s^2 / 12`` per axis for spacing ``s``) shifts the wall
+    along its normal; a pose fitted to one wall per axis moves with each (``r``), a second wall
+    on one axis halves that axis's share (``0.75 r`` over the axes), and beams on one wall
+    share its rounding (splitting a wall's beams into walls of their own would halve it)."""
+    ins = insertion_slam(small_traversal).inserter
+    r, z = ins.rounding, torch.zeros(3, dtype=torch.float64)
+    assert r == pytest.approx(ins.spacing**2 / 12) and ins.spacing == pytest.approx(
+        1 / 63, rel=0.02
+    )
+    east, north, west = (
+        ((1, -0.03), (1, 0.03), 4),
+        ((0.03, 1), (-0.03, 1), 4),
+        ((-1, 0.03), (-1, -0.03), 4),
+    )
+    assert ins.rounding_at(z, *wall_stops(east, north)) == pytest.approx(r)
+    assert ins.rounding_at(z, *wall_stops(east, north, west)) == pytest.approx(0.75 * r)
+    apart = ((1, -0.3), (1, 0.3), 4)  # the same wall's stops, too far apart to be joined
+    # about 0.625 r (x: four walls of one beam, y: one of four); the lone stops' normals are
+    # their beams', a little turned
+    assert 0.55 * r < ins.rounding_at(z, *wall_stops(apart, north)) < 0.7 * r
+    pts, on = wall_stops(east, north)
+    assert ins.rounding_at(z, pts, on * 0) == 0.0  # no beam stops on an inserted point
 
 
 @pytest.mark.parametrize("kind", ["occupancy", "fusion"])
