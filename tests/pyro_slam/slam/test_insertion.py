@@ -192,7 +192,7 @@ def test_placement_variance_is_handed_on_from_wall_to_pose(small_traversal):
     assert torch.allclose(ins.placement[ins.walls], torch.tensor(4e-6, dtype=torch.float64))
     assert ins.placement_at(z) == pytest.approx(4e-6, rel=1e-3)
     std = torch.tensor([1e-3, 1e-3, 1e-3])
-    out, var = world_std(slam, z, std)
+    out, var = world_std(slam.inserter, z, std)
     assert var == pytest.approx(4e-6, rel=1e-3)
     assert out[:2].tolist() == pytest.approx([math.sqrt(1e-6 + 4e-6)] * 2, rel=1e-3)
     assert float(out[2]) == float(std[2])
@@ -225,7 +225,9 @@ def test_online_slam_inserts_each_scan_from_its_steps_estimate(small_traversal, 
         assert torch.allclose(
             slam.inserter.state_dict()[key].double(), getattr(replay, key).double()
         )
-        assert torch.equal(slam.state_dict()["inserter"][key], slam.inserter.state_dict()[key])
+        assert torch.equal(
+            slam.state_dict()["components"]["inserter"][key], slam.inserter.state_dict()[key]
+        )
     assert torch.allclose(slam.inserter.placement, replay.placement)
     assert replay.inserted.any()
 
