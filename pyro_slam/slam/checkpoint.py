@@ -5,7 +5,9 @@ A checkpoint records a fingerprint of the data the run filters (a hash of the pr
 observations, controls, mask, beam angles, start pose and walls), the model it started from (its
 networks and map grid), its map prior and emission noise, the configuration, the seed and the
 mode. :func:`check` refuses a
-checkpoint whose fingerprint differs and names what differs.
+checkpoint whose fingerprint differs and names what differs. Its contents are the run's
+:class:`~pyro_slam.slam.state.SLAMState` and each of its components' own state
+(:func:`snapshot`).
 """
 
 from __future__ import annotations

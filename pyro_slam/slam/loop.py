@@ -34,11 +34,17 @@ from .state import Phase, SLAMState
 
 
 def _never(every: bool = True) -> None:
-    """No checkpoints."""
+    """Write no checkpoint (the default ``checkpoint`` of the sweeps)."""
 
 
 def filter_step(
-    c: Components, st: SLAMState, data: RunData, t: int, M: MapBelief, start=None, store=True
+    c: Components,
+    st: SLAMState,
+    data: RunData,
+    t: int,
+    M: MapBelief,
+    start: torch.Tensor | None = None,
+    store: bool = True,
 ) -> None:
     """Step ``t`` of the pose filter under ``M``: from the initial pose prior (``t = 0``), from
     the start particles ``start [K, 3]`` (a new lineage), or from the state's particles; the
@@ -76,9 +82,10 @@ def world_std(
     return out, var
 
 
-def svi_step(c: Components, st: SLAMState, data: RunData, lo: int, hi: int, newest) -> float:
-    """One SVI step on chunks starting in ``[lo, hi]`` (plus the chunk at ``newest``, an int or
-    None)."""
+def svi_step(
+    c: Components, st: SLAMState, data: RunData, lo: int, hi: int, newest: int | None
+) -> float:
+    """One SVI step on chunks starting in ``[lo, hi]`` (plus the chunk at ``newest``)."""
     tc = data.cfg.training
     starts = torch.randint(lo, hi + 1, (tc.chunks - (newest is not None),), generator=st.gen)
     if newest is not None:

@@ -1,7 +1,7 @@
-"""SLAM with DVBF-LM, the public entry point: :class:`SLAM` wires a run together
-(:mod:`.assemble`), runs the algorithms of :mod:`.loop` online or offline, and writes and reads
-the checkpoints of :mod:`.checkpoint`, from which :meth:`SLAM.resume` continues with the same
-random stream."""
+"""SLAM with DVBF-LM, the public entry point: :class:`SLAM` holds a run's components
+(:mod:`.assemble`, :mod:`.parts`), its state (:mod:`.state`) and its data, runs the algorithms
+of :mod:`.loop` online or offline over them, and writes and reads the checkpoints of
+:mod:`.checkpoint`, from which :meth:`SLAM.resume` continues with the same random stream."""
 
 from __future__ import annotations
 
