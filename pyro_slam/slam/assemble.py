@@ -1,6 +1,6 @@
-"""Putting a SLAM run together: from its configuration and data to the model, the guides, the
-pose filter, the particle cache and history, the training objective with SVI, scan insertion
-and the heading factor's data, set on the run (:class:`~pyro_slam.slam.runner.SLAM`)."""
+"""Putting a SLAM run together: from its data and configuration to its
+:class:`~pyro_slam.slam.parts.Components`: the model, the guides, the pose filter, the training
+objective with SVI, scan insertion and the heading factor's data."""
 
 from __future__ import annotations
 
@@ -16,92 +16,103 @@ from .. import pretrained
 from ..inference import (
     PROPOSALS,
     HeadingProposal,
-    ParticleCache,
     ParticleChunkELBO,
     ParticleFilter,
-    ParticleHistory,
     PyroSMCFilter,
 )
-from ..model import GlobalGuide
-from ..model.guide import MapLeaves
+from ..model import DVBFLM, GlobalGuide
+from ..model.guide import MapLeaves, ParamScope
 from .build import build_model
 from .components import emission_kind
 from .heading import ManhattanHeading
 from .insertion import ScanInserter, make_inserter
+from .parts import Components, RunData
+from .state import SLAMState
 
 
-def assemble(run, transition, emission, learn_emission, guide, prior, noise, smc: bool):
-    """Set the run's ``gen``, ``model``, ``map_guide``, ``heading``, ``guide``, ``proposal``,
-    ``pf``, ``cache``, ``history``, ``elbo``, ``optim``, ``svi`` and ``inserter`` (inside the
-    run's parameter scope; see :class:`~pyro_slam.slam.runner.SLAM` for the arguments)."""
-    cfg = run.cfg
+def assemble(
+    data: RunData,
+    state: SLAMState,
+    scope: ParamScope,
+    transition,
+    emission,
+    learn_emission,
+    guide,
+    prior,
+    noise,
+    smc: bool,
+) -> Components:
+    """The run's components, inside its parameter ``scope`` (see
+    :class:`~pyro_slam.slam.runner.SLAM` for the other arguments): the filters and the
+    objective draw from ``state.gen``, and the objective starts its chunks from
+    ``state.cache``. Seeds Pyro with ``data.seed`` once the given networks are loaded."""
+    cfg = data.cfg
     if transition is None and cfg.transition.kind == "learned":
-        transition = pretrained.transition_for(run.tr)
+        transition = pretrained.transition_for(data.tr)
     kind = emission_kind(cfg.emission.kind)
     if emission is None and kind.shipped is not None:
-        emission = kind.shipped(run.tr)
+        emission = kind.shipped(data.tr)
     if learn_emission is None:
         learn_emission = emission is None and kind.learned
-    pyro.set_rng_seed(run.seed)  # (after loading: building a network draws its weights)
-    run.gen = torch.Generator().manual_seed(run.seed)
-    run.model, run.map_guide = build_model(run.tr, cfg, transition, emission, prior, noise)
-    run.model.learn_emission = bool(learn_emission)
+    pyro.set_rng_seed(data.seed)  # (after loading: building a network draws its weights)
+    model, map_guide = build_model(data.tr, cfg, transition, emission, prior, noise)
+    model.learn_emission = bool(learn_emission)
     if guide is not None:
-        run.map_guide = guide(run.model)
-    run.heading = heading_data(run)
-    if run.heading is not None:
-        run.model.heading = run.heading.factor()
-    run.guide = GlobalGuide(run.map_guide, None if run.heading is None else run.heading.frame)
+        map_guide = guide(model)
+    heading = heading_data(data, model)
+    if heading is not None:
+        model.heading = heading.factor()
+    global_guide = GlobalGuide(map_guide, None if heading is None else heading.frame)
     name = cfg.filter.proposal
-    proposal = HeadingProposal() if run.heading and name == "transition" else PROPOSALS[name]()
-    run.proposal = proposal
-    run.pf = ParticleFilter(run.model, proposal, run.gen)
+    proposal = HeadingProposal() if heading and name == "transition" else PROPOSALS[name]()
+    pf = ParticleFilter(model, proposal, state.gen)
     if smc:
-        run.pf = PyroSMCFilter(run.model, proposal)
-    run.cache = ParticleCache(run.T, cfg.training.cache_particles)
-    run.history = ParticleHistory(run.T, cfg.filter.particles)
-    run.elbo = ParticleChunkELBO(
-        ParticleFilter(run.model, proposal, run.gen),
-        run.cache,
-        run.obs,
-        run.ctl,
-        run.mask,
+        pf = PyroSMCFilter(model, proposal)
+    elbo = ParticleChunkELBO(
+        ParticleFilter(model, proposal, state.gen),
+        state.cache,
+        data.obs,
+        data.ctl,
+        data.mask,
         num_particles=cfg.training.particles,
-        headings=None if run.heading is None else run.heading.evidence(),
+        headings=None if heading is None else heading.evidence(),
     )
     lr, lr_emission = cfg.training.lr, cfg.training.lr_emission
-    run.optim = Adam(lambda name, _p: {"lr": lr_emission if name.startswith("emission") else lr})
-    run.svi = SVI(run.model.global_model, run.guide, run.optim, loss=run.elbo)
-    create_guide_params(run.map_guide)
-    run.inserter = None if cfg.emission.insert is None else inserter(run)
+    optim = Adam(lambda name, _p: {"lr": lr_emission if name.startswith("emission") else lr})
+    svi = SVI(model.global_model, global_guide, optim, loss=elbo)
+    create_guide_params(map_guide)
+    insert = None if cfg.emission.insert is None else inserter(cfg, model, map_guide)
+    return Components(
+        scope, model, map_guide, global_guide, heading, proposal, pf, elbo, optim, svi, insert
+    )
 
 
-def heading_data(run) -> ManhattanHeading | None:
+def heading_data(data: RunData, model: DVBFLM) -> ManhattanHeading | None:
     """The wall directions of the run's scans and the walls' frame guide (with the configured
     heading factor; None without)."""
-    cfg = run.cfg
+    cfg = data.cfg
     if cfg.heading is None:
         return None
     image = cfg.emission.observation == "image"
-    drift = float(run.model.transition.sigma[2])
+    drift = float(model.transition.sigma[2])
     return ManhattanHeading(
-        run.tr, run.obs, run.mask, cfg.heading, image, drift, cfg.emission.outlier_prob
+        data.tr, data.obs, data.mask, cfg.heading, image, drift, cfg.emission.outlier_prob
     )
 
 
-def inserter(run) -> ScanInserter | None:
-    """Scan insertion into the run's map guide, where the guide's marginal mean and std can be
-    read and written (:class:`~pyro_slam.model.guide.MapLeaves`); otherwise insertion is
-    switched off with a warning."""
-    leaves = MapLeaves.of(run.map_guide, run.model.grid.shape)
+def inserter(cfg, model: DVBFLM, map_guide) -> ScanInserter | None:
+    """Scan insertion into the map guide, where the guide's marginal mean and std can be read
+    and written (:class:`~pyro_slam.model.guide.MapLeaves`); otherwise insertion is switched
+    off with a warning."""
+    leaves = MapLeaves.of(map_guide, model.grid.shape)
     if leaves is None:
         warnings.warn(
-            f"scan insertion is off: the map guide {type(run.map_guide).__name__} keeps no "
+            f"scan insertion is off: the map guide {type(map_guide).__name__} keeps no "
             "marginal mean and std to update with scans (MapLeaves)",
             stacklevel=4,
         )
         return None
-    return make_inserter(run.cfg.emission.insert, run.model, leaves)
+    return make_inserter(cfg.emission.insert, model, leaves)
 
 
 def create_guide_params(map_guide) -> None:

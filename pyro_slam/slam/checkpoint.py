@@ -5,12 +5,13 @@ A checkpoint records a fingerprint of the data the run filters (a hash of the pr
 observations, controls, mask, beam angles, start pose and walls), the model it started from (its
 networks and map grid), its map prior and emission noise, the configuration, the seed and the
 mode. :func:`check` refuses a
-checkpoint whose fingerprint differs and names what differs.
+checkpoint whose fingerprint differs and names what differs. Its contents are the run's
+:class:`~pyro_slam.slam.state.SLAMState` and each of its components' own state
+(:func:`snapshot`).
 """
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import io
 from pathlib import Path
@@ -20,12 +21,9 @@ import torch
 from pyro.distributions import constraints
 
 from ..data import DatasetError, atomic_write, load_tensors
-from ..inference import Particles
-from .assemble import inserter
 from .config import ConfigError, from_dict
-from .loop import SLAMState
 
-FORMAT = 4
+FORMAT = 5
 CHECKPOINT_EVERY = 1000  # steps between two checkpoints, by default
 
 
@@ -142,51 +140,20 @@ def check(path, saved: dict, expected: dict) -> None:
         raise CheckpointError(f"{path}: belongs to another run; differs in " + "; ".join(problems))
 
 
-def snapshot(run) -> dict:
-    """Everything a SLAM run (:class:`~pyro_slam.slam.runner.SLAM`) needs to continue from
-    this point, byte for byte: tensors and plain data only."""
-    p, st = run.particles, run.state
-    with run.scope():
-        params = param_store_state()
+def snapshot(components, state, fingerprint: dict) -> dict:
+    """Everything a SLAM run needs to continue from this point, byte for byte: its
+    :class:`~pyro_slam.slam.state.SLAMState` and each of its
+    :class:`~pyro_slam.slam.parts.Components`' own state (tensors and plain data only), stamped
+    with the run's ``fingerprint`` and mode."""
     return {
         "format": FORMAT,
-        "fingerprint": {**run.fingerprint(), "mode": st.mode},
-        "state": {**copy.deepcopy(st.__dict__), "phase": st.phase.value},
-        "params": params,
-        "optim": run.optim.get_state(),
-        "model": run.model.state_dict(),
-        "cache": run.cache.state_dict(),
-        "particles": None if p is None else {"z": p.z, "logw": p.logw, "scan": p.scan},
-        "filter": run.pf.state_dict(),
-        "gen": run.gen.get_state(),
-        "torch_rng": torch.get_rng_state(),
-        "elbo_seen": run.elbo.num_steps_seen,
-        "inserter": None if run.inserter is None else run.inserter.state_dict(),
-        "history": run.history.state_dict(),
-        "heading": None if run.heading is None else run.heading.state_dict(),
+        "fingerprint": {**fingerprint, "mode": state.mode},
+        "state": state.state_dict(),
+        "components": components.state_dict(),
     }
 
 
-def restore(run, d: dict) -> None:
-    """Put a :func:`snapshot` ``d`` back into the run (inside its parameter scope)."""
-    with run.scope():
-        load_param_store(d["params"])
-        run.model.load_state_dict(d["model"])
-        if run.model.learn_emission:
-            # the store now holds *loaded* tensors: make the emission network use (and SVI
-            # update) those, as it did before the checkpoint, not its own parameter copies
-            pyro.module("emission", run.model.emission, update_module_params=True)
-        run.optim.set_state(d["optim"])
-        if run.inserter is not None:  # (the loaded parameters are new tensors)
-            run.inserter = inserter(run)
-            run.inserter.load_state_dict(d["inserter"])
-    run.cache.load_state_dict(d["cache"])
-    run.particles = None if d["particles"] is None else Particles(**d["particles"])
-    run.pf.load_state_dict(d["filter"])
-    run.gen.set_state(d["gen"])
-    torch.set_rng_state(d["torch_rng"])
-    run.elbo.num_steps_seen = int(d["elbo_seen"])
-    if run.heading is not None:
-        run.heading.load_state_dict(d["heading"])
-    run.history.load_state_dict(d["history"])
-    run.state = SLAMState(**d["state"])
+def restore(components, state, d: dict) -> None:
+    """Put a :func:`snapshot` ``d`` back into a run's components and state."""
+    components.load_state_dict(d["components"])
+    state.load_state_dict(d["state"])

@@ -1,7 +1,7 @@
-"""SLAM with DVBF-LM, the public entry point: :class:`SLAM` wires a run together
-(:mod:`.assemble`), runs the algorithms of :mod:`.loop` online or offline, and writes and reads
-the checkpoints of :mod:`.checkpoint`, from which :meth:`SLAM.resume` continues with the same
-random stream."""
+"""SLAM with DVBF-LM, the public entry point: :class:`SLAM` holds a run's components
+(:mod:`.assemble`, :mod:`.parts`), its state (:mod:`.state`) and its data, runs the algorithms
+of :mod:`.loop` online or offline over them, and writes and reads the checkpoints of
+:mod:`.checkpoint`, from which :meth:`SLAM.resume` continues with the same random stream."""
 
 from __future__ import annotations
 
@@ -11,16 +11,12 @@ from pathlib import Path
 import torch
 
 from ..data import Traversal
-from ..inference import (
-    Particles,
-    sequence_guide,
-)
+from ..inference import sequence_guide
 from ..model import (
     Emission,
     EmissionMLP,
     MapBelief,
     Transition,
-    map_marginals,
 )
 from ..model.guide import ParamScope
 from ..runtime import thread_count, torch_threads
@@ -35,7 +31,13 @@ from .build import (
 )
 from .checkpoint import state_fingerprint
 from .config import SLAMConfig
-from .loop import Phase, SLAMState
+from .parts import Components, RunData
+from .state import Phase, SLAMState
+
+
+def _part(part: str, name: str, doc: str) -> property:
+    """A read-only attribute of a run: ``run.<part>.<name>``."""
+    return property(lambda run: getattr(getattr(run, part), name), doc=doc)
 
 
 class SLAM:
@@ -74,6 +76,13 @@ class SLAM:
     (:meth:`pyro.params.param_store.ParamStoreDict.scope`): two runs in one process never share
     or clear each other's parameters, nor the caller's.
 
+    A run is its fixed :class:`~pyro_slam.slam.parts.Components` (``components``: model,
+    guides, filter, objective, SVI, inserter, heading), its
+    :class:`~pyro_slam.slam.state.SLAMState` (``state``: particles, cache, history, generator,
+    counters and outputs so far) and its :class:`~pyro_slam.slam.parts.RunData` (``data``); the
+    names of all three read as the run's own (``slam.model``, ``slam.particles``,
+    ``slam.obs``, ...). A checkpoint is the state and each component's own state.
+
     Example::
 
         tr = pyro_slam.data.load("traversal.npz")
@@ -97,26 +106,51 @@ class SLAM:
         smc: bool = False,
         threads: int | None = None,
     ):
-        self.cfg = presets.resolve(config, traversal)
+        cfg = presets.resolve(config, traversal)
         if not (isinstance(checkpoint_every, int) and checkpoint_every > 0):
             raise ValueError(
                 f"checkpoint_every must be a positive integer, got {checkpoint_every!r}"
             )
-        self.checkpoint_every, self.seed = checkpoint_every, seed
+        self.checkpoint_every = checkpoint_every
         self.threads = thread_count(threads)
-        self.tr = prepare_traversal(traversal, self.cfg)
-        check_size(self.tr, self.cfg)
-        self.obs, self.ctl, self.mask, self.init_pose = traversal_tensors(self.tr)
-        self.T = self.obs.shape[0]
-        self.scope = ParamScope()  # this run's parameters (``with slam.scope():``)
-        with self.scope():
-            assemble(self, transition, emission, learn_emission, guide, prior, noise, smc)
+        tr = prepare_traversal(traversal, cfg)
+        check_size(tr, cfg)
+        self.data = RunData(tr, cfg, *traversal_tensors(tr), seed)
+        K, N = cfg.filter.particles, cfg.training.cache_particles
+        self.state = SLAMState.new(seed, self.data.T, N, K)
+        scope = ParamScope()  # this run's parameters (``with slam.scope():``)
+        with scope():
+            parts = (transition, emission, learn_emission, guide, prior, noise, smc)
+            self.components: Components = assemble(self.data, self.state, scope, *parts)
         # the networks and map grid the run starts from (given, shipped or drawn from the seed)
         self.model_fingerprint = state_fingerprint(self.model.state_dict())
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
-        self.particles: Particles | None = None
-        self.state: SLAMState | None = None
         self._clock: float | None = None  # when the wall time was last added to the state
+
+    # the components, the state and the data, read as the run's own
+    scope = _part("components", "scope", "The run's own parameter store.")
+    model = _part("components", "model", "The :class:`~pyro_slam.model.DVBFLM`.")
+    map_guide = _part("components", "map_guide", "The guide of the site ``map``.")
+    guide = _part("components", "guide", "The global guide (map and walls' frame).")
+    heading = _part("components", "heading", "The heading factor's data (None: none).")
+    proposal = _part("components", "proposal", "The filter's proposal.")
+    pf = _part("components", "pf", "The pose filter.")
+    elbo = _part("components", "elbo", "The training objective.")
+    optim = _part("components", "optim", "The optimiser of SVI.")
+    svi = _part("components", "svi", "SVI on the model's global part.")
+    inserter = _part("components", "inserter", "Scan insertion (None: off).")
+    particles = _part("state", "particles", "The last step's particles (None before).")
+    cache = _part("state", "cache", "The particle cache ``[T, N, 3]``.")
+    history = _part("state", "history", "The particles' history, for smoothing.")
+    gen = _part("state", "gen", "The run's generator.")
+    tr = _part("data", "tr", "The prepared traversal.")
+    cfg = _part("data", "cfg", "The run's configuration.")
+    seed = _part("data", "seed", "The run's seed.")
+    obs = _part("data", "obs", "The observations ``[T, N]``.")
+    ctl = _part("data", "ctl", "The controls ``[T-1, D_u]``.")
+    mask = _part("data", "mask", "The valid readings ``[T, N]`` (None: all).")
+    init_pose = _part("data", "init_pose", "The start pose ``[3]``.")
+    T = _part("data", "T", "The number of steps.")
 
     # --------------------------------------------------------------------------- helpers
     def model_inputs(self) -> tuple:
@@ -136,16 +170,13 @@ class SLAM:
         return sequence_guide(self.model, self.proposal, self.guide)
 
     def map_belief(self) -> MapBelief:
-        """The map belief the filter weighs with: mean and scale of ``q(M)`` (detached)."""
-        with self.scope():
-            loc, scale = map_marginals(self.map_guide)
-        return MapBelief(loc.detach(), scale.detach())
+        """The map belief the filter weighs with: mean and scale of ``q(M)`` ``[w, h, D_m]``
+        (detached)."""
+        return self.components.map_belief()
 
     def valid(self, t: int) -> torch.Tensor:
-        """``[B]`` bool: the valid readings of step ``t``."""
-        if self.mask is None:
-            return torch.ones_like(self.obs[t], dtype=torch.bool)
-        return self.mask[t].bool()
+        """``[N]`` bool: the valid readings of step ``t``."""
+        return self.data.valid(t)
 
     def run(self, mode: str = "online", progress: bool = True) -> dict:
         """Run (or, after :meth:`resume`, continue) SLAM. Returns :meth:`result`. The wall time
@@ -162,15 +193,15 @@ class SLAM:
     def _tick(self) -> None:
         """Add the wall time since the last tick of this :meth:`run` to ``state.wall_time_s``."""
         now = time.perf_counter()
-        if self.state is not None and self._clock is not None:
+        if self._clock is not None:
             self.state.wall_time_s += now - self._clock
             self._clock = now
 
     def _run(self, mode: str, progress: bool) -> dict:
         if mode not in ("online", "offline"):
             raise ValueError(f"mode must be 'online' or 'offline', got {mode!r}")
-        if self.state is None:
-            self.state = SLAMState(mode, Phase.ONLINE if mode == "online" else Phase.SWEEP)
+        if self.state.mode is None:
+            self.state.begin(mode)
         elif self.state.mode != mode:
             raise checkpoint.CheckpointError(
                 f"the resumed run is an {self.state.mode} run, not {mode}: resume it with mode "
@@ -178,10 +209,8 @@ class SLAM:
             )
         elif self.state.phase == Phase.DONE:  # resumed from the final checkpoint: nothing to redo
             return self.result()
-        if mode == "online":
-            loop.online_sweep(self, progress)
-        else:
-            loop.offline(self, progress)
+        algorithm = loop.online_sweep if mode == "online" else loop.offline
+        algorithm(self.components, self.state, self.data, progress, self._checkpoint)
         self.state.phase = Phase.DONE
         result = self.result()
         if self.checkpoint:  # (last: its wall time is the run's)
@@ -195,7 +224,7 @@ class SLAM:
         ``losses``, ``map_loc``, ``map_scale`` ``[w, h, D_m]`` (``q(M)``) and, offline, the
         initial sweep's ``sweep_mean [T, 3]`` (:func:`~pyro_slam.slam.loop.estimates`)."""
         belief = self.map_belief()
-        out = loop.estimates(self)
+        out = loop.estimates(self.state, self.data)
         return {**out, "map_loc": belief.loc.numpy(), "map_scale": belief.scale.numpy()}
 
     # --------------------------------------------------------------------------- checkpoints
@@ -225,7 +254,13 @@ class SLAM:
     def state_dict(self) -> dict:
         """Everything :meth:`resume` needs: tensors and plain data only
         (:func:`~pyro_slam.slam.checkpoint.snapshot`)."""
-        return checkpoint.snapshot(self)
+        return checkpoint.snapshot(self.components, self.state, self.fingerprint())
+
+    def _checkpoint(self, every: bool = True) -> None:
+        """Write the checkpoint (if the run has one): ``every``, on the checkpoint interval
+        (``state.t``, a multiple of ``checkpoint_every``); otherwise now."""
+        if self.checkpoint and (not every or self.state.t % self.checkpoint_every == 0):
+            self.save(self.checkpoint)
 
     def save(self, path) -> None:
         """Atomic checkpoint (temp file + rename)."""
@@ -239,7 +274,7 @@ class SLAM:
         d = checkpoint.read(path)
         checkpoint.check(path, d["fingerprint"], self.fingerprint())
         try:
-            checkpoint.restore(self, d)
+            checkpoint.restore(self.components, self.state, d)
         except (KeyError, TypeError, ValueError, RuntimeError) as e:
             raise checkpoint.CheckpointError(f"{path}: damaged checkpoint ({e})") from None
         return self

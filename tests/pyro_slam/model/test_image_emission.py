@@ -132,7 +132,7 @@ def test_prepared_image_traversal():
 def test_gradients_reach_map_and_emission_through_particle_elbo():
     slam = small_slam(image_traversal())
     assert isinstance(slam.model.emission, ImageEmission)
-    loop.filter_pass(slam, False, "fill cache")
+    loop.filter_pass(slam.components, slam.state, slam.data, False, "fill cache")
     with slam.scope():
         loss = slam.elbo.differentiable_loss(
             slam.model.global_model, slam.guide, ChunkBatch(torch.tensor([0, 20]), 4)

@@ -149,7 +149,7 @@ def test_albedo_is_read_at_the_ray_direction():
 def test_gradients_reach_occupancy_albedo_and_camera_constants(image_traversal):
     torch.manual_seed(0)
     slam = SLAM(image_traversal, SMALL)
-    loop.filter_pass(slam, False, "fill cache")
+    loop.filter_pass(slam.components, slam.state, slam.data, False, "fill cache")
     with slam.scope():
         loss = slam.elbo.differentiable_loss(
             slam.model.global_model, slam.guide, ChunkBatch(torch.tensor([0, 20]), 4)

@@ -194,7 +194,7 @@ def test_placement_variance_is_handed_on_from_wall_to_pose(small_traversal):
     share = ins.placement_at(z) - 4e-6  # the rounding's share: several walls, less than one's
     assert ins.rounding / 6 < share < ins.rounding
     std = torch.tensor([1e-3, 1e-3, 1e-3])
-    out, var = world_std(slam, z, std)
+    out, var = world_std(slam.inserter, z, std)
     assert var == pytest.approx(4e-6 + share, rel=1e-6)
     assert out[:2].tolist() == pytest.approx([math.sqrt(1e-6 + 4e-6 + share)] * 2, rel=1e-3)
     assert float(out[2]) == float(std[2])
@@ -261,7 +261,9 @@ def test_online_slam_inserts_each_scan_from_its_steps_estimate(small_traversal, 
         assert torch.allclose(
             slam.inserter.state_dict()[key].double(), getattr(replay, key).double()
         )
-        assert torch.equal(slam.state_dict()["inserter"][key], slam.inserter.state_dict()[key])
+        assert torch.equal(
+            slam.state_dict()["components"]["inserter"][key], slam.inserter.state_dict()[key]
+        )
     assert torch.allclose(slam.inserter.placement, replay.placement)
     assert replay.inserted.any()
 

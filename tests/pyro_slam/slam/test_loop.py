@@ -30,10 +30,10 @@ def test_offline_estimate_cache_filters_chunks_from_the_cached_particles(travers
     run_ = loop.cache_pass
     shift = torch.tensor([0.03, 0.0, 0.0])
 
-    def shifted_cache_pass(run, progress, desc):  # the cache at step 2L moved by 0.03 in x
-        run.cache.z[2 * L] += shift
-        before.append(run.cache.z.clone())
-        return run_(run, progress, desc)
+    def shifted_cache_pass(c, st, data, progress, desc):  # the cache at step 2L moved in x
+        st.cache.z[2 * L] += shift
+        before.append(st.cache.z.clone())
+        return run_(c, st, data, progress, desc)
 
     before = []
 
