@@ -21,9 +21,15 @@ in ``OUT/mazes/slam_m<seed>.json`` and reused).
 one search with the largest budget gives the whole success-vs-budget curve.
 
 **Observation targets** (planner ``learned_obs``): the target is the simulator's scan at the
-target grid point with a random heading; the goal is the mode of the inverse model ``q(z | x)``
-(:mod:`pyro_slam.planning.inverse`, trained once per maze on the mapping traversal's scans).
-They are judged on two criteria (:mod:`pyro_slam.planning.evaluation`):
+target grid point with a random heading; the goals are up to ``--hypotheses`` modes of
+``p(z | x, M)`` found with the inverse model ``q(z | x)`` (:mod:`pyro_slam.planning.inverse`,
+trained once per maze on the mapping traversal's scans), at least ``--mode-separation`` apart.
+The agent (:func:`~pyro_slam.planning.seek_observation`) heads for them best first and stops
+where its own view (turning on the spot) matches the target scan within ``--accept-tol``, else
+returns to the best view; ``--accept-tol 0`` visits every mode and adds, per tolerance, what
+each would have decided (``obs_failure_by_accept_tol``: the tolerance is screened on the tuning
+mazes with it). Each run records its legs' stops, view differences and verdicts. They are
+judged on two criteria (:mod:`pyro_slam.planning.evaluation`):
 
 1. primary, in observation space: the agent stops within 0.05 of a place whose true scan, at
    some heading, differs from the target scan by less than ``--alias-tol`` 0.01 (mean absolute
@@ -81,14 +87,18 @@ from pyro_slam import metrics
 from pyro_slam.planning import (
     NAVIGATION_BENCHMARK,
     GroundTruthEnv,
+    Look,
+    Mover,
     execute,
     free_grid,
     learned_env,
     lookalikes,
     plan,
+    seek_observation,
 )
 from pyro_slam.planning.evaluation import (
     PLANNERS,
+    SUCCESS_RADIUS,
     mean_or_none,
     miss_counts,
     observation_reached,
@@ -103,8 +113,8 @@ from pyro_slam.slam import SLAM, path_integration
 from simulators import make_maze, simulate_traversal
 
 SIZES = {"full": (6, 50), "quick": (2, 10)}  # (mazes, pairs per maze)
-# row format: 4 adds each observation target's look-alikes within --alias-tol
-ROWS = "4"
+# row format: 5 adds the observation-target agent's legs (its hypotheses, visited in turn)
+ROWS = "5"
 
 
 def main(argv=None) -> int:
@@ -192,6 +202,7 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
         default=True,
         help="end the mapping traversal with a tour through the grid points it missed",
     )
+    _add_seek_args(p, nav)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sleep-steps", type=int, default=3000, help="q(z|x) sleep-phase steps")
     p.add_argument("--inverse-steps", type=int, default=1000, help="q(z|x) ELBO steps")
@@ -217,6 +228,29 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_seek_args(p: argparse.ArgumentParser, nav) -> None:
+    """The observation-target agent: its hypotheses and when it stops."""
+    p.add_argument(
+        "--hypotheses",
+        type=int,
+        default=nav.hypotheses,
+        help="an observation target's goals: up to this many modes of the inverse model",
+    )
+    p.add_argument(
+        "--mode-separation",
+        type=float,
+        default=nav.mode_separation,
+        help="modes closer than this are one place",
+    )
+    p.add_argument(
+        "--accept-tol",
+        type=float,
+        default=nav.accept_tol,
+        help="the agent stops where its own view matches the target scan within this (mean "
+        "absolute range difference; 0: visit every mode, then return to the best view)",
+    )
+
+
 def _resolve(p: argparse.ArgumentParser, args) -> tuple[int, ...]:
     """Check the arguments (usage errors exit 2), fill in the sample's size (``--quick`` or the
     full sample) and the SLAM configuration; returns the maze seeds to run."""
@@ -235,6 +269,8 @@ def _resolve(p: argparse.ArgumentParser, args) -> tuple[int, ...]:
         p.error(f"--max-expansions {args.max_expansions}: must be at least 1")
     if not args.alias_tol > 0 or not args.exact_tol > 0:
         p.error("--alias-tol and --exact-tol must be positive")
+    if args.hypotheses < 1 or not args.mode_separation > 0 or args.accept_tol < 0:
+        p.error("--hypotheses must be at least 1, --mode-separation positive, --accept-tol >= 0")
     args.slam = slam_config(p, args.slam_preset, args.slam_config, "--slam-config")
     if args.maze_seeds is not None:
         return tuple(parse_maze_seeds(p, args.maze_seeds, MAZE_SEEDS, TUNING_SEEDS))
@@ -369,7 +405,46 @@ def details(runs: list[dict], args) -> dict:
     for name, rs in (("learned_obs", obs), ("ground_truth_obs", gobs)):
         clear = [not r["success_noiseless"] for r in rs if r["target_lookalikes_exact"] == 0]
         out[f"{name}_failure_ratio_position_unaliased_exact"] = mean_or_none(clear)
+    out["obs_legs_mean"] = mean_or_none([r["legs_noiseless"] for r in obs])
+    out["obs_accepted_ratio"] = mean_or_none([r["accepted_noiseless"] is not None for r in obs])
+    if args.accept_tol == 0:  # every mode visited: what each tolerance would have decided
+        out["obs_failure_by_accept_tol"] = _by_accept_tol(obs)
     return out
+
+
+def _by_accept_tol(obs: list[dict]) -> dict:
+    """From runs that visited every mode (``--accept-tol 0``): per tolerance, the observation
+    targets failed in observation space and by position (unaliased), had the agent stopped at
+    the first leg whose view matched within it, else at the best view, and the legs walked."""
+    out = {}
+    for tol in (0.005, 0.01, 0.015, 0.02, 0.03, 0.05):
+        picks = [_pick(r["leg_diffs"], tol) for r in obs]
+        out[f"{tol:g}"] = {
+            "obs_space": mean_or_none(
+                [k is None or not r["leg_scan_success"][k] for r, k in zip(obs, picks)]
+            ),
+            "position_unaliased": mean_or_none(
+                [
+                    k is None or not r["leg_success"][k]
+                    for r, k in zip(obs, picks)
+                    if r["target_lookalikes_tol"] == 0
+                ]
+            ),
+            "legs_mean": mean_or_none(
+                [len(r["leg_diffs"]) if k is None else k + 1 for r, k in zip(obs, picks)]
+            ),
+        }
+    return out
+
+
+def _pick(diffs: list, tol: float) -> int | None:
+    """The leg an agent accepting views within ``tol`` stops at: the first within it, else the
+    best view (None: no leg had a plan)."""
+    seen = [i for i, d in enumerate(diffs) if d is not None and np.isfinite(d)]
+    for i in seen:
+        if diffs[i] < tol:
+            return i
+    return min(seen, key=lambda i: diffs[i]) if seen else None
 
 
 def _inverse_summary(targets: list[dict], alias_tol: float) -> dict:
@@ -476,11 +551,15 @@ def _fit_models(maze, ms: int, args) -> SimpleNamespace:
 def _targets(maze, ms: int, m, args) -> tuple[list, SimpleNamespace]:
     """The observation targets of maze ``ms`` (:func:`observation_targets`), their true scans,
     the inverse model's answers and the truth's places. Returns the rows of ``targets.json`` and
-    ``(poses [2 n, 3], scans [2 n, B], mode [2 n, 3], places)`` for the runs."""
+    ``(poses [2 n, 3], scans [2 n, B], mode [2 n, 3], hyps (2 n of [k, 3]), places)`` for the
+    runs."""
     tposes = observation_targets(m.pts, ms, args.seed)  # [2 * 25, 3]
     tscans = m.gt.scan(tposes)  # [2 * 25, B]
     t = time.perf_counter()
-    mode, ll_mode = (v.numpy() for v in m.inv.infer(tscans))
+    hyps = m.inv.modes(tscans, k=args.hypotheses, separation=args.mode_separation)
+    mode = torch.stack([h[0] for h in hyps])  # [2 n, 3] the best mode: the first goal
+    ll_mode = m.inv.log_likelihood(tscans, mode).detach().numpy()
+    mode, hyps = mode.numpy(), [h.numpy() for h in hyps]
     infer_s = (time.perf_counter() - t) / len(tposes)
     # is the model's likelihood higher near the truth than at the mode? (search failure)
     zt = m.inv.refine(tscans, torch.as_tensor(tposes, dtype=tscans.dtype))
@@ -503,6 +582,7 @@ def _targets(maze, ms: int, m, args) -> tuple[list, SimpleNamespace]:
                 "point": i // 2,
                 "pose": tp.tolist(),
                 "mode": mode[i].tolist(),
+                "hypotheses": hyps[i].tolist(),
                 "error_mode": float(np.hypot(*(mode[i, :2] - tp[:2]))),
                 "error_encoder": float(np.hypot(*(enc[i, :2] - tp[:2]))),
                 "heading_error_mode": float(metrics.heading_error(mode[i, 2], tp[2])),
@@ -523,7 +603,9 @@ def _targets(maze, ms: int, m, args) -> tuple[list, SimpleNamespace]:
                 "infer_s": infer_s,
             }
         )
-    return rows, SimpleNamespace(poses=tposes, scans=tscans.numpy(), mode=mode, places=places)
+    return rows, SimpleNamespace(
+        poses=tposes, scans=tscans.numpy(), mode=mode, hyps=hyps, places=places
+    )
 
 
 def _run_pair(maze, ms: int, pair, m, targets, tg, args, plot: Path | None) -> list[dict]:
@@ -534,7 +616,6 @@ def _run_pair(maze, ms: int, pair, m, targets, tg, args, plot: Path | None) -> l
     goals = {
         "learned": m.pts[b],
         "ground_truth": m.pts[b],
-        "learned_obs": tg.mode[2 * b, :2],
         "ground_truth_obs": tg.places[2 * b][0][0, :2],
     }
     envs = {"learned": m.lenv, "ground_truth": m.gt}
@@ -542,6 +623,20 @@ def _run_pair(maze, ms: int, pair, m, targets, tg, args, plot: Path | None) -> l
         envs["learned"] = m.lenv.with_observation(start, m.gt.scan(start)[0].numpy())
     rows = []
     for name in PLANNERS:
+        row = {"maze": ms, "start": a, "goal": b, "planner": name}
+        obs = name.endswith("_obs")
+        if obs:
+            t = targets[2 * b]
+            row.update(
+                target_heading=float(tg.poses[2 * b, 2]),
+                target_lookalikes_tol=t["lookalikes_tol"],
+                target_lookalikes_exact=t["lookalikes_exact"],
+                target_oracle_failure=t["oracle_failure"],
+            )
+        if name == "learned_obs":
+            _seek_row(maze, m, envs["learned"], start, tg, b, row, args, plot)
+            rows.append(row)
+            continue
         goal = goals[name]
         t = time.perf_counter()
         r = plan(
@@ -551,42 +646,68 @@ def _run_pair(maze, ms: int, pair, m, targets, tg, args, plot: Path | None) -> l
             max_expansions=args.max_expansions,
             check_path=args.check_path,
         )
-        row = {
-            "maze": ms,
-            "start": a,
-            "goal": b,
-            "planner": name,
-            "found": r.success,
-            "expansions": r.expansions,
-            "steps": len(r.controls),
-            "plan_s": time.perf_counter() - t,
-        }
-        obs = name.endswith("_obs")
+        row.update(found=r.success, expansions=r.expansions, steps=len(r.controls))
+        row["plan_s"] = time.perf_counter() - t
         if obs:
-            t = targets[2 * b]
-            row.update(
-                target_heading=float(tg.poses[2 * b, 2]),
-                inference_error=float(np.hypot(*(goal - m.pts[b]))),
-                target_lookalikes_tol=t["lookalikes_tol"],
-                target_lookalikes_exact=t["lookalikes_exact"],
-                target_oracle_failure=t["oracle_failure"],
-            )
-        executed = _execute(
-            maze,
-            m,
-            start,
-            r,
-            m.pts[b],
-            tg.scans[2 * b] if obs else None,
-            row,
-            args.alias_tol,
-            seed=a * 100 + b,
-        )
-        if plot is not None and name == "learned_obs":
-            _plot_run(maze, m.lenv, r, executed, tg.poses[2 * b], goal, row, plot)
+            row["inference_error"] = float(np.hypot(*(goal - m.pts[b])))
+        tscan = tg.scans[2 * b] if obs else None
+        _execute(maze, m, start, r, m.pts[b], tscan, row, args.alias_tol, seed=a * 100 + b)
         rows.append(row)
         print(json.dumps(row), file=sys.stderr)
     return rows
+
+
+def _seek_row(maze, m, env, start, tg, b: int, row: dict, args, plot: Path | None) -> None:
+    """The observation target of point ``b``: the agent visits the inverse model's modes
+    (:func:`~pyro_slam.planning.seek_observation`), without and with actuation noise, each
+    execution deciding from its own views. Adds to ``row`` the verdicts of :func:`_execute`,
+    the legs, and (noise-free) each leg's stop, view difference and verdicts."""
+    tscan, target, hyps = tg.scans[2 * b], m.pts[b], tg.hyps[2 * b]
+    seed = row["start"] * 100 + b
+    row["inference_error"] = float(np.hypot(*(hyps[0, :2] - target)))
+    row["hypotheses"] = len(hyps)
+    for nz, noise in (("noiseless", 0), ("noisy", None)):
+        t = time.perf_counter()
+        mover = Mover(maze, noise, seed)
+        res = seek_observation(
+            env,
+            start,
+            hyps,
+            mover,
+            Look(m.gt, tscan),
+            accept_tol=args.accept_tol,
+            max_expansions=args.max_expansions,
+            check_path=args.check_path,
+        )
+        stop = res.poses[-1]
+        row[f"legs_{nz}"], row[f"accepted_{nz}"] = len(res.goals), res.accepted
+        row[f"collisions_{nz}"] = mover.collisions
+        row[f"error_{nz}"] = float(np.hypot(*(stop[:2] - target)))
+        row[f"success_{nz}"] = bool(res.found and row[f"error_{nz}"] <= SUCCESS_RADIUS)
+        ok, d = observation_reached(res.found, stop, target, m.gt, tscan, args.alias_tol)
+        row[f"scan_diff_{nz}"], row[f"scan_success_{nz}"] = d, ok
+        if nz == "noiseless":
+            row.update(found=res.found, expansions=res.expansions, steps=len(res.controls))
+            row["plan_s"] = time.perf_counter() - t
+            row["leg_diffs"] = [d if np.isfinite(d) else None for d in res.diffs]
+            _legs_verdicts(res, m, target, tscan, row, args.alias_tol)
+            if plot is not None:
+                _plot_run(
+                    maze, m.lenv, res.as_plan(), res.poses, tg.poses[2 * b], hyps[0], row, plot
+                )
+    print(json.dumps(row), file=sys.stderr)
+
+
+def _legs_verdicts(res, m, target, tscan, row: dict, alias_tol: float) -> None:
+    """Each leg's verdicts had the agent stopped there: by position and in observation space
+    (``leg_success``, ``leg_scan_success``; None where the leg had no plan)."""
+    row["leg_success"] = [
+        None if z is None else pose_reached(True, z, target)[0] for z in res.stops
+    ]
+    row["leg_scan_success"] = [
+        None if z is None else observation_reached(True, z, target, m.gt, tscan, alias_tol)[0]
+        for z in res.stops
+    ]
 
 
 def _execute(maze, m, start, r, target, tscan, row: dict, alias_tol: float, seed: int):

@@ -49,14 +49,15 @@ from .model import pretrain_transition
 from .planning import (
     NAVIGATION,
     GroundTruthEnv,
+    Look,
+    Mover,
     check_endpoints,
-    execute,
     free_grid,
     learned_env,
     lookalikes,
     maze_bounds,
-    plan,
     run_env,
+    seek_observation,
 )
 from .planning.inverse import fit_inverse
 from .plotting import plot_navigation
@@ -550,24 +551,29 @@ def _navigation_map(args, maze, tr, run):
 
 
 def _observation_goal(args, maze, lenv, tr):
-    """``--target-scan-from-pose``: the goal inferred from the target's scan, the target, and
-    the number of exact look-alike places of its scan."""
+    """``--target-scan-from-pose``: the goals inferred from the target's scan (``[k, 3]``, best
+    first: the learned inverse model's modes, or the truth's best-matching place), the target,
+    the number of exact look-alike places of its scan, and the agent's look (its own view,
+    turning on the spot, matched against the target scan: :class:`~pyro_slam.planning.Look`)."""
     target = np.array(args.target_scan_from_pose)
     truth = GroundTruthEnv(maze)
     tscan = truth.scan(target)  # [1, B]
     pz, pd = truth.places(tscan.numpy())[0]  # every place that looks like the target
     n_lookalikes = lookalikes(pz, pd, target)[0]
+    look = Look(truth, tscan[0].numpy())  # the agent's own view, matched against the target
     if args.planner == "learned":
         inv = fit_inverse(
             lenv, tr, steps=args.inverse_steps, sleep_steps=args.inverse_sleep_steps, progress=True
         )
-        return inv.infer(tscan[0])[0].numpy(), target, n_lookalikes
-    return pz[0], target, n_lookalikes  # the truth's own inverse: its best-matching place
+        hyps = inv.modes(tscan, k=NAVIGATION.hypotheses, separation=NAVIGATION.mode_separation)
+        return hyps[0].numpy(), target, n_lookalikes, look
+    return pz[:1], target, n_lookalikes, look  # the truth's own inverse: its best place
 
 
 def cmd_navigate(args) -> int:
     """Plan with hybrid A*, execute the plan in the simulator, plot both and print a JSON
-    report; exit status 1 when no plan was found."""
+    report; exit status 1 when no plan was found. An observation target's goals are the
+    inverse model's modes, visited in turn (:func:`~pyro_slam.planning.seek_observation`)."""
     _writable(Path(args.out), "--out", args.overwrite)
     torch.manual_seed(args.seed)
     torch.set_num_threads(1)
@@ -584,36 +590,42 @@ def cmd_navigate(args) -> int:
         env = lenv.with_observation(start, GroundTruthEnv(maze).scan(start)[0].numpy())
     else:
         env = GroundTruthEnv(maze)
-    inferred = target = n_lookalikes = None
+    hyps, target, n_lookalikes = np.asarray(goal)[None, :2], None, None
+    look, accept_tol = (lambda z: (0.0, np.zeros(2))), np.inf  # a pose target: no view to check
     if args.target_scan_from_pose is not None:
-        inferred, target, n_lookalikes = _observation_goal(args, maze, lenv, tr)
-        goal = inferred[:2]
-    res = plan(env, start, goal, max_expansions=args.max_expansions)
-    executed, coll = execute(
-        maze, start, res.controls, noise=None if args.noise else 0, seed=args.seed
+        hyps, target, n_lookalikes, look = _observation_goal(args, maze, lenv, tr)
+        accept_tol = NAVIGATION.accept_tol
+    mover = Mover(maze, noise=None if args.noise else 0, seed=args.seed)
+    res = seek_observation(
+        env, start, hyps, mover, look, accept_tol=accept_tol, max_expansions=args.max_expansions
     )
-    true_goal = goal if inferred is None else target[:2]
+    executed, inferred = res.poses, None if target is None else hyps[0]
+    true_goal = goal if target is None else target[:2]
     err = float(np.hypot(*(executed[-1, :2] - true_goal)))
     title = f"maze {maze.seed}, {args.planner} planner" + (
         "" if inferred is None else " (x: goal inferred from the target scan)"
     )
     shown = lenv if args.planner == "learned" else env
-    plot_navigation(maze, shown, res, executed, true_goal, args.out, title, inferred=inferred)
+    plot_navigation(
+        maze, shown, res.as_plan(), executed, true_goal, args.out, title, inferred=inferred
+    )
     report = {
-        "found": res.success,
+        "found": res.found,
         "expansions": res.expansions,
         "steps": len(res.controls),
         "final_error": err,
-        "success": bool(res.success and err <= 0.05),
-        "collisions": int(coll),
+        "success": bool(res.found and err <= 0.05),
+        "collisions": mover.collisions,
         "plot": str(args.out),
     }
     if inferred is not None:
         report["inferred_goal"] = inferred.tolist()
         report["inference_error"] = float(np.hypot(*(inferred[:2] - target[:2])))
         report["target_lookalikes_exact"] = n_lookalikes  # places > 0.05 away that look the same
+        report["goals_visited"] = len(res.goals)
+        report["view_differences"] = [d if np.isfinite(d) else None for d in res.diffs]
     print(json.dumps(report))
-    return 0 if res.success else 1
+    return 0 if res.found else 1
 
 
 # ----------------------------------------------------------------------------------- parsers

@@ -1,7 +1,8 @@
 """Planning and exploration in the learned model: hybrid A* (:mod:`.planner`), planning
 environments (:mod:`.envs`), the inverse model ``q(z | x)`` for observation targets
-(:mod:`.inverse`), the measures that judge a navigation run (:mod:`.evaluation`),
-mutual-information exploration (:mod:`.exploration`) and PEMA (:mod:`.pema`)."""
+(:mod:`.inverse`) and the agent that visits its modes (:mod:`.seek`), the measures that judge
+a navigation run (:mod:`.evaluation`), mutual-information exploration (:mod:`.exploration`)
+and PEMA (:mod:`.pema`)."""
 
 from .config import NAVIGATION, NAVIGATION_BENCHMARK, NavigationConfig
 from .envs import (
@@ -25,16 +26,20 @@ from .planner import (
     safety_cost,
     segments_cross,
 )
+from .seek import Look, Mover, SeekResult, seek_observation
 
 __all__ = [
     "NAVIGATION",
     "NAVIGATION_BENCHMARK",
     "GroundTruthEnv",
     "LearnedEnv",
+    "Look",
+    "Mover",
     "NavigationConfig",
     "PlanResult",
     "Primitives",
     "ScanHits",
+    "SeekResult",
     "check_endpoints",
     "execute",
     "free_grid",
@@ -46,5 +51,6 @@ __all__ = [
     "run_env",
     "safety",
     "safety_cost",
+    "seek_observation",
     "segments_cross",
 ]

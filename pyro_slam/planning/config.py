@@ -15,7 +15,11 @@ class NavigationConfig:
     ``q(M)``; ``emission_steps``: steps fitting the emission on the mapping traversal (0: the
     shipped one, frozen), with ``n_world`` world directions; ``max_std``: a chart counts as
     explored below this std of ``q(M)``; ``hit_margin``: the learned planner keeps this far
-    from the mapping scans' returns (0: off) (:func:`~pyro_slam.planning.learned_env`).
+    from the mapping scans' returns (0: off) (:func:`~pyro_slam.planning.learned_env`);
+    an observation target's goals are up to ``hypotheses`` modes of the inverse model at
+    least ``mode_separation`` apart, visited best first until the agent's own view matches
+    the target scan within ``accept_tol`` (mean absolute range difference;
+    :func:`~pyro_slam.planning.seek_observation`).
     """
 
     max_expansions: int = 2000
@@ -25,6 +29,9 @@ class NavigationConfig:
     n_world: int = 20
     max_std: float = 0.6
     hit_margin: float = 0.02
+    hypotheses: int = 3
+    mode_separation: float = 0.1
+    accept_tol: float = 0.01
 
 
 # the library's and the command line's defaults

@@ -39,7 +39,8 @@ the best-scoring poses of a coarse grid over the explored map (:meth:`restart_gr
 refined by ``refine_steps`` Adam steps on ``log p(x | z, M) + log p(z)`` (the unnormalised
 posterior of the model) and the candidate of highest ``log p(x | z, M)`` wins -- a mode of
 ``p(z | x, M)``. ``n_samples = n_restarts = refine_steps = 0`` gives the plain encoder mean,
-the mode of ``q(z | x)``.
+the mode of ``q(z | x)``. :meth:`InversePose.modes` keeps several distinct modes, best first,
+which the agent of :mod:`pyro_slam.planning.seek` visits in turn.
 """
 
 from __future__ import annotations
@@ -315,7 +316,7 @@ class InversePose:
                 p.requires_grad_(r)
         return z.detach()
 
-    def infer(
+    def candidates(
         self,
         scans,
         n_samples: int = 16,
@@ -325,21 +326,17 @@ class InversePose:
         restart_spacing: float = 0.03,
         restart_headings: int = 36,
         seed: int = 0,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Target poses for observations: ``scans [N, B]`` (or ``[B]``) -> poses ``[N, 3]``
-        (heading wrapped to ``[-pi, pi)``) and their ``log p(x | z, M)`` ``[N]``.
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Refined candidate poses for observations ``scans [N, B]``: poses ``[N, K, 3]``, their
+        ``log p(x | z, M)`` ``[N, K]`` and their score ``[N, K]`` (the log-likelihood, less
+        ``1e6`` where the pose is not ``valid``).
 
-        Candidates (``[N, K, 3]``): the encoder mean, ``n_samples`` samples of ``q(z | x)`` and
-        the ``n_restarts`` poses of :meth:`restart_grid` with the highest ``log p(x | z, M)``
-        (the grid's predicted scans are computed once and cached); each candidate is refined by
-        ``refine_steps`` Adam steps on ``log p(x | z, M) + log p(z)``; per scan the candidate
-        of highest ``log p(x | z, M)`` among the ``valid`` ones (if any) is returned.
-        ``n_samples = n_restarts = refine_steps = 0`` gives the encoder mean, the mode of
-        ``q(z | x)``.
+        Candidates: the encoder mean, ``n_samples`` samples of ``q(z | x)`` and the
+        ``n_restarts`` poses of :meth:`restart_grid` with the highest ``log p(x | z, M)`` (the
+        grid's predicted scans are computed once and cached); each is refined by
+        ``refine_steps`` Adam steps on ``log p(x | z, M) + log p(z)``.
         """
-        x = self.encoder.check(scans)
-        single = x.dim() == 1
-        x = x.reshape(-1, x.shape[-1])  # [N, B]
+        x = self.encoder.check(scans).reshape(-1, self.encoder.n_beams)  # [N, B]
         gen = torch.Generator().manual_seed(seed)
         with torch.no_grad():
             loc, scale = self.encoder(x)  # [N, 3]
@@ -365,14 +362,52 @@ class InversePose:
             if self.valid is not None:
                 ok = torch.as_tensor(self.valid(z.reshape(-1, 3).numpy()), dtype=torch.bool)
                 score = torch.where(ok.reshape(ll.shape), ll, ll - 1e6)
-            best = score.argmax(1)
-            rows = torch.arange(x.shape[0])
-            pose, ll = z[rows, best].clone(), ll[rows, best]
+        return self._clamped(z), ll, score
+
+    def _clamped(self, z: torch.Tensor) -> torch.Tensor:
+        """Poses ``[..., 3]`` with the position clamped into the bounds, the heading wrapped."""
         x0, x1, y0, y1 = self.bounds
-        pose[:, 0] = pose[:, 0].clamp(x0, x1)
-        pose[:, 1] = pose[:, 1].clamp(y0, y1)
-        pose[:, 2] = wrap_angle(pose[:, 2])
+        z = z.clone()
+        z[..., 0] = z[..., 0].clamp(x0, x1)
+        z[..., 1] = z[..., 1].clamp(y0, y1)
+        z[..., 2] = wrap_angle(z[..., 2])
+        return z
+
+    def infer(self, scans, **kw) -> tuple[torch.Tensor, torch.Tensor]:
+        """Target poses for observations: ``scans [N, B]`` (or ``[B]``) -> poses ``[N, 3]``
+        (heading wrapped to ``[-pi, pi)``) and their ``log p(x | z, M)`` ``[N]``: per scan the
+        :meth:`candidates` (keyword arguments go there) of highest score, a mode of
+        ``p(z | x, M)``. ``n_samples = n_restarts = refine_steps = 0`` gives the encoder mean,
+        the mode of ``q(z | x)``.
+        """
+        single = self.encoder.check(scans).dim() == 1
+        z, ll, score = self.candidates(scans, **kw)  # [N, K, 3], [N, K], [N, K]
+        best = score.argmax(1)
+        rows = torch.arange(z.shape[0])
+        pose, ll = z[rows, best], ll[rows, best]
         return (pose[0], ll[0]) if single else (pose, ll)
+
+    def modes(self, scans, k: int = 3, separation: float = 0.1, **kw) -> list[torch.Tensor]:
+        """Up to ``k`` distinct modes of ``p(z | x, M)`` per observation, best first: for
+        ``scans [N, B]`` a list of ``N`` pose tensors ``[k_i, 3]``. Greedily by score, a
+        candidate (:meth:`candidates`; keyword arguments go there) is kept when it lies more
+        than ``separation`` from every kept one and is ``valid`` (unless none is); the first
+        is :meth:`infer`'s answer."""
+        if k < 1 or not separation > 0:
+            raise ValueError(f"k={k} and separation={separation}: need k >= 1, separation > 0")
+        z, _, score = self.candidates(scans, **kw)  # [N, K, 3], [N, K]
+        out = []
+        for zi, si in zip(z, score, strict=True):
+            order = torch.argsort(si, descending=True, stable=True)
+            ok = si[order] > si[order[0]] - 1e5  # the valid ones, if the best is valid
+            keep: list[int] = []
+            for j in order[ok].tolist():
+                if len(keep) == k:
+                    break
+                if all(float(torch.dist(zi[j, :2], zi[q, :2])) > separation for q in keep):
+                    keep.append(j)
+            out.append(zi[keep])
+        return out
 
 
 def fit_inverse(env, traversal, steps: int = 2000, seed: int = 0, **kw) -> InversePose:

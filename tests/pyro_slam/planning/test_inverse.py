@@ -50,6 +50,26 @@ def test_infer_shapes_and_bad_input(small):
         inv.infer(tr.observations[:3, :10])
 
 
+def test_modes_are_distinct_places_best_first(small):
+    """The first mode is infer's answer; the others lie farther than the separation from every
+    mode before them and score no higher; bad k or separation is refused."""
+    _, _, tr, inv, _ = small
+    kw = dict(n_samples=8, n_restarts=16, refine_steps=5)
+    scans = tr.observations[:5]
+    modes = inv.modes(scans, k=3, separation=0.1, **kw)
+    best, _ = inv.infer(scans, **kw)
+    x = torch.as_tensor(scans, dtype=torch.get_default_dtype())
+    assert len(modes) == 5 and any(len(m) > 1 for m in modes)
+    for m, b, xi in zip(modes, best, x):
+        assert 1 <= len(m) <= 3 and torch.equal(m[0], b)
+        d = torch.cdist(m[:, :2], m[:, :2]) + 9 * torch.eye(len(m))
+        assert (d > 0.1).all()
+        ll = inv.log_likelihood(xi.expand(len(m), -1), m)
+        assert (ll[1:] <= ll[0] + 1e-4).all()
+    with pytest.raises(ValueError, match="k=0"):
+        inv.modes(scans, k=0)
+
+
 def test_elbo_improves(small):
     *_, hist = small
     assert np.mean(hist[-50:]) > np.mean(hist[:50]) + 1.0
@@ -98,9 +118,12 @@ def test_navigate_cli_with_observation_target(tmp_path, capsys):
     assert rc == (0 if report["found"] else 1)  # (50 expansions may find no plan)
     assert len(report["inferred_goal"]) == 3 and report["inference_error"] >= 0
     assert report["target_lookalikes_exact"] >= 0
+    # the agent heads for the inverse model's modes in turn, judging each by its own view
+    assert 1 <= report["goals_visited"] == len(report["view_differences"]) <= 3
     assert out.is_file()
     # the ground-truth planner takes the truth's own inverse: the target's place, exactly
     rc = cli.main([*args, "--planner", "ground_truth", "--overwrite"])
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert rc == (0 if report["found"] else 1)
     assert report["target_lookalikes_exact"] == 0 and report["inference_error"] < 1e-4
+    assert report["goals_visited"] == 1
