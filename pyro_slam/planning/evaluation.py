@@ -84,17 +84,9 @@ def scan_match(gt_env, xy, scan, radius=SUCCESS_RADIUS, spacing=0.01, headings=3
     pts = np.concatenate([np.zeros((1, 2)), pts]) + np.asarray(xy)[None]  # [P, 2]
     walls = gt_env.maze.walls
     pts = pts[[point_segment_distance(q, walls).min() > 1e-3 for q in pts]]
-    return _smallest_difference(gt_env, pts, scan, headings)
-
-
-def _smallest_difference(gt_env, pts, scan, headings: int) -> float:
-    """The smallest mean absolute difference between ``scan [B]`` and the true scans at positions
-    ``pts [P, 2]`` (each ray-cast once in ``headings`` directions; every heading's scan is a
-    rotation of those rays)."""
-    B = len(scan)
     ang = 2 * np.pi * np.arange(headings) / headings - np.pi  # [H]
     directions = np.broadcast_to(ang, (len(pts), headings))
-    rays = raycast(gt_env.maze.walls, pts, directions, gt_env.lidar.max_range)  # [P, H]
+    rays = raycast(walls, pts, directions, gt_env.lidar.max_range)  # [P, H]
     beams = (np.arange(headings)[:, None] + (headings // B) * np.arange(B)) % headings  # [H, B]
     return float(np.abs(rays[:, beams] - np.asarray(scan)).mean(-1).min())
 
