@@ -17,8 +17,13 @@ enters the learned model; the SLAM run is a preset of :mod:`pyro_slam.slam.prese
 ``--slam-preset`` (default ``paper``) with ``--slam-config`` overrides; its poses are kept
 in ``OUT/mazes/slam_m<seed>.json`` and reused).
 
-**Pose targets** succeed when the agent stops within 0.05 of the target. A* is deterministic, so
-one search with the largest budget gives the whole success-vs-budget curve.
+**Pose targets** succeed when the agent stops within 0.05 of the target. The learned planner's
+agent (:func:`~pyro_slam.planning.seek_pose`) plans; where the target lies in space the map has
+not explored and there is no plan, it goes to the place its search reached nearest to the
+target, scans there, trusts the scan's free space and plans again (up to ``--observe-rounds``
+3 times; the observation-target agent does the same for each of its goals). A* is
+deterministic, so one run with the largest budget gives the whole success-vs-budget curve (an
+agent's expansions summed over its searches).
 
 **Observation targets** (planner ``learned_obs``): the target is the simulator's scan at the
 target grid point with a random heading; the goals are up to ``--hypotheses`` modes of
@@ -95,6 +100,8 @@ from pyro_slam.planning import (
     lookalikes,
     plan,
     seek_observation,
+    seek_pose,
+    sensor,
 )
 from pyro_slam.planning.evaluation import (
     PLANNERS,
@@ -113,8 +120,8 @@ from pyro_slam.slam import SLAM, path_integration
 from simulators import make_maze, simulate_traversal
 
 SIZES = {"full": (6, 50), "quick": (2, 10)}  # (mazes, pairs per maze)
-# row format: 5 adds the observation-target agent's legs (its hypotheses, visited in turn)
-ROWS = "5"
+# row format: 6: the learned planner's agent explores towards a goal without a plan (scans taken)
+ROWS = "6"
 
 
 def main(argv=None) -> int:
@@ -243,6 +250,12 @@ def _add_seek_args(p: argparse.ArgumentParser, nav) -> None:
         help="modes closer than this are one place",
     )
     p.add_argument(
+        "--observe-rounds",
+        type=int,
+        default=nav.observe_rounds,
+        help="a goal without a plan: scans taken towards it, each followed by a new plan (0: off)",
+    )
+    p.add_argument(
         "--accept-tol",
         type=float,
         default=nav.accept_tol,
@@ -269,6 +282,8 @@ def _resolve(p: argparse.ArgumentParser, args) -> tuple[int, ...]:
         p.error(f"--max-expansions {args.max_expansions}: must be at least 1")
     if not args.alias_tol > 0 or not args.exact_tol > 0:
         p.error("--alias-tol and --exact-tol must be positive")
+    if args.observe_rounds < 0:
+        p.error(f"--observe-rounds {args.observe_rounds}: must be at least 0")
     if args.hypotheses < 1 or not args.mode_separation > 0 or args.accept_tol < 0:
         p.error("--hypotheses must be at least 1, --mode-separation positive, --accept-tol >= 0")
     args.slam = slam_config(p, args.slam_preset, args.slam_config, "--slam-config")
@@ -637,6 +652,10 @@ def _run_pair(maze, ms: int, pair, m, targets, tg, args, plot: Path | None) -> l
             _seek_row(maze, m, envs["learned"], start, tg, b, row, args, plot)
             rows.append(row)
             continue
+        if name == "learned":
+            _pose_row(maze, m, envs["learned"], start, b, row, args)
+            rows.append(row)
+            continue
         goal = goals[name]
         t = time.perf_counter()
         r = plan(
@@ -676,11 +695,14 @@ def _seek_row(maze, m, env, start, tg, b: int, row: dict, args, plot: Path | Non
             mover,
             Look(m.gt, tscan),
             accept_tol=args.accept_tol,
+            sense=sensor(m.gt),
+            rounds=args.observe_rounds,
             max_expansions=args.max_expansions,
             check_path=args.check_path,
         )
         stop = res.poses[-1]
         row[f"legs_{nz}"], row[f"accepted_{nz}"] = len(res.goals), res.accepted
+        row[f"scans_{nz}"] = res.scans
         row[f"collisions_{nz}"] = mover.collisions
         row[f"error_{nz}"] = float(np.hypot(*(stop[:2] - target)))
         row[f"success_{nz}"] = bool(res.found and row[f"error_{nz}"] <= SUCCESS_RADIUS)
@@ -695,6 +717,34 @@ def _seek_row(maze, m, env, start, tg, b: int, row: dict, args, plot: Path | Non
                 _plot_run(
                     maze, m.lenv, res.as_plan(), res.poses, tg.poses[2 * b], hyps[0], row, plot
                 )
+    print(json.dumps(row), file=sys.stderr)
+
+
+def _pose_row(maze, m, env, start, b: int, row: dict, args) -> None:
+    """The pose target of point ``b`` in the learned model: the agent plans, exploring towards
+    a goal without a plan (:func:`~pyro_slam.planning.seek_pose`), without and with actuation
+    noise. Adds to ``row`` the plan's figures, each execution's error, success, collisions and
+    the scans it took to explore."""
+    target = m.pts[b]
+    for nz, noise in (("noiseless", 0), ("noisy", None)):
+        t = time.perf_counter()
+        mover = Mover(maze, noise, row["start"] * 100 + b)
+        res = seek_pose(
+            env,
+            start,
+            target,
+            mover,
+            sense=sensor(m.gt),
+            rounds=args.observe_rounds,
+            max_expansions=args.max_expansions,
+            check_path=args.check_path,
+        )
+        ok, err = pose_reached(res.found, res.poses[-1], target)
+        row[f"error_{nz}"], row[f"success_{nz}"] = err, ok
+        row[f"collisions_{nz}"], row[f"scans_{nz}"] = mover.collisions, res.scans
+        if nz == "noiseless":
+            row.update(found=res.found, expansions=res.expansions, steps=len(res.controls))
+            row["plan_s"] = time.perf_counter() - t
     print(json.dumps(row), file=sys.stderr)
 
 

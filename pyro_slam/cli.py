@@ -58,6 +58,7 @@ from .planning import (
     maze_bounds,
     run_env,
     seek_observation,
+    sensor,
 )
 from .planning.inverse import fit_inverse
 from .plotting import plot_navigation
@@ -596,8 +597,17 @@ def cmd_navigate(args) -> int:
         hyps, target, n_lookalikes, look = _observation_goal(args, maze, lenv, tr)
         accept_tol = NAVIGATION.accept_tol
     mover = Mover(maze, noise=None if args.noise else 0, seed=args.seed)
+    # the learned planner's agent scans where a goal has no plan yet
+    sense = sensor(GroundTruthEnv(maze)) if args.planner == "learned" else None
     res = seek_observation(
-        env, start, hyps, mover, look, accept_tol=accept_tol, max_expansions=args.max_expansions
+        env,
+        start,
+        hyps,
+        mover,
+        look,
+        accept_tol=accept_tol,
+        sense=sense,
+        max_expansions=args.max_expansions,
     )
     executed, inferred = res.poses, None if target is None else hyps[0]
     true_goal = goal if target is None else target[:2]
@@ -616,6 +626,7 @@ def cmd_navigate(args) -> int:
         "final_error": err,
         "success": bool(res.found and err <= 0.05),
         "collisions": mover.collisions,
+        "scans": res.scans,
         "plot": str(args.out),
     }
     if inferred is not None:

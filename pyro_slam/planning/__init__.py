@@ -26,7 +26,7 @@ from .planner import (
     safety_cost,
     segments_cross,
 )
-from .seek import Look, Mover, SeekResult, seek_observation
+from .seek import Look, Mover, SeekResult, seek_observation, seek_pose, sensor
 
 __all__ = [
     "NAVIGATION",
@@ -52,5 +52,7 @@ __all__ = [
     "safety",
     "safety_cost",
     "seek_observation",
+    "seek_pose",
+    "sensor",
     "segments_cross",
 ]

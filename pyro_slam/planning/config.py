@@ -19,7 +19,9 @@ class NavigationConfig:
     an observation target's goals are up to ``hypotheses`` modes of the inverse model at
     least ``mode_separation`` apart, visited best first until the agent's own view matches
     the target scan within ``accept_tol`` (mean absolute range difference;
-    :func:`~pyro_slam.planning.seek_observation`).
+    :func:`~pyro_slam.planning.seek_observation`); a goal without a plan is explored towards
+    (the agent scans at the reached place nearest to it and plans again) up to
+    ``observe_rounds`` times.
     """
 
     max_expansions: int = 2000
@@ -32,6 +34,7 @@ class NavigationConfig:
     hypotheses: int = 3
     mode_separation: float = 0.1
     accept_tol: float = 0.01
+    observe_rounds: int = 3
 
 
 # the library's and the command line's defaults

@@ -265,9 +265,12 @@ class InversePose:
                 opt.zero_grad()
                 loss.backward()
                 opt.step()
-            svi = SVI(self.model, self.guide, Adam({"lr": lr}), Trace_ELBO())
-            for _ in tqdm(range(steps), desc="ELBO q(z|x)", disable=not progress):
-                hist.append(-svi.step(scans, bs) / scans.shape[0])
+            # a scope of its own: an encoder fitted before under the same name (another maze's)
+            # would otherwise stay in the param store and be what the optimiser steps
+            with pyro.get_param_store().scope():
+                svi = SVI(self.model, self.guide, Adam({"lr": lr}), Trace_ELBO())
+                for _ in tqdm(range(steps), desc="ELBO q(z|x)", disable=not progress):
+                    hist.append(-svi.step(scans, bs) / scans.shape[0])
         finally:
             for p in self.dvbflm.emission.parameters():
                 p.requires_grad_(True)

@@ -15,6 +15,13 @@ that the map fitted by SLAM predicts to look like the target but that does not. 
 
 The agent's belief of its pose is the plan's end pose (controls executed open loop); only its
 own sensor at the place it reached enters the decision, never the target's pose.
+
+A goal in space that the map has not explored has no plan: every step of a plan must be
+explored or inside the free space of a scan the agent took itself. Given its sensor
+(``sense``), the agent then goes to the reached place nearest to the goal, takes a scan there,
+trusts its free space (:meth:`~pyro_slam.planning.LearnedEnv.with_observation`) and plans again,
+up to ``rounds`` times, while each round brings it nearer. :func:`seek_pose` is the same agent
+with one goal and no view to check (a pose target).
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ from simulators import raycast
 from simulators.traversal import integrate_controls
 
 from ..geometry import wrap_angle
+from .config import NAVIGATION
 from .envs import execute
 from .planner import PlanResult, Primitives, plan
 
@@ -44,6 +52,7 @@ class SeekResult:
     diffs: list  # the view's difference from the target at each leg's stop (nan: no plan)
     accepted: int | None  # index into goals of the accepted hypothesis (None: none)
     expansions: int  # A* expansions over every leg
+    scans: int = 0  # scans taken to explore towards goals without a plan
 
     def as_plan(self) -> PlanResult:
         """The legs as one :class:`~pyro_slam.planning.PlanResult` (for plotting)."""
@@ -73,6 +82,8 @@ def seek_observation(
     look,
     *,
     accept_tol: float,
+    sense=None,
+    rounds: int = NAVIGATION.observe_rounds,
     **plan_kw,
 ) -> SeekResult:
     """Visit the ``hypotheses [K, 2+]`` (best first) from the true pose ``start [3]`` until the
@@ -83,10 +94,13 @@ def seek_observation(
     ``look(pose [3])`` is what the agent makes of its view at a true pose (turning on the spot):
     the smallest difference from the target and the offset ``[2]`` from where it stands to the
     place nearby that shows it (:func:`match_view`). An accepted view, and the best one when
-    none is, is reached by driving that offset. ``plan_kw`` go to
-    :func:`~pyro_slam.planning.plan`.
+    none is, is reached by driving that offset. ``sense(pose [3])``: the agent's scan ``[B]`` at
+    a true pose, taken where a goal has no plan (module doc; None: it gives up on that goal),
+    at most ``rounds`` times per goal. ``plan_kw`` go to :func:`~pyro_slam.planning.plan`.
     """
-    st = _Walk(env, move, start, plan_kw)
+    if sense is not None and not hasattr(env, "with_observation"):
+        raise TypeError(f"sense needs an env that trusts a scan (with_observation); got {env!r}")
+    st = _Walk(env, move, start, plan_kw, sense, rounds)
     goals, stops, diffs, places = [], [], [], []
     for goal in np.asarray(hypotheses, dtype=np.float64)[:, :2]:
         goals.append(goal)
@@ -111,12 +125,26 @@ def seek_observation(
     return st.result(goals, stops, diffs, None)
 
 
+def seek_pose(env, start, goal, move, sense=None, **kw) -> SeekResult:
+    """Go to position ``goal [2+]`` from the true pose ``start [3]``: :func:`seek_observation`
+    with the goal as its one hypothesis and no view to check (``kw``: its ``rounds`` and
+    :func:`~pyro_slam.planning.plan`'s arguments)."""
+    goal = np.asarray(goal, dtype=np.float64)[None, :2]
+    return seek_observation(env, start, goal, move, _no_view, accept_tol=np.inf, sense=sense, **kw)
+
+
+def _no_view(pose) -> tuple[float, np.ndarray]:
+    """The look of a pose target: nothing to compare, no offset."""
+    return 0.0, np.zeros(2)
+
+
 class _Walk:
     """The agent's legs: its pose belief (the plans' end poses), its true pose, and the executed
     poses, controls and planned path so far."""
 
-    def __init__(self, env, move, start, plan_kw: dict):
+    def __init__(self, env, move, start, plan_kw: dict, sense=None, rounds: int = 0):
         self.env, self.move, self.plan_kw = env, move, plan_kw
+        self.sense, self.rounds, self.scans = sense, rounds, 0
         self.belief = self.true = np.asarray(start, dtype=np.float64)
         self.poses, self.controls, self.path = (
             [self.true[None]],
@@ -126,13 +154,37 @@ class _Walk:
         self.expansions = 0
 
     def leg(self, goal) -> bool:
-        """Plan to position ``goal [2]``, approach it and execute; False if no plan."""
-        r = plan(self.env, self.belief, goal, **self.plan_kw)
+        """Plan to position ``goal [2]``, approach it and execute; where there is no plan,
+        explore towards it (:meth:`explore`) and plan again. False if no plan."""
+        for attempt in range(self.rounds + 1):
+            r = plan(self.env, self.belief, goal, **self.plan_kw)
+            self.expansions += r.expansions
+            if r.success:
+                self._execute(r.controls, r.path)
+                self.drive(goal)
+                return True
+            if self.sense is None or attempt == self.rounds or not self.explore(r.visited, goal):
+                return False
+        return False
+
+    def explore(self, visited, goal) -> bool:
+        """Go to the pose of ``visited [N, 3]`` (where a search reached) nearest to ``goal
+        [2]``, scan there and trust the scan's free space from then on; False (staying put) if
+        none is nearer than where the agent believes it stands."""
+        if not len(visited):
+            return False
+        d = np.hypot(*(visited[:, :2] - goal).T)
+        k = int(np.argmin(d))
+        if d[k] >= np.hypot(*(self.belief[:2] - goal)) - 1e-9:
+            return False
+        r = plan(self.env, self.belief, visited[k, :2], **self.plan_kw)
         self.expansions += r.expansions
-        if r.success:
-            self._execute(r.controls, r.path)
-            self.drive(goal)
-        return r.success
+        if not r.success:
+            return False
+        self._execute(r.controls, r.path)
+        self.env = self.env.with_observation(self.belief, self.sense(self.true))
+        self.scans += 1
+        return True
 
     def drive(self, goal) -> None:
         """Turn towards position ``goal [2]`` and drive straight to it (:func:`approach`)."""
@@ -158,6 +210,7 @@ class _Walk:
             diffs=diffs,
             accepted=accepted,
             expansions=self.expansions,
+            scans=self.scans,
         )
 
 
@@ -173,7 +226,15 @@ def approach(pose, goal, primitives: Primitives | None = None) -> np.ndarray:
     turn = float(wrap_angle(np.arctan2(d[1], d[0]) - pose[2]))
     n = int(np.ceil(abs(turn) / prims.max_rotation - 1e-9))
     m = int(np.ceil(dist / prims.step - 1e-9))
-    return np.array([[turn / n, 0.0]] * n + [[0.0, dist / m]] * m).reshape(-1, 2)
+    turns = [[turn / n, 0.0]] * n if n else []  # (already facing the goal: no turn)
+    return np.array(turns + [[0.0, dist / m]] * m).reshape(-1, 2)
+
+
+def sensor(gt_env):
+    """``sense`` for :func:`seek_observation` in the simulator: the agent's own LiDAR scan
+    ``[B]`` at a true pose ``[3]``, from the maze and LiDAR of ``gt_env`` (a
+    :class:`~pyro_slam.planning.GroundTruthEnv`)."""
+    return lambda z: gt_env.scan(np.asarray(z, dtype=np.float64))[0].numpy()
 
 
 class Look:

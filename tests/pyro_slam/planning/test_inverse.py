@@ -25,6 +25,22 @@ def small():
     return maze, env, tr, inv, hist
 
 
+def test_a_fit_is_the_same_after_another_encoder_was_fitted(small):
+    """Two encoders fitted one after the other in one process (two mazes of a benchmark
+    worker): the second's ELBO phase trains its own parameters, so it ends where a fit of the
+    same seed ends whatever ran before."""
+    _, env, tr, _, _ = small
+
+    def fitted():
+        torch.manual_seed(1)  # the encoder's initial weights (as fit_inverse seeds them)
+        inv = InversePose(env.model, env.M, env.bounds, max_range=tr.max_range, valid=env.valid)
+        inv.fit(tr.observations, steps=20, sleep_steps=5, seed=1)
+        return torch.cat([p.detach().flatten() for p in inv.encoder.parameters()])
+
+    first, second = fitted(), fitted()
+    assert torch.equal(first, second)
+
+
 def test_encoder_shapes_and_heading_range():
     enc = PoseEncoder(20, 0.53, (0.0, 1.0, 0.0, 1.0))
     loc, scale = enc(torch.rand(4, 7, 20) * 0.5)

@@ -9,7 +9,7 @@ import inspect
 import pytest
 
 from pyro_slam import cli
-from pyro_slam.planning import NAVIGATION, NavigationConfig, learned_env, plan
+from pyro_slam.planning import NAVIGATION, NavigationConfig, learned_env, plan, seek_observation
 
 
 def _defaults(fn) -> dict:
@@ -18,6 +18,7 @@ def _defaults(fn) -> dict:
 
 def test_navigation_defaults_come_from_navigation_config():
     assert plan.__kwdefaults__["max_expansions"] == NAVIGATION.max_expansions
+    assert seek_observation.__kwdefaults__["rounds"] == NAVIGATION.observe_rounds
     env = _defaults(learned_env)
     assert env["steps"] == NAVIGATION.traversal_steps
     for name in ("fit_steps", "emission_steps", "n_world", "max_std", "hit_margin"):

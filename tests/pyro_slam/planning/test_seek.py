@@ -3,10 +3,21 @@ best first, stops at the first whose view matches the target, else returns to th
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
-from pyro_slam.planning import GroundTruthEnv, Look, execute, free_grid, seek_observation
+from pyro_slam.planning import (
+    GroundTruthEnv,
+    Look,
+    execute,
+    free_grid,
+    seek_observation,
+    seek_pose,
+    sensor,
+)
+from pyro_slam.planning.planner import inside_scan, segments_cross
 from pyro_slam.planning.seek import approach, match_view
 from simulators import make_maze, raycast
 from simulators.traversal import integrate_controls
@@ -94,3 +105,52 @@ def test_approach_drives_to_the_goal_in_primitive_steps():
     assert np.abs(u[:, 0]).max() <= 0.3 + 1e-12 and u[:, 1].max() <= 0.008 + 1e-12
     assert np.allclose(integrate_controls(np.array([0.1, 0.2, 3.0]), u)[-1, :2], [0.13, 0.18])
     assert approach(np.array([0.1, 0.2, 0.0]), np.array([0.1, 0.2])).shape == (0, 2)
+    ahead = approach(np.array([0.1, 0.2, 0.0]), np.array([0.12, 0.2]))  # facing it: no turn
+    assert np.all(ahead[:, 0] == 0) and np.isclose(ahead[:, 1].sum(), 0.02)
+
+
+class _Unexplored(GroundTruthEnv):
+    """True geometry, but a band 0.2 < x < 0.3 is unexplored until the agent's own scans show
+    it, as in :meth:`~pyro_slam.planning.LearnedEnv.with_observation`."""
+
+    seen: list = []
+
+    def valid(self, z) -> np.ndarray:
+        xy = np.asarray(z)[:, :2]
+        ok = ~((xy[:, 0] > 0.2) & (xy[:, 0] < 0.3))
+        for pose, scan in self.seen:
+            ok |= inside_scan(xy, pose, scan)
+        return ok
+
+    def with_observation(self, pose, scan):
+        out = copy.copy(self)
+        out.seen = [*self.seen, (np.asarray(pose, float), np.asarray(scan, float))]
+        return out
+
+
+def test_a_goal_beyond_unexplored_space_is_reached_by_scanning_towards_it():
+    """No plan crosses the unexplored band; the agent that scans at the reached place nearest
+    to the goal, trusts what it sees and plans again gets through, in a few scans. Without its
+    sensor, or with no rounds, it gives up where it stands."""
+    maze = make_maze("simple-medium", 3)
+    env = _Unexplored(maze)
+    start, goal = np.array([0.08, 0.08, 0.0]), np.array([0.42, 0.08])
+
+    def move(z, u):
+        return execute(maze, z, u)[0]
+
+    def go(**kw):
+        return seek_pose(env, start, goal, move, **kw)
+
+    blind = go(max_expansions=600)
+    assert not blind.found and blind.scans == 0 and len(blind.poses) == 1
+    assert not go(sense=sensor(env), rounds=0, max_expansions=600).found
+    res = go(sense=sensor(env), rounds=3, max_expansions=600)
+    assert res.found and 1 <= res.scans <= 3
+    assert np.hypot(*(res.poses[-1, :2] - goal)) < 1e-3
+    assert not segments_cross(res.poses[:, :2], maze.walls)
+    # where a plan exists the agent does not scan
+    near = seek_pose(env, start, [0.15, 0.08], move, sense=sensor(env), max_expansions=600)
+    assert near.found and near.scans == 0
+    with pytest.raises(TypeError, match="with_observation"):  # an env that cannot trust a scan
+        seek_pose(GroundTruthEnv(maze), start, goal, move, sense=sensor(env))
