@@ -236,7 +236,8 @@ def _add_model_args(p: argparse.ArgumentParser) -> None:
 
 
 def _add_seek_args(p: argparse.ArgumentParser, nav) -> None:
-    """The observation-target agent: its hypotheses and when it stops."""
+    """The agents: an observation target's hypotheses and when it stops, and (both agents) the
+    scans taken towards a goal without a plan."""
     p.add_argument(
         "--hypotheses",
         type=int,
