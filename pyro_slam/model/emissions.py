@@ -20,6 +20,7 @@ import math
 import torch
 from torch import nn
 
+from ..geometry import interleave
 from .networks import EmissionMLP
 
 
@@ -192,20 +193,26 @@ class RayEmission(Emission):
         """Points ``[..., B, S, 2]`` along the beams at poses ``z [..., 3]``, the probability
         that each beam stops in each segment ``[..., B, S]`` and that it passes ``[..., B]``.
         Only feature 0 of ``M`` (the occupancy logit) is read."""
+        (x, y), stop, passes = self._march(grid, M, z)
+        return interleave(x, y), stop, passes
+
+    def _march(self, grid, M: torch.Tensor, z: torch.Tensor):
+        """:meth:`stops` with the points as their coordinates ``(x, y)``, each ``[..., B, S]``."""
         d = self.dist.to(z.dtype)  # [S]
         ang = z[..., 2:3] + self.beam_angles.to(z.dtype)  # [..., B]
-        u = torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # [..., B, 2]
-        pts = z[..., None, None, :2] + d[:, None] * u.unsqueeze(-2)  # [..., B, S, 2]
-        o = grid.attend(M[..., :1], pts)[..., 0]  # [..., B, S] occupancy logit
+        x = (d * torch.cos(ang).unsqueeze(-1)).add_(z[..., 0:1, None])  # [..., B, S]
+        y = (d * torch.sin(ang).unsqueeze(-1)).add_(z[..., 1:2, None])
+        o = grid.read(M[..., :1], x, y)[..., 0]  # [..., B, S] occupancy logit
         step = self.max_range / self.samples
-        tau = (self.density * step) * nn.functional.softplus(self.gain * o + self.offset)
+        tau = nn.functional.softplus(o.mul_(self.gain).add_(self.offset)).mul_(self.density * step)
         cum = tau.cumsum(-1)  # optical depth up to the end of each segment
-        stop = torch.exp(tau - cum) * -torch.expm1(-tau)  # transmittance before s x absorbed in s
-        return pts, stop, torch.exp(-cum[..., -1])
+        # transmittance before s x absorbed in s
+        stop = (torch.exp(tau - cum) * torch.expm1(tau.neg())).neg_()
+        return (x, y), stop, torch.exp(-cum[..., -1])
 
     def _range(self, grid, M: torch.Tensor, z: torch.Tensor):
         """Each beam's expected range and the probability that it passes, both ``[..., B]``."""
-        _, stop, passes = self.stops(grid, M, z)
+        _, stop, passes = self._march(grid, M, z)
         return (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range, passes
 
     def expected_range(self, grid, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -225,8 +232,8 @@ class RayEmission(Emission):
         (``scale``) where the ray stops under ``loc``, averaged over the stopping point
         (passing rays: the last point). A beam that ends on a mapped wall is known even where
         the pose is new; one that runs into unmapped space is not."""
-        pts, stop, passes = self.stops(grid, loc, z)  # [..., B, S, 2], [..., B, S], [..., B]
-        var = grid.relative_variance(scale[..., :1], pts)[..., 0]  # [..., B, S] occupancy's
+        pts, stop, passes = self._march(grid, loc, z)  # ([..., B, S] x 2), [..., B, S], [..., B]
+        var = grid.read_variance(scale[..., :1], *pts)[..., 0]  # [..., B, S] occupancy's
         rng = (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range
         return rng, (stop * var).sum(-1) + passes * var[..., -1]
 

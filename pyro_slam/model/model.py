@@ -40,6 +40,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..geometry import interleave
 from .emissions import Emission, LidarEmission
 from .networks import EmissionMLP
 from .noise import BeamMixture, CircularUniform, WrappedMixture
@@ -189,19 +190,24 @@ class MapGrid:
 
     def _bilinear(self, M: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
         """Plain bilinear interpolation (``power = 1``) at positions ``xy [..., 2]``."""
+        return self.read(M, xy[..., 0], xy[..., 1])
+
+    def read(self, M: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """:meth:`attend` at positions given by their coordinates ``x, y [...]`` (the same read
+        without interleaving them into ``[..., 2]``): ``[..., D]``."""
         w, h = self.cells
-        gx = (xy[..., 0] - self.origin[0]) * ((w - 1) / self.size[0])
-        gy = (xy[..., 1] - self.origin[1]) * ((h - 1) / self.size[1])
+        gx = (x - self.origin[0]).mul_((w - 1) / self.size[0])
+        gy = (y - self.origin[1]).mul_((h - 1) / self.size[1])
         return self._sample(M, gx, gy)
 
     def _sample(self, M: torch.Tensor, gx: torch.Tensor, gy: torch.Tensor) -> torch.Tensor:
         """Bilinear interpolation of ``M`` at grid coordinates ``gx, gy [...]`` (clamped to the
-        grid) through ``grid_sample``: the values of the four-cell sum in one fused kernel."""
+        grid; both overwritten) through ``grid_sample``: the four-cell sum in one fused kernel."""
         w, h = self.cells
         D = M.shape[-1]
         image = M.permute(0, 3, 2, 1) if M.dim() == 4 else M.permute(2, 1, 0)[None]  # [N, D, h, w]
-        grid = torch.stack([gx * (2 / (w - 1)) - 1, gy * (2 / (h - 1)) - 1], -1)
-        grid = grid.to(M.dtype).reshape(image.shape[0], 1, -1, 2)
+        grid = interleave(gx.mul_(2 / (w - 1)).sub_(1), gy.mul_(2 / (h - 1)).sub_(1), M.dtype)
+        grid = grid.reshape(image.shape[0], 1, -1, 2)
         out = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
         return out[:, :, 0].transpose(1, 2).reshape(*gx.shape, D)  # [..., D]
 
@@ -212,14 +218,26 @@ class MapGrid:
         four attended cells (bilinear weights ``a_i``). The squared weights are separable and,
         normalised, bilinear weights again at the fractions ``a^2 / ((1 - a)^2 + a^2)``, so this
         is one bilinear read of ``s^2`` at shifted positions."""
+        return self.read_variance(scale, xy[..., 0], xy[..., 1])
+
+    def read_variance(self, scale: torch.Tensor, x: torch.Tensor, y: torch.Tensor):
+        """:meth:`relative_variance` at positions given by their coordinates ``x, y [...]``."""
         w, h = self.cells
-        gx = ((xy[..., 0] - self.origin[0]) * ((w - 1) / self.size[0])).clamp(0, w - 1)
-        gy = ((xy[..., 1] - self.origin[1]) * ((h - 1) / self.size[1])).clamp(0, h - 1)
-        i0 = gx.floor().clamp(max=w - 2)
-        j0 = gy.floor().clamp(max=h - 2)
-        a, b = gx - i0, gy - j0
-        a2, b2 = a * a / ((1 - a) ** 2 + a * a), b * b / ((1 - b) ** 2 + b * b)
-        return self._sample(scale**2, i0 + a2, j0 + b2).mean(-1, keepdim=True)
+        gx = self._shifted(x, self.origin[0], (w - 1) / self.size[0], w)
+        gy = self._shifted(y, self.origin[1], (h - 1) / self.size[1], h)
+        return self._sample(scale**2, gx, gy).mean(-1, keepdim=True)
+
+    @staticmethod
+    def _shifted(x: torch.Tensor, origin: float, per_unit: float, n: int) -> torch.Tensor:
+        """One axis of :meth:`read_variance`'s read: the grid coordinate ``[...]`` of positions
+        ``x [...]`` with its fraction ``a`` replaced by ``a^2 / ((1 - a)^2 + a^2)`` (in place
+        on fresh buffers: this runs on every march point of every particle)."""
+        g = (x - origin).mul_(per_unit).clamp_(0, n - 1)
+        corner = g.floor().clamp_(max=n - 2)
+        a = g.sub_(corner)
+        a2 = a * a
+        rest = torch.rsub(a, 1)
+        return corner.add_(a2.div_((rest * rest).add_(a2)))
 
 
 class DVBFLM(nn.Module):

@@ -72,6 +72,7 @@ import math
 
 import torch
 
+from ..geometry import interleave
 from ..model.model import MapGrid
 from .config import ScanInsertionConfig
 
@@ -147,8 +148,8 @@ class ScanInserter:
         with torch.no_grad():
             loc = self.leaves.loc.detach()
             pts, stop, _ = em.stops(grid, loc, z.to(loc.dtype))  # [B, S, 2], [B, S]
-            field = torch.stack([self.placement, (self.site_prec > 0).double()], -1)
-            read = grid.attend(field.to(loc.dtype), pts)  # [B, S, 2]
+            field = interleave(self.placement, self.site_prec > 0, loc.dtype)  # [w, h, 2]
+            read = grid.attend(field, pts)  # [B, S, 2]
             on = stop * read[..., 1]  # [B, S] stopping on an inserted point
             seen = on.sum()
             if seen <= 1e-6:

@@ -13,6 +13,7 @@ from pyro import poutine
 from pyro.infer import SVI, Predictive, SMCFilter
 from pyro.optim import Adam
 
+from pyro_slam.geometry import interleave
 from pyro_slam.inference import (
     ChunkBatch,
     ParticleCache,
@@ -31,6 +32,7 @@ from pyro_slam.model import (
     MapGuide,
     rotate_scan,
 )
+from pyro_slam.model.emissions import RayEmission
 from pyro_slam.model.networks import Softsign
 from pyro_slam.slam import EmissionConfig, SLAMConfig, build_model
 from simulators import simulate_traversal
@@ -167,6 +169,47 @@ def test_attend_is_exact_bilinear_interpolation():
     ones = torch.ones(5, 4, 1, dtype=torch.float64)
     assert grid.attend(ones, centre, power=2).item() == pytest.approx(0.25)
     assert grid.attend(ones, centre).item() == pytest.approx(1.0)
+
+
+def test_relative_variance_is_the_squared_weights_read():
+    """The shifted single read equals sum a_i^2 s_i^2 / sum a_i^2 over the four cells, inside the
+    grid, on its nodes and edges and clamped outside it, in both dtypes."""
+    grid = MapGrid((7, 5), 1, origin=(-1.0, 0.5), size=(3.0, 2.0))
+    g = torch.Generator().manual_seed(3)
+    for dtype in (torch.float32, torch.float64):
+        scale = torch.rand(7, 5, 1, generator=g).to(dtype) + 0.1
+        xy = torch.rand(200, 2, generator=g).to(dtype) * torch.tensor([5.0, 4.0]).to(dtype)
+        xy = xy + torch.tensor([-2.0, -0.5]).to(dtype)  # a band beyond every edge
+        xy[:3] = torch.tensor([[-1.0, 0.5], [2.0, 2.5], [0.5, 1.0]]).to(dtype)  # nodes
+        want = grid.attend(scale**2, xy, power=2) / grid.attend(torch.ones_like(scale), xy, 2)
+        got = grid.relative_variance(scale, xy)
+        torch.testing.assert_close(got, want)
+        assert torch.equal(grid.read_variance(scale, xy[:, 0], xy[:, 1]), got)
+        torch.testing.assert_close(grid.read(scale, xy[:, 0], xy[:, 1]), grid.attend(scale, xy))
+
+
+def test_interleave_is_a_last_axis_stack():
+    x, y = torch.randn(4, 3, 5), torch.randn(4, 3, 5)
+    assert torch.equal(interleave(x, y), torch.stack([x, y], -1))
+    out = interleave(x.double(), y > 0, torch.float32)
+    assert out.dtype == torch.float32
+    assert torch.equal(out, torch.stack([x.double(), (y > 0).double()], -1).float())
+
+
+def test_ray_march_reads_the_variance_where_the_points_are():
+    """``read_moments`` is the march of ``stops`` with the variance read at its points."""
+    grid = MapGrid.covering(-2.0, -2.0, 2.0, 2.0, 0.1, 1)
+    em = RayEmission(torch.linspace(-1.5, 1.5, 7), 3.0, samples=30)
+    g = torch.Generator().manual_seed(1)
+    loc = torch.randn(*grid.shape, generator=g) * 2
+    scale = torch.rand(*grid.shape, generator=g)
+    z = torch.randn(5, 3, generator=g) * 0.5
+    pts, stop, passes = em.stops(grid, loc, z)  # [5, 7, 30, 2], [5, 7, 30], [5, 7]
+    var = grid.relative_variance(scale, pts)[..., 0]
+    rng, unknown = em.read_moments(grid, loc, scale, z)
+    assert torch.equal(rng, em.expected_range(grid, loc, z))
+    torch.testing.assert_close(unknown, (stop * var).sum(-1) + passes * var[..., -1])
+    torch.testing.assert_close(stop.sum(-1) + passes, torch.ones(5, 7))
 
 
 def test_grid_covering_unit_maze():
