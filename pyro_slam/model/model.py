@@ -150,7 +150,7 @@ class MapGrid:
             charts ``[..., D]`` (``[S, ..., D]`` with a batched map).
         """
         if power == 1:
-            return self._bilinear(M, xy)
+            return self.read(M, xy[..., 0], xy[..., 1])
         w, h = self.cells
         D = M.shape[-1]
         a, b, base = self._corner(xy)
@@ -187,10 +187,6 @@ class MapGrid:
         j0 = gy.detach().floor().clamp(max=h - 2)
         base = i0.long() * h + j0.long()
         return (gx - i0).unsqueeze(-1), (gy - j0).unsqueeze(-1), base
-
-    def _bilinear(self, M: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
-        """Plain bilinear interpolation (``power = 1``) at positions ``xy [..., 2]``."""
-        return self.read(M, xy[..., 0], xy[..., 1])
 
     def read(self, M: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """:meth:`attend` at positions given by their coordinates ``x, y [...]`` (the same read
