@@ -22,6 +22,7 @@ SCRIPTS = (
     "exploration",
     "filter_speed",
     "navigation",
+    "offline_elbo",
     "pfnet_table",
     "real_data",
     "reliability",
@@ -993,3 +994,40 @@ def test_navigation_benchmark_defaults_are_the_benchmark_preset():
         NAVIGATION_BENCHMARK.hit_margin,
     )
     assert NAVIGATION_BENCHMARK.max_expansions == 1200
+
+
+@pytest.mark.skipif(
+    not (REPO.parent / "shared" / "data" / "intel.gfs.log").is_file(),
+    reason="the real laser logs (../shared/data) are not here",
+)
+def test_offline_elbo_is_the_objective_on_the_whole_log_and_leaves_the_run_alone():
+    """The whole-log ELBO of ``benchmarks.offline_elbo``: its KL is the map's analytic KL from
+    the prior, the same random numbers give the same estimate at every call, and the run's
+    cache and generator are left as they were (so the SVI steps between two evaluations are
+    the run's own). A belief moved off the data scores lower."""
+    import pyro
+    import torch
+
+    from benchmarks.offline_elbo import LOGS, traversal_elbo
+    from benchmarks.real_data import DATA, log_config, noisy_odometry
+    from pyro_slam.io import read_any
+    from pyro_slam.slam import loop
+    from pyro_slam.slam.runner import SLAM
+
+    tr = noisy_odometry(read_any(DATA / LOGS["intel"])).slice(0, 40)
+    slam = SLAM(tr, log_config(tr), seed=0, threads=1)
+    c, st, data = slam.components, slam.state, slam.data
+    with slam.scope():
+        loop.online_sweep(c, st, data, progress=False)
+        cache, gen = st.cache.z.clone(), st.gen.get_state()
+        a, b = traversal_elbo(slam, 2), traversal_elbo(slam, 2)
+        assert a == b and a["elbo"] == pytest.approx(a["data"] - a["kl"])
+        assert torch.equal(st.cache.z, cache) and torch.equal(st.gen.get_state(), gen)
+        torch.rand(3, generator=st.gen), torch.rand(3)  # as SVI steps advance them
+        assert traversal_elbo(slam, 2) == a
+        assert c.elbo.cache is st.cache
+        m = c.map_belief()
+        kl = (0.5 * (m.loc**2 + m.scale**2 - 1) - m.scale.log()).sum()
+        assert a["kl"] == pytest.approx(float(kl), rel=1e-4) and a["kl"] > 100
+        pyro.param("map_loc").data.mul_(-1)  # walls where the scans saw free space
+        assert traversal_elbo(slam, 2)["data"] < a["data"] - 1000
