@@ -1023,7 +1023,8 @@ def test_offline_elbo_is_the_objective_on_the_whole_log_and_leaves_the_run_alone
         a, b = traversal_elbo(slam, 2), traversal_elbo(slam, 2)
         assert a == b and a["elbo"] == pytest.approx(a["data"] - a["kl"])
         assert torch.equal(st.cache.z, cache) and torch.equal(st.gen.get_state(), gen)
-        torch.rand(3, generator=st.gen), torch.rand(3)  # as SVI steps advance them
+        torch.rand(3, generator=st.gen)  # the run's generators move on, as SVI steps move them
+        torch.rand(3)
         assert traversal_elbo(slam, 2) == a
         assert c.elbo.cache is st.cache
         m = c.map_belief()
