@@ -79,6 +79,15 @@ def add_threads_arg(p: argparse.ArgumentParser, default: int = DEFAULT_THREADS) 
     )
 
 
+def print_json_main(parse, run, argv=None) -> int:
+    """A benchmark's ``main``: ``args = parse(argv)``, torch's threads set to ``args.threads``,
+    then ``run(args)`` printed as JSON."""
+    args = parse(argv)
+    torch.set_num_threads(args.threads)
+    print(json.dumps(run(args)))
+    return 0
+
+
 def slam_config(
     p: argparse.ArgumentParser,
     preset: str,

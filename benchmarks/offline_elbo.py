@@ -29,7 +29,7 @@ import torch
 from pyro import poutine
 from torch.distributions import kl_divergence
 
-from benchmarks._common import add_threads_arg
+from benchmarks._common import add_threads_arg, print_json_main
 from benchmarks.real_data import DATA, log_config, noisy_odometry
 from pyro_slam.inference import ChunkBatch
 from pyro_slam.io import read_any
@@ -138,10 +138,7 @@ def parse(argv):
 
 
 def main(argv=None) -> int:
-    args = parse(argv)
-    torch.set_num_threads(args.threads)
-    print(json.dumps(run(args)))
-    return 0
+    return print_json_main(parse, run, argv)
 
 
 if __name__ == "__main__":

@@ -130,7 +130,7 @@ def run_mrpt(tr, work: Path):
     # and MRPT must not see the reference (Intel's GMapping) poses
     write_carmen(replace(tr, poses=None), clf)
     subprocess.run(
-        ["carmen2rawlog", "-q", "-w", "-i", str(clf), "-o", str(rawlog)],
+        ["carmen2rawlog", "-q", "-w", "-i", clf.name, "-o", rawlog.name],  # (in cwd)
         check=True,
         capture_output=True,
         cwd=work,

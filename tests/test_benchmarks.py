@@ -21,6 +21,7 @@ SCRIPTS = (
     "compare_runs",
     "exploration",
     "filter_speed",
+    "likelihood_peak",
     "navigation",
     "offline_elbo",
     "pfnet_table",
@@ -1032,3 +1033,50 @@ def test_offline_elbo_is_the_objective_on_the_whole_log_and_leaves_the_run_alone
         assert a["kl"] == pytest.approx(float(kl), rel=1e-4) and a["kl"] > 100
         pyro.param("map_loc").data.mul_(-1)  # walls where the scans saw free space
         assert traversal_elbo(slam, 2)["data"] < a["data"] - 1000
+
+
+@pytest.mark.skipif(
+    not (REPO.parent / "shared" / "data" / "intel.gfs.log").is_file(),
+    reason="the real laser logs (../shared/data) are not here",
+)
+def test_likelihood_peak_finds_the_pose_the_map_was_fused_at():
+    """``benchmarks.likelihood_peak``: under a map fused at Intel's reference poses the model's
+    likelihood peaks within centimetres of them, and under the map fused at the poses moved
+    8 cm along x the peak moves with it."""
+    import torch
+
+    from benchmarks.likelihood_peak import fused_at_reference, likelihood_peak
+    from benchmarks.real_data import DATA, log_config, noisy_odometry
+    from pyro_slam.io import read_any
+    from pyro_slam.slam.runner import SLAM
+
+    tr = noisy_odometry(read_any(DATA / "intel.gfs.log")).slice(0, 60)
+    ref = torch.as_tensor(np.asarray(tr.poses), dtype=torch.float32)
+    shift = torch.tensor([0.08, 0.0, 0.0])
+    offsets = {}
+    for moved in (False, True):
+        slam = SLAM(tr, log_config(tr), seed=0, threads=1)
+        fused_at_reference(slam, ref + shift if moved else ref)
+        peaks = [likelihood_peak(slam, t, ref[t], 0.02, 0.01) - ref[t] for t in range(10, 60, 10)]
+        offsets[moved] = torch.stack(peaks)  # [5, 3]
+    assert offsets[False][:, :2].norm(dim=-1).max() < 0.05
+    assert offsets[False][:, 2].abs().max() < 0.025
+    moved = (offsets[True] - offsets[False]).mean(0)  # [3]
+    assert moved[0] == pytest.approx(0.08, abs=0.02) and abs(moved[1]) < 0.02
+
+
+def test_mrpt_runs_in_a_relative_output_folder(tmp_path, monkeypatch):
+    """``real_data``'s MRPT row with ``--out`` given relative to the working directory (its
+    tools run inside the row's folder, so the files are named from there)."""
+    from benchmarks.real_data import mrpt_available, run_mrpt
+
+    if mrpt_available() is not None:
+        pytest.skip(mrpt_available())
+    sys.path.insert(0, str(REPO / "tests" / "pyro_slam" / "support"))
+    from synthetic_logs import room_log
+
+    tr, poses = room_log(T=12)
+    monkeypatch.chdir(tmp_path)
+    est, wall = run_mrpt(tr, Path("out") / "room_mrpt")
+    assert est.shape == (12, 3) and np.isfinite(est).all() and wall > 0
+    assert (tmp_path / "out" / "room_mrpt" / "log.rawlog").is_file()

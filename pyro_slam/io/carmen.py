@@ -15,8 +15,9 @@ Conventions of the resulting traversal (see :func:`read_carmen`):
 * ``observations`` ``[T, B]`` metres, one row per scan (``FLASER``, or ``ROBOTLASER1`` when the
   log has no ``FLASER``); ``obs_mask`` is False for no-return / invalid readings, which are
   replaced by ``max_range``.
-* ``beam_angles`` ``[B]``: ``FLASER`` beams spread evenly over the field of view (180 deg, or
-  ``PARAM laser_front_laser_fov``), ends included, from right (-fov/2) to left (+fov/2);
+* ``beam_angles`` ``[B]``: ``FLASER`` beams from right to left, in CARMEN's own geometry for
+  its beam counts (180 beams: -90 to +89 deg at 1 deg, :func:`flaser_angles`), or spread evenly
+  over ``PARAM laser_front_laser_fov``, ends included;
   ``ROBOTLASER1``: ``start_angle + i * angular_res`` plus the laser's mounting yaw.
 * ``controls`` ``[T-1, 3]`` robot-frame odometry increments (``control_model =
   "odometry_delta"``), from ``ODOM`` lines when present (``prefer="odom"``), else from the
@@ -52,6 +53,8 @@ from pyro_slam.io.common import (
 
 SCAN_MESSAGES = ("FLASER", "ROBOTLASER1")
 FOV_PARAMS = ("laser_front_laser_fov",)  # degrees
+# beam counts with CARMEN's own angular increment (deg), for FLASER lines without a field of view
+CARMEN_INCREMENT_DEG = {181: 1.0, 180: 1.0, 361: 0.5, 360: 0.5, 401: 0.25, 400: 0.25}
 MAX_RANGE_PARAMS = ("robot_front_laser_max", "laser_front_laser_max_range")  # metres
 SENSOR_PARAMS = FOV_PARAMS + MAX_RANGE_PARAMS  # applied (and checked), not ignored
 MIN_FOV_DEG = 1e-3  # a narrower field of view is a corrupt value, not a laser
@@ -305,6 +308,21 @@ def _is_anchor(scan: Scan | None, pose: np.ndarray, time: float) -> bool:
 # --- CarmenLog -> Traversal ----------------------------------------------------------------------
 
 
+def flaser_angles(n: int, fov_deg: float | None = None) -> np.ndarray:
+    """The directions ``[n]`` (rad, right to left) of a ``FLASER`` scan's ``n`` beams. With
+    a logged field of view, ``fov_deg`` spread evenly, ends included. Without one, CARMEN's own
+    geometry (``carmen_laser_get_fov``, ``carmen_laser_get_angle_increment``): 181 beams at 1
+    deg and 361 at 0.5 deg span 180 deg from -90 deg, 401 at 0.25 deg span 100 deg; 180, 360
+    and 400 beams are those scans with the last beam dropped (180 beams: -90 to +89 deg, as
+    GMapping reads them); any other count spreads over 180 deg, ends included."""
+    if fov_deg is None and n in CARMEN_INCREMENT_DEG:
+        inc = CARMEN_INCREMENT_DEG[n]
+        full = n if n % 2 else n + 1  # the scan the last beam was dropped from
+        return np.radians(-0.5 * (full - 1) * inc + inc * np.arange(n))
+    fov = math.radians(fov_deg or 180.0)
+    return np.linspace(-fov / 2, fov / 2, n) if n > 1 else np.zeros(1)
+
+
 def _param(log: CarmenLog, names: tuple[str, ...], upper: float = MAX_ABS) -> float | None:
     """The first of the ``PARAM`` values ``names`` that is a number in ``(0, upper]``."""
     for key in names:
@@ -387,9 +405,8 @@ def carmen_to_traversal(
     n = ranges.shape[1]
     sensor: dict = {"type": kind, "num_beams_raw": n}
     if kind == "FLASER":
-        fov = math.radians(_param(log, FOV_PARAMS, upper=360.0) or 180.0)
-        angles = np.linspace(-fov / 2, fov / 2, n) if n > 1 else np.zeros(1)
-        sensor["fov_deg"] = math.degrees(fov)
+        angles = flaser_angles(n, _param(log, FOV_PARAMS, upper=360.0))
+        sensor["fov_deg"] = math.degrees(angles[-1] - angles[0])
         logged_max = _param(log, MAX_RANGE_PARAMS)
         logged_how = "PARAM"
     else:
@@ -479,12 +496,19 @@ def write_carmen(traversal: Traversal, path: str | os.PathLike) -> Path:
     Logged pose = ``traversal.poses`` (or the odometry when absent), odometry fields =
     :func:`odometry_poses`, timestamps = ``traversal.timestamps`` (or 0.1 s steps), masked
     readings written as ``max_range``. Beams must be evenly spaced and symmetric about the
-    heading (FLASER cannot express anything else). Numbers are written in full precision.
+    heading (written with their field of view), or CARMEN's own geometry for their count
+    (:func:`flaser_angles`, written without one): FLASER cannot express anything else. Numbers
+    are written in full precision.
     """
-    a = traversal.beam_angles
+    a = np.asarray(traversal.beam_angles, dtype=np.float64)
     step = np.diff(a)
-    if len(a) > 1 and (abs(a[0] + a[-1]) > 1e-9 or np.ptp(step) > 1e-9 or step[0] <= 0):
-        raise ValueError("write_carmen needs evenly spaced beam angles symmetric about 0")
+    even = len(a) < 2 or (abs(a[0] + a[-1]) <= 1e-9 and np.ptp(step) <= 1e-9 and step[0] > 0)
+    native = len(a) in CARMEN_INCREMENT_DEG and np.abs(a - flaser_angles(len(a))).max() <= 1e-9
+    if not (even or native):
+        raise ValueError(
+            "write_carmen needs evenly spaced beam angles symmetric about 0, or CARMEN's own "
+            "for their count"
+        )
     odom = odometry_poses(traversal)  # [T, 3]
     poses = odom if traversal.poses is None else np.asarray(traversal.poses, dtype=np.float64)
     T = traversal.num_steps
@@ -493,11 +517,10 @@ def write_carmen(traversal: Traversal, path: str | os.PathLike) -> Path:
     if traversal.obs_mask is not None:
         obs = np.where(traversal.obs_mask, obs, traversal.max_range)
     fov = math.degrees(a[-1] - a[0]) if len(a) > 1 else 180.0
-    out = [
-        "# written by pyro_slam.io.write_carmen",
-        f"PARAM {FOV_PARAMS[0]} {fov!r}",
-        f"PARAM {MAX_RANGE_PARAMS[0]} {float(traversal.max_range)!r}",
-    ]
+    out = ["# written by pyro_slam.io.write_carmen"]
+    if even:
+        out.append(f"PARAM {FOV_PARAMS[0]} {fov!r}")
+    out.append(f"PARAM {MAX_RANGE_PARAMS[0]} {float(traversal.max_range)!r}")
     for t in range(T):
         nums = [*obs[t], *poses[t], *odom[t]]
         stamp = repr(float(ts[t]))

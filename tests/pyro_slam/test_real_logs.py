@@ -61,7 +61,7 @@ def test_odometry_sigma_scales_with_motion():
 def test_real_preset_adapts_to_the_log_and_sizes_the_model():
     tr, poses = room_log()
     cfg = presets.get("real").for_traversal(tr)
-    assert cfg.beam_stride == 8 and cfg.emission.resolution == 0.1
+    assert cfg.beam_stride == 8 and cfg.emission.resolution == 0.05
     assert cfg.range_clip == pytest.approx(np.percentile(tr.valid_ranges(), 99), abs=0.01)
     assert cfg.transition.sigma == pytest.approx(odometry_sigma(tr.controls, 0.1, 0.1))
     assert with_overrides(cfg, {"beam_stride": 4}).beam_stride == 4  # overrides win
@@ -75,7 +75,7 @@ def test_real_preset_adapts_to_the_log_and_sizes_the_model():
     path = odometry_poses(prepared)[:, :2]
     assert x0 == pytest.approx(path[:, 0].min() - cfg.range_clip)
     assert y1 == pytest.approx(path[:, 1].max() + cfg.range_clip)
-    assert (x1 - x0) / (model.grid.cells[0] - 1) == pytest.approx(0.1, rel=0.05)
+    assert (x1 - x0) / (model.grid.cells[0] - 1) == pytest.approx(0.05, rel=0.05)
     # the simulator's defaults are unchanged
     assert SLAMConfig().beam_stride == 1 and SLAMConfig().range_clip is None
 
@@ -128,7 +128,7 @@ def test_cli_slam_on_carmen_log(tmp_path, capsys):
     report = json.loads((out / "metrics.json").read_text())
     config = report["config"]
     assert report["preset"] == "real" and config["beam_stride"] == 8
-    assert config["emission"]["resolution"] == 0.1 and config["filter"]["particles"] == 16
+    assert config["emission"]["resolution"] == 0.05 and config["filter"]["particles"] == 16
     sigma = odometry_sigma(tr.controls, 0.2, 0.2)
     np.testing.assert_allclose(config["transition"]["sigma"], sigma, rtol=1e-4)
     assert report["scan_consistency"]["slam"]["mean"] >= 0

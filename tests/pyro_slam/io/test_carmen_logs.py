@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from io_helpers import raw_flaser_fields
 
 from pyro_slam.geometry import wrap_angle
 from pyro_slam.io import odometry_poses, read_carmen, relation_error, relations_from_reference
+from pyro_slam.io.carmen import flaser_angles
 from pyro_slam.io.common import compose, relative
+from pyro_slam.metrics import consistency_scans, log_scan_consistency
 
 
 @pytest.fixture(scope="module")
@@ -48,6 +52,35 @@ def test_mit_counts_masks_and_odometry(mit, mit_path):
     assert_close_poses(odometry_poses(mit), tail[:, 3:6], 1e-6)
     np.testing.assert_array_equal(mit.timestamps, tail[:, 6])
     assert mit.metadata["control_model"] == "odometry_delta"
+
+
+def test_intel_beams_follow_carmens_geometry(intel):
+    # 180 readings: CARMEN's 1 deg beams from -90 deg, the last of 181 dropped
+    np.testing.assert_allclose(np.degrees(intel.beam_angles), np.arange(-90.0, 90.0), atol=1e-9)
+    # and they are the beams GMapping matched: its poses fit the scans better with them than
+    # with the 180 readings spread evenly over 180 deg
+    even = replace(intel, beam_angles=np.linspace(-np.pi / 2, np.pi / 2, 180))
+
+    def consistency(tr):
+        return log_scan_consistency(tr, tr.poses, consistency_scans(tr))["mean"]
+
+    assert consistency(intel) < consistency(even) - 0.001
+
+
+@pytest.mark.parametrize(
+    "n, first, step, last",
+    [(181, -90, 1, 90), (361, -90, 0.5, 90), (360, -90, 0.5, 89.5), (401, -50, 0.25, 50)],
+)
+def test_flaser_angles_of_carmens_beam_counts(n, first, step, last):
+    a = np.degrees(flaser_angles(n))
+    assert a[0] == pytest.approx(first) and a[-1] == pytest.approx(last)
+    np.testing.assert_allclose(np.diff(a), step)
+
+
+def test_flaser_angles_spread_over_a_logged_field_of_view():
+    a = np.degrees(flaser_angles(180, 100.0))
+    assert a[0] == pytest.approx(-50) and a[-1] == pytest.approx(50)
+    np.testing.assert_allclose(np.degrees(flaser_angles(7)), np.linspace(-90, 90, 7))
 
 
 def test_mit_beam_stride_and_max_range_argument(mit_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gzip
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from io_helpers import flaser, odom_line, synthetic_traversal
 
 from pyro_slam.geometry import odometry_delta
 from pyro_slam.io import ParseError, odometry_poses, parse_carmen, read_carmen, write_carmen
-from pyro_slam.io.carmen import carmen_to_traversal
+from pyro_slam.io.carmen import carmen_to_traversal, flaser_angles
 from pyro_slam.io.common import compose
 
 GOOD = [
@@ -203,6 +204,24 @@ def test_write_read_round_trip(tmp_path):
     np.testing.assert_array_equal(back.timestamps, tr.timestamps)
     np.testing.assert_allclose(odometry_poses(back), odometry_poses(tr), atol=1e-12)
     assert back.max_range == tr.max_range
+
+
+@pytest.mark.parametrize("n", [180, 361])
+def test_round_trip_keeps_carmens_beam_geometry(tmp_path, n):
+    # CARMEN's 180 beams (-90 to +89 deg) are not symmetric: written without a field of view
+    tr = synthetic_traversal()
+    B = tr.observations.shape[1]
+    tr = replace(
+        tr,
+        observations=np.resize(tr.observations, (tr.num_steps, n)),
+        obs_mask=np.resize(tr.obs_mask, (tr.num_steps, n)),
+        beam_angles=flaser_angles(n),
+    )
+    path = write_carmen(tr, tmp_path / "rt.clf")
+    assert ("laser_front_laser_fov" in path.read_text()) == (n == 361) and B != n
+    np.testing.assert_allclose(read_carmen(path).beam_angles, flaser_angles(n), atol=1e-12)
+    with pytest.raises(ValueError, match="evenly spaced"):
+        write_carmen(replace(tr, beam_angles=flaser_angles(n) + 0.01), tmp_path / "no.clf")
 
 
 def test_round_trip_of_a_real_log_slice(tmp_path, mit_path):

@@ -164,15 +164,15 @@ def test_presets_differ_from_each_other_as_documented():
     real = presets.get("real").config
     assert real.emission == EmissionConfig(
         "raycast",
-        resolution=0.1,
+        resolution=0.05,
         margin=0.0,
         sigma=0.05,
         insert=ScanInsertionConfig(kind="fusion", gap=0.5),
-        ray_spacing=0.5,
+        ray_spacing=1.0,
     )
     assert real.transition.kind == "kinematic" and real.heading == HeadingConfig()
     assert real.filter.particles == 64 and real.filter.proposal == "transition"
-    assert real.training.every == 32
+    assert real.training.every == 32 and real.offline == OfflineConfig(0, estimate="forward")
 
 
 def test_unknown_preset_lists_the_names():
