@@ -177,6 +177,7 @@ def _file_mode() -> int:
 
 
 MAX_MAGNITUDE = 1e6  # |coordinate| or range beyond this is corrupt data, not a world
+MAX_TIMESTAMP = 1e13  # s: |timestamp| beyond this (over 300,000 years) is corrupt data
 MAX_LOAD_BYTES = 1 << 30  # a data set's arrays, uncompressed, at most (1 GiB)
 
 
@@ -345,7 +346,7 @@ def _optional_fields(tr: Traversal, src: str, T: int) -> None:
             raise DatasetError(f"{src}: field 'images' must lie in [0, 1]")
         tr.images = img.astype(np.float32)
     if tr.timestamps is not None:
-        ts = _float_array(src, "timestamps", tr.timestamps, 1, limit=1e13)
+        ts = _float_array(src, "timestamps", tr.timestamps, 1, limit=MAX_TIMESTAMP)
         if ts.shape != (T,):
             raise DatasetError(f"{src}: field 'timestamps' must have shape ({T},), got {ts.shape}")
         if T > 1 and np.any(np.diff(ts) < 0):

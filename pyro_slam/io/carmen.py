@@ -50,6 +50,7 @@ from pyro_slam.io.common import (
     poses_at,
     sentinel_max_range,
 )
+from slamdata.traversal import MAX_TIMESTAMP
 
 SCAN_MESSAGES = ("FLASER", "ROBOTLASER1")
 FOV_PARAMS = ("laser_front_laser_fov",)  # degrees
@@ -59,7 +60,7 @@ MAX_RANGE_PARAMS = ("robot_front_laser_max", "laser_front_laser_max_range")  # m
 SENSOR_PARAMS = FOV_PARAMS + MAX_RANGE_PARAMS  # applied (and checked), not ignored
 MIN_FOV_DEG = 1e-3  # a narrower field of view is a corrupt value, not a laser
 MAX_REASONS = 5  # skip reasons kept in metadata
-MAX_ABS = 1e15  # |timestamp| / config values beyond this are corruption (keeps maths finite)
+MAX_ABS = 1e15  # |config value| beyond this is corruption (keeps maths finite)
 MAX_COORD = 1e6  # |pose| in metres: a robot 1000 km from its origin is a corrupt line
 MAX_TIME_STEP_BACK = 1.0  # s: scan stamps may jitter back this much (clamped), not more
 
@@ -134,7 +135,7 @@ def parse_flaser(tokens: list[str], line: int) -> Scan:
         )
     ranges = parse_floats(tokens[2 : 2 + n])
     poses = _fields(tokens, 2 + n, 6, "poses", MAX_COORD)
-    time = _fields(tokens, 8 + n, 1, "ipc_timestamp")[0]
+    time = _fields(tokens, 8 + n, 1, "ipc_timestamp", MAX_TIMESTAMP)[0]
     return Scan("FLASER", line, ranges, poses[:3], poses[3:], float(time))
 
 
@@ -152,7 +153,7 @@ def parse_robotlaser1(tokens: list[str], line: int) -> Scan:
     ranges = parse_floats(tokens[9 : 9 + n])
     parse_floats(tokens[10 + n : 10 + n + k])
     rest = _fields(tokens, 10 + n + k, 11, "poses / velocities", MAX_COORD)  # laser, robot, 5 more
-    time = _fields(tokens, 21 + n + k, 1, "ipc_timestamp")[0]
+    time = _fields(tokens, 21 + n + k, 1, "ipc_timestamp", MAX_TIMESTAMP)[0]
     laser, robot = rest[:3], rest[3:6]
     config = (head[0], head[2], head[3], float(wrap_angle(laser[2] - robot[2])))
     return Scan("ROBOTLASER1", line, ranges, robot, robot.copy(), float(time), config)
@@ -161,7 +162,7 @@ def parse_robotlaser1(tokens: list[str], line: int) -> Scan:
 def parse_odom(tokens: list[str]) -> tuple[np.ndarray, float]:
     _expect_len(tokens, 10, "ODOM")
     vals = _fields(tokens, 1, 3, "pose", MAX_COORD)
-    return vals, float(_fields(tokens, 7, 1, "ipc_timestamp")[0])
+    return vals, float(_fields(tokens, 7, 1, "ipc_timestamp", MAX_TIMESTAMP)[0])
 
 
 # --- the file loop -----------------------------------------------------------------------------
@@ -219,6 +220,7 @@ class _Parser:
     def __init__(self, log: CarmenLog):
         self.log = log
         self.first: dict[str, Scan] = {}
+        self.latest: dict[str, float] = {}  # the latest timestamp of each scan type
         self.last_scan: Scan | None = None
 
     def skip(self, reason: str) -> None:
@@ -256,6 +258,13 @@ class _Parser:
             )
         if scan.config[:2] != ref.config[:2]:
             raise ValueError(f"{kind} angle config differs from line {ref.line}")
+        latest = self.latest.get(kind, -math.inf)
+        if scan.time < latest - MAX_TIME_STEP_BACK:  # (lenient: the line is skipped)
+            raise ValueError(
+                f"timestamp {scan.time:.6f} is {latest - scan.time:.3f} s earlier than an "
+                "earlier scan's: the scans are not in time order"
+            )
+        self.latest[kind] = max(latest, scan.time)
         self.log.scans.append(scan)
         self.last_scan = scan
 
