@@ -26,6 +26,7 @@ from pyro_slam.inference import (
     ProposalGuide,
     TransitionProposal,
 )
+from pyro_slam.io import odometry_poses
 from pyro_slam.model import (
     DVBFLM,
     EmissionMLP,
@@ -132,6 +133,12 @@ def test_default_objective_is_trace_elbo(preset):
     if slam.heading is not None:  # the heading factor takes part: a frame and seen walls
         assert not math.isnan(slam.heading.frame.mean)
         assert bool(slam.heading.ok[1:].any())
+    if slam.inserter is not None:  # the map SLAM's objective sees: the scans inserted, at the
+        true = slam.tr.poses if slam.tr.poses is not None else odometry_poses(slam.tr)  # truth
+        poses = torch.as_tensor(np.asarray(true), dtype=slam.obs.dtype)
+        with torch.no_grad(), slam.scope():
+            for t in range(slam.T):
+                slam.inserter.insert(slam.obs[t], slam.valid(t), poses[t], 0.0)
     n = 200
     ours = slam_objective(slam, n)
     theirs = trace_elbo_draws(slam, n)
