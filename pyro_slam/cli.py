@@ -756,7 +756,8 @@ def _add_slam(sub) -> None:
     s.add_argument(
         "--odometry-noise",
         type=_number(float, 0.0, inclusive=False),
-        help="the real preset: transition std as this fraction of the RMS odometry step "
+        help="the real preset: transition std on x/y as this fraction of the RMS odometry step, "
+        "and on the heading where the scans' walls do not show odometry's heading drift "
         f"(default {presets.REAL_LOG.odometry_noise:g}; refused with another preset)",
     )
     s.add_argument(

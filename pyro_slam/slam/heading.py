@@ -16,6 +16,10 @@ that:
 * **the tolerance** within which wall segments agree, and the observation's std, fit the
   sensor's noise, estimated from the scans themselves (:func:`~pyro_slam.geometry.range_noise`):
   a segment of length ``L`` has a direction error of about ``sqrt(2) sigma_r / L``;
+* **odometry's heading drift** shows in the same wall directions: between two supported scans
+  their heading change disagrees with odometry's by the drift in between plus the two scans'
+  errors, so the disagreement's growth with the gap is the drift per step, which sets a real
+  log's transition std on the heading (:func:`odometry_heading_noise`);
 * the observation applies only where a scan **supports** it (a straight wall of at least three
   hits, and at least ``support`` agreeing segments), with an exact proposal
   (:class:`~pyro_slam.inference.HeadingProposal`);
@@ -42,11 +46,14 @@ from ..geometry import (
 )
 from ..io.common import odometry_poses
 from ..model import FrameGuide, HeadingEvidence, WallHeading
-from .config import HeadingConfig
+from .build import prepare_traversal, traversal_tensors
+from .config import HeadingConfig, SLAMConfig
 
 QUARTER = math.pi / 2
 FRAME_SCANS = 50  # at most this many early scans estimate the frame
 NOISY = 1e-4  # range noise above this fraction of the median reading: outliers are possible
+DRIFT_GAPS = 8  # odometry's heading drift: fitted over scan pairs 1 .. 8 steps apart
+DRIFT_PAIRS = 20  # ... each gap with at least this many pairs of supported scans
 
 
 class ManhattanHeading:
@@ -129,6 +136,30 @@ class ManhattanHeading:
         var += t * drift**2  # the drift at step 0 is zero: the level there is the frame
         return float(torch.remainder(torch.tensor(mean), QUARTER)), var
 
+    def odometry_drift(self, odometry_heading, max_gap: int = DRIFT_GAPS) -> float | None:
+        """The odometry's heading noise per step (rad), read from the scans' wall directions.
+
+        Between supported scans ``k`` steps apart, the change of the heading the walls give
+        minus the change of odometry's heading (``odometry_heading [T]``, rad), modulo a quarter
+        turn, has variance ``2 sigma_obs^2 + k sigma_drift^2`` when odometry's heading error is a
+        random walk: a line fitted to the robust (MAD) variances over ``k = 1 .. max_gap`` has
+        slope ``sigma_drift^2`` whatever the wall directions' own noise, which sets the
+        intercept. None where some gap has fewer than ``DRIFT_PAIRS`` pairs or the slope is not
+        positive (no drift the scans can see)."""
+        d, ok = self.direction.double(), self.ok
+        heading = torch.as_tensor(odometry_heading, dtype=torch.float64)  # [T]
+        var = []
+        for k in range(1, max_gap + 1):
+            a = torch.nonzero(ok[:-k] & ok[k:]).flatten()
+            if len(a) < DRIFT_PAIRS:
+                return None
+            v = wrap_angle(d[a] - d[a + k] - (heading[a + k] - heading[a]), QUARTER)
+            var.append((1.4826 * (v - v.median()).abs().median()) ** 2)
+        y = torch.stack(var)  # [max_gap]
+        k = torch.arange(1, max_gap + 1, dtype=torch.float64)
+        slope = ((k - k.mean()) * (y - y.mean())).sum() / ((k - k.mean()) ** 2).sum()
+        return math.sqrt(float(slope)) if slope > 0 else None
+
     def factor(self) -> WallHeading:
         """The model's heading factor for these scans (outliers only where they show noise)."""
         return WallHeading(QUARTER, self.outlier_prob)
@@ -157,3 +188,17 @@ class ManhattanHeading:
 
     def load_state_dict(self, d: dict) -> None:
         self.frame.load_state_dict(d)
+
+
+def odometry_heading_noise(traversal: Traversal, config: SLAMConfig) -> float | None:
+    """The odometry's heading noise per step (rad) of a LiDAR log, from its scans' wall
+    directions as ``config`` reads them (beam stride, range clip, the heading factor's
+    settings; :meth:`ManhattanHeading.odometry_drift`); None without the heading factor, for
+    camera frames, or where the scans show too few straight walls to tell."""
+    if config.heading is None or config.emission.observation == "image":
+        return None
+    tr = prepare_traversal(traversal, config)
+    obs, _, mask, _ = traversal_tensors(tr)
+    outliers = config.emission.outlier_prob
+    walls = ManhattanHeading(tr, obs, mask, config.heading, False, 0.0, outliers)
+    return walls.odometry_drift(odometry_poses(tr, tr.start_pose)[:, 2])

@@ -43,8 +43,10 @@ from .config import (
     parse_overrides,
     with_overrides,
 )
+from .heading import odometry_heading_noise
 
 DEFAULT = "manhattan"
+ODOMETRY_FLOOR = 0.01  # the smallest transition std a real log's odometry gets (m, rad)
 
 
 @dataclass(frozen=True)
@@ -64,7 +66,9 @@ class Preset:
         return self.adapt(traversal, self.config)
 
 
-def odometry_sigma(controls, trans_frac: float = 0.1, rot_frac: float = 0.1, floor=0.01):
+def odometry_sigma(
+    controls, trans_frac: float = 0.1, rot_frac: float = 0.1, floor: float = ODOMETRY_FLOOR
+):
     """Transition std ``(x, y, heading)`` from a relative-odometry noise model.
 
     Odometry errors grow with the motion (Thrun et al., Probabilistic Robotics, ch. 5.4): per
@@ -85,7 +89,8 @@ def odometry_sigma(controls, trans_frac: float = 0.1, rot_frac: float = 0.1, flo
 class RealLogAdaptation:
     """The numbers :func:`adapt_real_log` reads a real log with: at most ``target_beams``
     beams, readings clipped at the ``range_quantile`` percentile, transition std the fraction
-    ``odometry_noise`` of the RMS odometry step."""
+    ``odometry_noise`` of the RMS odometry step (the heading's only where the scans' walls do
+    not show odometry's heading drift)."""
 
     target_beams: int = 46
     range_quantile: float = 99.0
@@ -106,17 +111,19 @@ def adapt_real_log(
     """``config`` for a metric real log: every ``beam_stride``-th beam so that at most
     ``target_beams`` remain (361 -> every 8th); readings clipped at the ``range_quantile``
     percentile of the valid ones (rare long returns then do not set the emission's scale);
-    the kinematic ``sigma_T`` from :func:`odometry_sigma` with fraction ``odometry_noise``."""
+    the kinematic ``sigma_T`` on x/y from :func:`odometry_sigma` with fraction
+    ``odometry_noise``, and on the heading the drift of odometry's heading that the scans' wall
+    directions show (:func:`~pyro_slam.slam.heading.odometry_heading_noise`, with the heading
+    factor), else the same fraction."""
     stride = max(1, int(math.ceil(traversal.num_beams / target_beams)))
     valid = traversal.valid_ranges()
     clip = float(np.percentile(valid, range_quantile)) if valid.size else traversal.max_range
-    sigma = odometry_sigma(traversal.controls, odometry_noise, odometry_noise)
-    return replace(
-        config,
-        beam_stride=stride,
-        range_clip=round(clip, 2),
-        transition=replace(config.transition, sigma=sigma),
-    )
+    config = replace(config, beam_stride=stride, range_clip=round(clip, 2))
+    s_x, s_y, s_h = odometry_sigma(traversal.controls, odometry_noise, odometry_noise)
+    drift = odometry_heading_noise(traversal, config)
+    if drift is not None:  # what the scans show beats a share of the motion
+        s_h = max(drift, ODOMETRY_FLOOR)
+    return replace(config, transition=replace(config.transition, sigma=(s_x, s_y, s_h)))
 
 
 # the default: the ray-cast LiDAR emission with scan insertion and the beam mixture, the shipped

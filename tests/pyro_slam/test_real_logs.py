@@ -4,13 +4,15 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
-from synthetic_logs import room_log
+from synthetic_logs import box_ranges, room_log
 
 from pyro_slam import cli, metrics
 from pyro_slam.io import odometry_poses, read_any, read_map, write_carmen
+from pyro_slam.io.common import relative
 from pyro_slam.slam import (
     SLAM,
     ConfigError,
@@ -21,6 +23,7 @@ from pyro_slam.slam import (
     presets,
     with_overrides,
 )
+from pyro_slam.slam.heading import odometry_heading_noise
 from pyro_slam.slam.presets import odometry_sigma
 
 # a light filter and SVI batch for the short logs here
@@ -56,6 +59,40 @@ def test_odometry_sigma_scales_with_motion():
     assert sx == sy == pytest.approx(0.02)
     assert sh == pytest.approx(0.1 * (0.1 + 0.2))
     assert odometry_sigma(np.zeros((5, 3)), floor=0.01) == (0.01, 0.01, 0.01)
+
+
+def drifting_room_log(drift: float, T: int = 1000, seed: int = 0):
+    """The room log, turning back and forth, with a heading random walk of step std ``drift``
+    (rad) in its odometry."""
+    tr, poses = room_log(T=T)
+    poses[:, 2] = 0.4 * np.sin(np.arange(T) / 15.0)
+    obs = np.stack([box_ranges(p, tr.beam_angles) for p in poses])
+    u = relative(poses[:-1], poses[1:])
+    u[:, 2] += np.random.default_rng(seed).normal(size=len(u)) * drift
+    return replace(tr, observations=obs, obs_mask=None, controls=u)
+
+
+@pytest.mark.parametrize("drift", [0.02, 0.04])
+def test_real_preset_reads_the_odometrys_heading_noise_from_the_walls(drift):
+    """The scans' wall directions show odometry's heading drift: the real preset's heading
+    sigma_T is that drift (not a share of the motion), x/y keep the share of the step."""
+    tr = drifting_room_log(drift)
+    cfg = presets.get("real").for_traversal(tr)
+    assert cfg.transition.sigma[2] == pytest.approx(drift, rel=0.25)
+    assert cfg.transition.sigma[:2] == pytest.approx(odometry_sigma(tr.controls, 0.1, 0.1)[:2])
+    assert odometry_heading_noise(tr, cfg) == pytest.approx(cfg.transition.sigma[2])
+    # without the heading factor there are no wall directions to read it from
+    no_walls = replace(cfg, heading=None)
+    assert odometry_heading_noise(tr, no_walls) is None
+    assert presets.adapt_real_log(tr, no_walls).transition.sigma == pytest.approx(
+        odometry_sigma(tr.controls, 0.1, 0.1)
+    )
+
+
+def test_exact_odometry_shows_no_heading_drift():
+    tr = drifting_room_log(0.0)
+    assert odometry_heading_noise(tr, presets.get("real").config) < 1e-4
+    assert presets.get("real").for_traversal(tr).transition.sigma[2] == presets.ODOMETRY_FLOOR
 
 
 def test_real_preset_adapts_to_the_log_and_sizes_the_model():
