@@ -141,11 +141,13 @@ class ManhattanHeading:
 
         Between supported scans ``k`` steps apart, the change of the heading the walls give
         minus the change of odometry's heading (``odometry_heading [T]``, rad), modulo a quarter
-        turn, has variance ``2 sigma_obs^2 + k sigma_drift^2`` when odometry's heading error is a
-        random walk: a line fitted to the robust (MAD) variances over ``k = 1 .. max_gap`` has
-        slope ``sigma_drift^2`` whatever the wall directions' own noise, which sets the
-        intercept. None where some gap has fewer than ``DRIFT_PAIRS`` pairs or the slope is not
-        positive (no drift the scans can see)."""
+        turn, has mean 0 and variance ``2 sigma_obs^2 + k sigma_drift^2`` when odometry's heading
+        error is a random walk, as the transition says: a line fitted to the robust second
+        moments about 0 (``(1.4826 median |v|)^2``) over ``k = 1 .. max_gap`` has slope
+        ``sigma_drift^2`` whatever the wall directions' own noise, which sets the intercept. A
+        heading bias in the odometry, which the transition does not model, grows the moments as
+        ``k^2`` and so widens the std that covers it. None where some gap has fewer than
+        ``DRIFT_PAIRS`` pairs or the slope is not positive (no drift the scans can see)."""
         d, ok = self.direction.double(), self.ok
         heading = torch.as_tensor(odometry_heading, dtype=torch.float64)  # [T]
         var = []
@@ -154,7 +156,7 @@ class ManhattanHeading:
             if len(a) < DRIFT_PAIRS:
                 return None
             v = wrap_angle(d[a] - d[a + k] - (heading[a + k] - heading[a]), QUARTER)
-            var.append((1.4826 * (v - v.median()).abs().median()) ** 2)
+            var.append((1.4826 * v.abs().median()) ** 2)  # about 0: a bias counts as drift
         y = torch.stack(var)  # [max_gap]
         k = torch.arange(1, max_gap + 1, dtype=torch.float64)
         slope = ((k - k.mean()) * (y - y.mean())).sum() / ((k - k.mean()) ** 2).sum()

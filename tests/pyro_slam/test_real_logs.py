@@ -61,14 +61,14 @@ def test_odometry_sigma_scales_with_motion():
     assert odometry_sigma(np.zeros((5, 3)), floor=0.01) == (0.01, 0.01, 0.01)
 
 
-def drifting_room_log(drift: float, T: int = 1000, seed: int = 0):
+def drifting_room_log(drift: float, T: int = 1000, seed: int = 0, bias: float = 0.0):
     """The room log, turning back and forth, with a heading random walk of step std ``drift``
-    (rad) in its odometry."""
+    (rad) and a heading bias of ``bias`` rad per step in its odometry."""
     tr, poses = room_log(T=T)
     poses[:, 2] = 0.4 * np.sin(np.arange(T) / 15.0)
     obs = np.stack([box_ranges(p, tr.beam_angles) for p in poses])
     u = relative(poses[:-1], poses[1:])
-    u[:, 2] += np.random.default_rng(seed).normal(size=len(u)) * drift
+    u[:, 2] += np.random.default_rng(seed).normal(size=len(u)) * drift + bias
     return replace(tr, observations=obs, obs_mask=None, controls=u)
 
 
@@ -87,6 +87,13 @@ def test_real_preset_reads_the_odometrys_heading_noise_from_the_walls(drift):
     assert presets.adapt_real_log(tr, no_walls).transition.sigma == pytest.approx(
         odometry_sigma(tr.controls, 0.1, 0.1)
     )
+
+
+def test_a_heading_bias_in_the_odometry_widens_the_transition():
+    """The transition's noise has mean 0: odometry that turns 0.01 rad too far at every step
+    needs a heading std that covers 0.08 rad over 8 steps."""
+    tr = drifting_room_log(0.0, bias=0.01)
+    assert presets.get("real").for_traversal(tr).transition.sigma[2] > 0.02
 
 
 def test_exact_odometry_shows_no_heading_drift():
