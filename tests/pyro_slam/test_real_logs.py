@@ -98,7 +98,8 @@ def test_a_heading_bias_in_the_odometry_widens_the_transition():
 
 def test_exact_odometry_shows_no_heading_drift():
     tr = drifting_room_log(0.0)
-    assert odometry_heading_noise(tr, presets.get("real").config) < 1e-4
+    # a slope of exactly 0 (no drift at all) reads as None, rounding may leave a tiny one
+    assert (odometry_heading_noise(tr, presets.get("real").config) or 0.0) < 1e-4
     assert presets.get("real").for_traversal(tr).transition.sigma[2] == presets.ODOMETRY_FLOOR
 
 
