@@ -202,5 +202,7 @@ def odometry_heading_noise(traversal: Traversal, config: SLAMConfig) -> float | 
     tr = prepare_traversal(traversal, config)
     obs, _, mask, _ = traversal_tensors(tr)
     outliers = config.emission.outlier_prob
-    walls = ManhattanHeading(tr, obs, mask, config.heading, False, 0.0, outliers)
+    walls = ManhattanHeading(
+        tr, obs, mask, config.heading, image=False, drift=0.0, outlier_prob=outliers
+    )
     return walls.odometry_drift(odometry_poses(tr, tr.start_pose)[:, 2])
