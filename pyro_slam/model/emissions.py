@@ -147,9 +147,13 @@ class RayEmission(Emission):
         max_range: the sensor's range (a ray that stops nowhere reads this).
         samples: points per beam.
         density, gain, offset: density per unit length ``density * softplus(gain * M + offset)``.
+        tolerance: the transmittance below which :meth:`read_moments` stops marching a beam on
+            a single map (the rest of the march moves its range by less than ``tolerance *
+            max_range``); 0: every beam is marched over the full range.
     """
 
     map_dim = 1
+    block = 32  # points per block of the march that stops beams early
 
     def __init__(
         self,
@@ -159,8 +163,10 @@ class RayEmission(Emission):
         density: float = 100.0,
         gain: float = 8.0,
         offset: float = -8.0,
+        tolerance: float = 0.0,
     ):
         super().__init__()
+        self.tolerance = float(tolerance)
         angles = torch.as_tensor(beam_angles, dtype=torch.get_default_dtype())
         self.register_buffer("beam_angles", angles, persistent=False)
         self.event_shape = (int(angles.shape[0]),)
@@ -232,10 +238,53 @@ class RayEmission(Emission):
         (``scale``) where the ray stops under ``loc``, averaged over the stopping point
         (passing rays: the last point). A beam that ends on a mapped wall is known even where
         the pose is new; one that runs into unmapped space is not."""
+        if self.tolerance > 0 and loc.dim() == 3:
+            return self._early_moments(grid, loc, scale, z)
         pts, stop, passes = self._march(grid, loc, z)  # ([..., B, S] x 2), [..., B, S], [..., B]
         var = grid.read_variance(scale[..., :1], *pts)[..., 0]  # [..., B, S] occupancy's
         rng = (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range
         return rng, (stop * var).sum(-1) + passes * var[..., -1]
+
+    def _early_moments(self, grid, loc, scale, z):
+        """:meth:`read_moments` on one map ``loc [w, h, D]``, marched in blocks of
+        :attr:`block` points, each beam dropped once its transmittance is below
+        :attr:`tolerance`: the same sums over the points before that (a dropped beam's passing
+        term is its transmittance there, read at its last point)."""
+        ang = z[..., 2:3] + self.beam_angles.to(z.dtype)  # [..., B]
+        shape = ang.shape
+        cx, cy = torch.cos(ang).reshape(-1, 1), torch.sin(ang).reshape(-1, 1)  # [N, 1]
+        x0 = z[..., 0:1].expand(shape).reshape(-1, 1)
+        y0 = z[..., 1:2].expand(shape).reshape(-1, 1)
+        step = self.max_range / self.samples
+        dist = self.dist.to(z.dtype)
+        live = torch.arange(cx.shape[0])
+        depth = z.new_zeros(cx.shape[0], 1)  # optical depth so far of the live beams
+        acc = z.new_zeros(cx.shape[0], 2)  # their sums of P(stop) d and P(stop) v so far
+        out = z.new_zeros(cx.shape[0], 2)  # each beam's range and variance, once dropped
+        var = scale[..., :1] ** 2  # [w, h, 1]
+        for s0 in range(0, self.samples, self.block):
+            d = dist[s0 : s0 + self.block]  # [L]
+            x, y = torch.addcmul(x0, cx, d), torch.addcmul(y0, cy, d)  # [A, L]
+            o = grid.read(loc[..., :1], x, y)[..., 0]
+            tau = nn.functional.softplus(o.mul_(self.gain).add_(self.offset))
+            cum = tau.mul_(self.density * step).cumsum(-1).add_(depth)
+            stop = (torch.exp(tau - cum) * torch.expm1(tau.neg())).neg_()  # as in _march
+            last = s0 + self.block >= self.samples
+            v = grid.read_variance(var, x, y, squared=True)[..., 0]  # [A, L]
+            acc = acc + torch.stack([(stop * d).sum(-1), (stop * v).sum(-1)], -1)
+            depth = cum[:, -1:]
+            t_end = torch.exp(-depth[:, 0])  # [A] transmittance past the block
+            drop = torch.ones_like(t_end, dtype=torch.bool) if last else t_end < self.tolerance
+            if bool(drop.any()):
+                t_last = t_end[drop]  # [n]
+                ends = torch.stack([t_last * self.max_range, t_last * v[drop, -1]], -1)
+                out[live[drop]] = acc[drop] + ends
+                keep = ~drop
+                live, x0, y0, cx, cy = live[keep], x0[keep], y0[keep], cx[keep], cy[keep]
+                depth, acc = depth[keep], acc[keep]
+                if not len(live):
+                    break
+        return out[:, 0].reshape(shape), out[:, 1].reshape(shape)
 
 
 class ImageEmission(Emission):

@@ -140,6 +140,20 @@ class MapLeaves:
     def __init__(self, loc, raw, constraint, cov_factor=None):
         self.loc, self.raw, self.cov_factor = loc, raw, cov_factor
         self.transform = biject_to(constraint)
+        self._std, self._seen = None, -1  # the kept std [w, h, D] and raw's version it is of
+
+    def marginals(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``q(M)``'s marginal mean and std ``[w, h, D]`` (detached; both change in place
+        with the guide), the std kept between calls: :meth:`write` updates the grid points it
+        writes, any other change of the raw scale (an SVI step) recomputes it. None for a
+        low-rank guide."""
+        if self.cov_factor is not None:
+            return None
+        if self._std is None or self._seen != self.raw._version:
+            with torch.no_grad():
+                self._std = self.transform(self.raw)
+            self._seen = self.raw._version
+        return self.loc.detach(), self._std
 
     def _factor(self, i, j):
         """``[P]``: the marginal std over the diagonal scale at ``(i, j)`` (1 without a
@@ -192,10 +206,14 @@ class MapLeaves:
     def write(self, i, j, loc, std) -> None:
         """Set the marginal mean ``loc`` and std ``std`` (``[P]`` or numbers) of the first
         feature at grid points ``(i [P], j [P])``."""
+        kept = self._std is not None and self._seen == self.raw._version
         with torch.no_grad():
             std = torch.as_tensor(std, dtype=self.raw.dtype) / self._factor(i, j)
             self.loc[i, j, 0] = torch.as_tensor(loc, dtype=self.loc.dtype)
             self.raw[i, j, 0] = self.transform.inv(std)
+            if kept:
+                self._std[i, j, 0] = self.transform(self.raw[i, j, 0])
+                self._seen = self.raw._version
 
 
 class ParamScope:

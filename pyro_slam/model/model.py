@@ -216,12 +216,13 @@ class MapGrid:
         is one bilinear read of ``s^2`` at shifted positions."""
         return self.read_variance(scale, xy[..., 0], xy[..., 1])
 
-    def read_variance(self, scale: torch.Tensor, x: torch.Tensor, y: torch.Tensor):
-        """:meth:`relative_variance` at positions given by their coordinates ``x, y [...]``."""
+    def read_variance(self, scale: torch.Tensor, x: torch.Tensor, y: torch.Tensor, squared=False):
+        """:meth:`relative_variance` at positions given by their coordinates ``x, y [...]``
+        (``squared``: ``scale`` holds the variances ``s^2``, for repeated reads of one map)."""
         w, h = self.cells
         gx = self._shifted(x, self.origin[0], (w - 1) / self.size[0], w)
         gy = self._shifted(y, self.origin[1], (h - 1) / self.size[1], h)
-        return self._sample(scale**2, gx, gy).mean(-1, keepdim=True)
+        return self._sample(scale if squared else scale**2, gx, gy).mean(-1, keepdim=True)
 
     @staticmethod
     def _shifted(x: torch.Tensor, origin: float, per_unit: float, n: int) -> torch.Tensor:

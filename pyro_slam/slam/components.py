@@ -94,10 +94,11 @@ def ray_settings(config, reach: float) -> dict:
     """The ray-cast emissions' ``samples`` and ``density`` for a configuration (see
     :class:`~pyro_slam.slam.config.EmissionConfig`'s ``ray_spacing``); empty: their defaults."""
     e = config.emission
+    out = {"tolerance": e.march_tolerance} if e.march_tolerance else {}
     if e.ray_spacing is None:
-        return {}
+        return out
     samples = max(2, math.ceil(reach / (e.ray_spacing * e.resolution)))
-    return {"samples": samples, "density": DENSITY_PER_SPACING / e.resolution}
+    return out | {"samples": samples, "density": DENSITY_PER_SPACING / e.resolution}
 
 
 def _image_shape(traversal: Traversal) -> tuple[int, int]:

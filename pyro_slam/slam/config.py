@@ -117,7 +117,9 @@ class EmissionConfig:
     model's beam-mixture outlier probability (uniform over the sensor's range); ``insert``:
     scan insertion (``"raycast"``); ``ray_spacing``: the ray-cast emissions' points along a
     ray, in grid spacings (None: 48 points over the range), with the occupancy's density per
-    unit length scaled to the grid (the same per grid spacing at every resolution).
+    unit length scaled to the grid (the same per grid spacing at every resolution);
+    ``march_tolerance``: the transmittance below which the filter's march stops a beam (0: the
+    full range; :class:`~pyro_slam.model.emissions.RayEmission`'s ``tolerance``).
     ``prior``: the map prior ``p(M)`` per cell, ``"normal"`` (``N(0, 1)``), ``"wide"``
     (``N(0, 2^2)``) or ``"student-t"`` (Student-t, 4 degrees of freedom, scale 1);
     ``noise``: the emission noise about the predicted reading, ``"normal"`` or
@@ -132,6 +134,7 @@ class EmissionConfig:
     outlier_prob: float = 0.1
     insert: ScanInsertionConfig | None = None
     ray_spacing: float | None = None
+    march_tolerance: float = 0.0
     prior: str = "normal"
     noise: str = "normal"
 
@@ -145,6 +148,7 @@ class EmissionConfig:
         _positive("emission.sigma", self.sigma)
         _probability("emission.outlier_prob", self.outlier_prob)
         _positive("emission.ray_spacing", self.ray_spacing, optional=True)
+        _probability("emission.march_tolerance", self.march_tolerance)
         if self.insert is not None and not (kind.rays and kind.observation == "lidar"):
             raise ConfigError(
                 "emission.insert writes LiDAR hits into an occupancy map: it needs a ray-cast "

@@ -127,6 +127,7 @@ class ScanInserter:
         self.site_y = torch.zeros((w, h), dtype=torch.float64)  # [w, h] each point's reading
         self.site_prec = torch.zeros((w, h), dtype=torch.float64)  # [w, h] and its precision
         self.placement = torch.zeros((w, h), dtype=torch.float64)  # [w, h] its placement var
+        self._field = None  # [w, h, 2] the placement and whether a site is set, as read
 
     @property
     def inserted(self) -> torch.Tensor:
@@ -148,14 +149,20 @@ class ScanInserter:
         with torch.no_grad():
             loc = self.leaves.loc.detach()
             pts, stop, _ = em.stops(grid, loc, z.to(loc.dtype))  # [B, S, 2], [B, S]
-            field = interleave(self.placement, self.site_prec > 0, loc.dtype)  # [w, h, 2]
-            read = grid.attend(field, pts)  # [B, S, 2]
+            read = grid.attend(self._placement_field(loc.dtype), pts)  # [B, S, 2]
             on = stop * read[..., 1]  # [B, S] stopping on an inserted point
             seen = on.sum()
             if seen <= 1e-6:
                 return 0.0
             shared = float((stop * read[..., 0]).sum() / seen)
             return shared + self.rounding_at(z.to(loc.dtype), pts, on)
+
+    def _placement_field(self, dtype) -> torch.Tensor:
+        """``[w, h, 2]``: each grid point's placement variance and whether a site is set, kept
+        between scans (:meth:`_observe` updates the points it writes)."""
+        if self._field is None or self._field.dtype != dtype:
+            self._field = interleave(self.placement, self.site_prec > 0, dtype)
+        return self._field
 
     def rounding_at(self, z: torch.Tensor, pts: torch.Tensor, on: torch.Tensor) -> float:
         """The variance (per axis) that the readings' own rounding gives pose ``z [3]`` whose
@@ -192,6 +199,9 @@ class ScanInserter:
         eta_new = eta - old_prec * old_y + prec * y
         self.site_y[i, j], self.site_prec[i, j] = y, prec
         self.placement[i, j] = torch.as_tensor(placement, dtype=torch.float64)
+        if self._field is not None:
+            fresh = interleave(self.placement[i, j], self.site_prec[i, j] > 0, self._field.dtype)
+            self._field[i, j] = fresh
         self.leaves.write(i, j, eta_new / lam_new, lam_new.rsqrt())
 
     def state_dict(self) -> dict:
@@ -201,6 +211,7 @@ class ScanInserter:
     def load_state_dict(self, d: dict) -> None:
         for k in ("site_y", "site_prec", "placement"):
             getattr(self, k).copy_(d[k])
+        self._field = None
 
 
 class OccupancyInserter(ScanInserter):
@@ -361,9 +372,8 @@ class FusionInserter(ScanInserter):
         keep &= inside
         idx = (g[..., 0] * h + g[..., 1]).long()[keep]
         d = d[keep]
-        best = torch.full((w * h,), math.inf, dtype=d.dtype).scatter_reduce(0, idx, d.abs(), "amin")
-        first = d.abs() <= best[idx]
-        idx, d = idx[first], d[first]
+        order = torch.argsort(d.abs(), stable=True)  # nearest first, then by grid point
+        idx, d = idx[order], d[order]
         order = torch.argsort(idx, stable=True)
         idx, d = idx[order], d[order]
         uniq = torch.ones_like(idx, dtype=torch.bool)

@@ -14,7 +14,7 @@ from pyro.optim import PyroOptim
 
 from ..data import Traversal
 from ..inference import ParticleChunkELBO, ParticleFilter, Proposal, PyroSMCFilter
-from ..model import DVBFLM, GlobalGuide, MapBelief, map_marginals
+from ..model import DVBFLM, GlobalGuide, MapBelief, MapGuide, map_marginals
 from ..model.guide import MapLeaves, ParamScope
 from .checkpoint import load_param_store, param_store_state
 from .config import SLAMConfig
@@ -92,7 +92,12 @@ class Components:
 
     def map_belief(self) -> MapBelief:
         """The map belief the filter weighs with: mean and scale of ``q(M)`` ``[w, h, D_m]``
-        (detached)."""
+        (detached; with scan insertion into a :class:`~pyro_slam.model.MapGuide`, kept between
+        steps by the guide's leaves, :meth:`~pyro_slam.model.guide.MapLeaves.marginals`)."""
+        if self.inserter is not None and isinstance(self.map_guide, MapGuide):
+            kept = self.inserter.leaves.marginals()
+            if kept is not None:
+                return MapBelief(*kept)
         with self.scope():
             loc, scale = map_marginals(self.map_guide)
         return MapBelief(loc.detach(), scale.detach())

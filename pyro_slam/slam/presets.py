@@ -171,7 +171,9 @@ VISUAL_MANHATTAN = replace(VISUAL_RAYCAST, heading=HeadingConfig())
 # particles every 32 steps), and the filter's 64 particles, drawn by the heading-conditioned
 # transition against that map, are as accurate as 128. Offline: one filter pass over the whole
 # log under the online map, without SVI rounds (the most accurate offline setting measured
-# over both logs together: SVI rounds over the whole log helped CSAIL less than they hurt Intel)
+# over both logs together: SVI rounds over the whole log helped CSAIL less than they hurt Intel).
+# The filter's march along a beam stops once its transmittance is below 1e-6 (a range within
+# 1e-6 of the full march's; a beam on a real log ends on a wall about a third of the way out)
 REAL = SLAMConfig(
     emission=EmissionConfig(
         resolution=0.05,
@@ -179,6 +181,7 @@ REAL = SLAMConfig(
         sigma=0.05,
         insert=ScanInsertionConfig(kind="fusion", gap=0.5),
         ray_spacing=1.0,
+        march_tolerance=1e-6,
     ),
     transition=TransitionConfig("kinematic", scale=(1.0, 1.0, 1.0)),
     filter=FilterConfig(particles=64, proposal="transition"),

@@ -100,6 +100,30 @@ def test_low_rank_guide_insertion_writes_the_marginal(small_traversal):
     assert point.inserter is None
 
 
+def test_the_kept_map_belief_follows_insertion_and_svi(small_traversal):
+    """The map belief the filter reads each step is kept between steps by the guide's leaves:
+    after a scan's insertion and after an SVI step it equals the guide's own marginal, exactly
+    (the points insertion wrote, and every point an SVI step moved)."""
+    tr = small_traversal
+    slam = insertion_slam(tr, "fusion")
+
+    def agrees():
+        kept = slam.map_belief()
+        with slam.scope():
+            loc, std = (v.detach() for v in map_marginals(slam.map_guide))
+        return torch.equal(kept.loc, loc) and torch.equal(kept.scale, std)
+
+    assert agrees()
+    first_scan(slam, tr)
+    assert agrees()
+    before = slam.map_belief().scale.clone()
+    with slam.scope():
+        leaves = slam.inserter.leaves
+        with torch.no_grad():
+            leaves.raw.add_(0.1)  # as an optimiser's step moves it, in place
+    assert agrees() and not torch.equal(slam.map_belief().scale, before)
+
+
 def test_scan_insertion_fuses_scans_into_the_map(small_traversal):
     """Fusion: a scan placed from a pose is fused into a signed distance per grid point and
     read into q(M); the map then reproduces that scan at that pose. The same scan again, after

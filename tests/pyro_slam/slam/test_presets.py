@@ -169,6 +169,7 @@ def test_presets_differ_from_each_other_as_documented():
         sigma=0.05,
         insert=ScanInsertionConfig(kind="fusion", gap=0.5),
         ray_spacing=1.0,
+        march_tolerance=1e-6,
     )
     assert real.transition.kind == "kinematic" and real.heading == HeadingConfig()
     assert real.filter.particles == 64 and real.filter.proposal == "transition"
