@@ -25,7 +25,13 @@ from .version import package_version
 DEFAULT_THREADS = 1  # torch intra-op threads of a run that names no count
 CHUNK = 1 << 20  # bytes read at a time when hashing
 
-__all__ = ["DEFAULT_THREADS", "package_version", "thread_count", "torch_threads"]
+__all__ = [
+    "DEFAULT_THREADS",
+    "package_version",
+    "thread_count",
+    "torch_threads",
+    "warm_optimizers",
+]
 
 
 def thread_count(n: int | None = None) -> int:
@@ -47,6 +53,13 @@ def torch_threads(n: int | None = None):
         yield torch.get_num_threads()
     finally:
         torch.set_num_threads(before)
+
+
+def warm_optimizers() -> None:
+    """Construct one throwaway torch optimiser, so that what torch imports on its first
+    optimiser (``torch._dynamo``, about 1.4 s) is imported now, when a run is set up, and not at
+    its first SVI step, where it would stall the filter for a dozen scans of a real-time log."""
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])
 
 
 def _file_sha256(path: Path) -> str:

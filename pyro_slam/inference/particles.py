@@ -36,6 +36,12 @@ class Particles:
         :func:`pose_moments`)."""
         return pose_moments(self.z, self.logw)[1]
 
+    def posterior_std(self) -> torch.Tensor:
+        """The posterior's std ``[3]`` the cloud reports: per axis the larger of the weighted
+        std (:meth:`std`) and the Gaussian fit's (:func:`fitted_variance`), which still
+        measures the posterior's width when the weights fall on one particle."""
+        return torch.maximum(self.std() ** 2, fitted_variance(self.z, self.logw)).sqrt()
+
     def resample(self, generator=None, scheme="systematic") -> Particles:
         """Equally weighted particles drawn by ``scheme`` (:data:`resampling.SCHEMES`); their
         ``ancestors`` are the drawn indices."""
@@ -101,3 +107,46 @@ def pose_moments(z: torch.Tensor, logw: torch.Tensor | None = None):
     w = logw.exp().unsqueeze(-1)  # [..., N, 1]
     dm = (w * d).sum(-2, keepdim=True)
     return mean, (w * (d - dm) ** 2).sum(-2).sqrt()
+
+
+# the particles :func:`fitted_variance` fits: those within FIT_DEPTH nats of the largest
+# log-weight (the beam mixture flattens the log-likelihood of poses far from the scan's, which
+# a quadratic cannot follow), at least FIT_PARTICLES of them (twice the quadratic's parameters)
+FIT_DEPTH, FIT_PARTICLES = 30.0, 20
+
+
+def fitted_variance(z: torch.Tensor, logw: torch.Tensor) -> torch.Tensor:
+    """The posterior's variance ``[3]`` from a Gaussian fit to the weighted cloud ``z [K, 3]``,
+    ``logw [K]`` (one cloud, no batch): the particles are draws from the proposal, whose
+    covariance ``S`` their unweighted moments give, and the log-weights of those within
+    :data:`FIT_DEPTH` of the largest (at least :data:`FIT_PARTICLES`) are fitted by least
+    squares with a quadratic ``c + b'd - d'Hd / 2`` in the deviations ``d`` from the unweighted
+    mean (the heading's wrapped), ``H`` projected onto the positive semi-definite matrices. The
+    posterior, proposal times weight, is then Gaussian with precision ``S^-1 + H``: the diagonal
+    of its inverse. With fewer than :data:`FIT_PARTICLES` particles of non-zero weight, or a
+    proposal with no spread on an axis (or none at all), the weighted variance is returned."""
+    K = z.shape[-2]
+    zd, lw = z.double(), logw.double()
+    mean = pose_moments(zd)[0]
+    d = torch.cat([zd[:, :2] - mean[:2], wrap_angle(zd[:, 2:] - mean[2:])], -1)  # [K, 3]
+    scale = d.std(0)  # [3]
+    if K < FIT_PARTICLES or bool((scale <= 1e-12).any()):
+        return (pose_moments(z, logw)[1] ** 2).to(z.dtype)
+    fit = lw >= torch.minimum(lw.max() - FIT_DEPTH, lw.topk(FIT_PARTICLES).values[-1])  # [K]
+    fit &= torch.isfinite(lw)
+    if int(fit.sum()) < FIT_PARTICLES:  # (particles of zero weight)
+        return (pose_moments(z, logw)[1] ** 2).to(z.dtype)
+    u = d / scale
+    iu = torch.triu_indices(3, 3)  # the 6 products u_a u_b, a <= b
+    X = torch.cat([torch.ones_like(u[:, :1]), u, u[:, iu[0]] * u[:, iu[1]]], -1)  # [K, 10]
+    q = torch.linalg.lstsq(X[fit], lw[fit].unsqueeze(-1)).solution[4:, 0]  # [6] quadratic
+    H = torch.zeros(3, 3, dtype=zd.dtype)
+    H[iu[0], iu[1]] = q
+    H = -(H + H.T)  # u_a^2 carries -H_aa / 2, u_a u_b (a < b) -H_ab
+    ev, V = torch.linalg.eigh(H)
+    H = (V * ev.clamp_min(0)) @ V.T / scale[:, None] / scale[None, :]
+    proposal_precision, info = torch.linalg.inv_ex(d.T @ d / K)
+    var = torch.linalg.inv(proposal_precision + H).diagonal()
+    if int(info) or not bool(torch.isfinite(var).all()):  # particles on a plane
+        return (pose_moments(z, logw)[1] ** 2).to(z.dtype)
+    return var.to(z.dtype)

@@ -22,6 +22,7 @@ from ..inference import (
 )
 from ..model import DVBFLM, GlobalGuide
 from ..model.guide import MapLeaves, ParamScope
+from ..runtime import warm_optimizers
 from .build import build_model
 from .components import emission_kind
 from .heading import ManhattanHeading
@@ -80,6 +81,7 @@ def assemble(
     lr, lr_emission = cfg.training.lr, cfg.training.lr_emission
     optim = Adam(lambda name, _p: {"lr": lr_emission if name.startswith("emission") else lr})
     svi = SVI(model.global_model, global_guide, optim, loss=elbo)
+    warm_optimizers()
     create_guide_params(map_guide)
     insert = None if cfg.emission.insert is None else inserter(cfg, model, map_guide)
     return Components(

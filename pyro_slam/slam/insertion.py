@@ -23,10 +23,12 @@ through the map guide's marginal (:class:`~pyro_slam.model.guide.MapLeaves`).
 **The map's placement.** A reading is placed from the pose estimate, so where it lies in the
 world is as uncertain as that pose: each grid point also keeps the position variance (per axis)
 of the pose its reading was placed from, the map belief's *placement* variance. The filter's
-cloud gives the pose relative to the map; a pose's world-frame std adds the placement variance
-of the walls its beams stop at (:meth:`ScanInserter.placement_at`), and the scans it inserts
-are placed with that world-frame variance. Exploring hands the uncertainty on from wall to
-wall, as drift accumulates; a revisit of walls placed earlier, with less, takes it back.
+cloud gives the pose relative to the map (its std:
+:meth:`~pyro_slam.inference.Particles.posterior_std`); a pose's world-frame std adds the
+placement variance of the walls its beams stop at (:meth:`ScanInserter.placement_at`), and the
+scans it inserts are placed with that world-frame variance. Exploring hands the uncertainty on
+from wall to wall, as drift accumulates; a revisit of walls placed earlier, with less, takes it
+back.
 
 Two kinds (``emission.insert.kind``):
 

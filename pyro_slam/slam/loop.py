@@ -122,8 +122,8 @@ def online_sweep(
         if c.inserter is not None:
             var = float((std[:2] ** 2).mean())
             c.inserter.insert(data.obs[t], data.valid(t), mean, var)
-        if c.heading is not None:
-            c.heading.refine(t, float(mean[2]), float(std[2]))
+        if c.heading is not None:  # (with the weighted cloud's heading std)
+            c.heading.refine(t, float(mean[2]), float(st.particles.std()[2]))
         if t >= L - 1 and t % data.cfg.training.every == 0:
             c.elbo.num_steps_seen = t + 1
             st.losses.append(svi_step(c, st, data, 0, t - L + 1, t - L + 1))
@@ -147,10 +147,11 @@ def filter_pass(c: Components, st: SLAMState, data: RunData, progress: bool, des
 
 
 def _cloud(c: Components, st: SLAMState) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """The cloud's mean ``[3]``, world-frame std ``[3]`` and placement variance
-    (:func:`world_std`)."""
+    """The cloud's mean ``[3]``, world-frame std ``[3]`` (its own,
+    :meth:`~pyro_slam.inference.Particles.posterior_std`, with the placement added) and
+    placement variance (:func:`world_std`)."""
     mean = st.particles.mean()
-    return mean, *world_std(c.inserter, mean, st.particles.std())
+    return mean, *world_std(c.inserter, mean, st.particles.posterior_std())
 
 
 def _record(c: Components, st: SLAMState, out: tuple) -> None:

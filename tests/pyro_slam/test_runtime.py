@@ -115,3 +115,23 @@ def test_the_same_command_gives_the_same_bytes(tmp_path):
     assert (out / "trajectory_slam.tum").read_bytes() != (
         first / "trajectory_slam.tum"
     ).read_bytes()
+
+
+def test_a_run_is_set_up_with_what_torch_imports_for_its_first_optimiser():
+    """What torch imports on its first optimiser (``torch._dynamo``, seconds) is imported when
+    a SLAM run is set up, not at its first SVI step inside the run (where it would stall the
+    filter): in a fresh interpreter, building the run's parts imports it."""
+    code = (
+        "import sys\n"
+        "from simulators import simulate_traversal\n"
+        "from pyro_slam.slam import SLAM\n"
+        "tr = simulate_traversal('moderate-medium', steps=20, seed=1)\n"
+        "before = 'torch._dynamo' in sys.modules\n"
+        "SLAM(tr, seed=0)\n"
+        "print(before, 'torch._dynamo' in sys.modules)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["False", "True"]
