@@ -40,7 +40,9 @@ class Particles:
         """The posterior's std ``[3]`` the cloud reports: per axis the larger of the weighted
         std (:meth:`std`) and the Gaussian fit's (:func:`fitted_variance`), which still
         measures the posterior's width when the weights fall on one particle."""
-        return torch.maximum(self.std() ** 2, fitted_variance(self.z, self.logw)).sqrt()
+        std = self.std()
+        fitted = fitted_variance(self.z, self.logw)
+        return std if fitted is None else torch.maximum(std**2, fitted).sqrt()
 
     def resample(self, generator=None, scheme="systematic") -> Particles:
         """Equally weighted particles drawn by ``scheme`` (:data:`resampling.SCHEMES`); their
@@ -115,7 +117,7 @@ def pose_moments(z: torch.Tensor, logw: torch.Tensor | None = None):
 FIT_DEPTH, FIT_PARTICLES = 30.0, 20
 
 
-def fitted_variance(z: torch.Tensor, logw: torch.Tensor) -> torch.Tensor:
+def fitted_variance(z: torch.Tensor, logw: torch.Tensor) -> torch.Tensor | None:
     """The posterior's variance ``[3]`` from a Gaussian fit to the weighted cloud ``z [K, 3]``,
     ``logw [K]`` (one cloud, no batch): the particles are draws from the proposal, whose
     covariance ``S`` their unweighted moments give, and the log-weights of those within
@@ -123,19 +125,19 @@ def fitted_variance(z: torch.Tensor, logw: torch.Tensor) -> torch.Tensor:
     squares with a quadratic ``c + b'd - d'Hd / 2`` in the deviations ``d`` from the unweighted
     mean (the heading's wrapped), ``H`` projected onto the positive semi-definite matrices. The
     posterior, proposal times weight, is then Gaussian with precision ``S^-1 + H``: the diagonal
-    of its inverse. With fewer than :data:`FIT_PARTICLES` particles of non-zero weight, or a
-    proposal with no spread on an axis (or none at all), the weighted variance is returned."""
+    of its inverse. None where there is nothing to fit: fewer than :data:`FIT_PARTICLES`
+    particles of non-zero weight, or a proposal with no spread on an axis (or none at all)."""
     K = z.shape[-2]
     zd, lw = z.double(), logw.double()
     mean = pose_moments(zd)[0]
     d = torch.cat([zd[:, :2] - mean[:2], wrap_angle(zd[:, 2:] - mean[2:])], -1)  # [K, 3]
     scale = d.std(0)  # [3]
     if K < FIT_PARTICLES or bool((scale <= 1e-12).any()):
-        return (pose_moments(z, logw)[1] ** 2).to(z.dtype)
+        return None
     fit = lw >= torch.minimum(lw.max() - FIT_DEPTH, lw.topk(FIT_PARTICLES).values[-1])  # [K]
     fit &= torch.isfinite(lw)
     if int(fit.sum()) < FIT_PARTICLES:  # (particles of zero weight)
-        return (pose_moments(z, logw)[1] ** 2).to(z.dtype)
+        return None
     u = d / scale
     iu = torch.triu_indices(3, 3)  # the 6 products u_a u_b, a <= b
     X = torch.cat([torch.ones_like(u[:, :1]), u, u[:, iu[0]] * u[:, iu[1]]], -1)  # [K, 10]
@@ -148,5 +150,5 @@ def fitted_variance(z: torch.Tensor, logw: torch.Tensor) -> torch.Tensor:
     proposal_precision, info = torch.linalg.inv_ex(d.T @ d / K)
     var = torch.linalg.inv(proposal_precision + H).diagonal()
     if int(info) or not bool(torch.isfinite(var).all()):  # particles on a plane
-        return (pose_moments(z, logw)[1] ** 2).to(z.dtype)
+        return None
     return var.to(z.dtype)
