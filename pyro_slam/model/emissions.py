@@ -84,12 +84,15 @@ class Emission(nn.Module):
         overrides this."""
         return self.mean(grid.attend(M, z[..., :2]), z)
 
-    def read_moments(self, grid, loc: torch.Tensor, scale: torch.Tensor, z: torch.Tensor):
+    def read_moments(
+        self, grid, loc: torch.Tensor, scale: torch.Tensor, z: torch.Tensor, variance=None
+    ):
         """The reading at poses ``z [..., 3]`` under a Gaussian map belief, mean ``loc`` and
-        std ``scale`` relative to the prior's (``[w, h, D_m]``): ``(mean [..., N], v)`` with
-        ``v`` how unknown the reading is, in ``[0, 1]``: the chart's variance relative to the
-        prior's (``[..., 1]``, the same for every entry), which
-        :meth:`~pyro_slam.model.DVBFLM.marginal_emission` turns into a variance."""
+        std ``scale`` relative to the prior's (``[w, h, D_m]``; ``variance``: ``scale ** 2``
+        where the caller keeps it, or None): ``(mean [..., N], v)`` with ``v`` how unknown the
+        reading is, in ``[0, 1]``: the chart's variance relative to the prior's (``[..., 1]``,
+        the same for every entry), which :meth:`~pyro_slam.model.DVBFLM.marginal_emission`
+        turns into a variance."""
         n = self.trust_features
         var = grid.relative_variance(scale if n is None else scale[..., :n], z[..., :2])
         return self.read(grid, loc, z), var
@@ -232,56 +235,55 @@ class RayEmission(Emission):
     def reading_range(self) -> float:
         return self.max_range
 
-    def read_moments(self, grid, loc, scale, z):
+    def read_moments(self, grid, loc, scale, z, variance=None):
         """Each beam's expected range under ``loc`` and how unknown it is, both ``[..., B]``,
         from one march along the beams: the occupancy's variance relative to the prior's
         (``scale``) where the ray stops under ``loc``, averaged over the stopping point
         (passing rays: the last point). A beam that ends on a mapped wall is known even where
         the pose is new; one that runs into unmapped space is not."""
         if self.tolerance > 0 and loc.dim() == 3:
-            return self._early_moments(grid, loc, scale, z)
+            var = scale[..., :1] ** 2 if variance is None else variance[..., :1]
+            return self._early_moments(grid, loc, var, z)
         pts, stop, passes = self._march(grid, loc, z)  # ([..., B, S] x 2), [..., B, S], [..., B]
         var = grid.read_variance(scale[..., :1], *pts)[..., 0]  # [..., B, S] occupancy's
         rng = (stop * self.dist.to(z.dtype)).sum(-1) + passes * self.max_range
         return rng, (stop * var).sum(-1) + passes * var[..., -1]
 
-    def _early_moments(self, grid, loc, scale, z):
-        """:meth:`read_moments` on one map ``loc [w, h, D]``, marched in blocks of
-        :attr:`block` points, each beam dropped once its transmittance is below
-        :attr:`tolerance`: the same sums over the points before that (a dropped beam's passing
-        term is its transmittance there, read at its last point)."""
+    def _early_moments(self, grid, loc, var, z):
+        """:meth:`read_moments` on one map ``loc [w, h, D]`` (relative variance ``var [w, h,
+        1]``), marched in blocks of :attr:`block` points, each beam dropped once its
+        transmittance is below :attr:`tolerance`: the same sums over the points before that (a
+        dropped beam's passing term is its transmittance there, read at its last point)."""
         ang = z[..., 2:3] + self.beam_angles.to(z.dtype)  # [..., B]
         shape = ang.shape
-        cx, cy = torch.cos(ang).reshape(-1, 1), torch.sin(ang).reshape(-1, 1)  # [N, 1]
-        x0 = z[..., 0:1].expand(shape).reshape(-1, 1)
-        y0 = z[..., 1:2].expand(shape).reshape(-1, 1)
-        step = self.max_range / self.samples
-        dist = self.dist.to(z.dtype)
-        live = torch.arange(cx.shape[0])
-        depth = z.new_zeros(cx.shape[0], 1)  # optical depth so far of the live beams
-        acc = z.new_zeros(cx.shape[0], 2)  # their sums of P(stop) d and P(stop) v so far
-        out = z.new_zeros(cx.shape[0], 2)  # each beam's range and variance, once dropped
-        var = scale[..., :1] ** 2  # [w, h, 1]
+        xy = z[..., :2].unsqueeze(-2).expand(*shape, 2).reshape(-1, 2)
+        ray = torch.cat([xy, torch.cos(ang).reshape(-1, 1), torch.sin(ang).reshape(-1, 1)], -1)
+        # each live beam's optical depth so far and its sums of P(stop) d and P(stop) v so far
+        acc = z.new_zeros(ray.shape[0], 3)  # [A, 3]
+        live = torch.arange(ray.shape[0])
+        out = z.new_zeros(ray.shape[0], 2)  # each beam's range and variance, once dropped
+        dist, scale = self.dist.to(z.dtype), self.density * self.max_range / self.samples
         for s0 in range(0, self.samples, self.block):
-            d = dist[s0 : s0 + self.block]  # [L]
-            x, y = torch.addcmul(x0, cx, d), torch.addcmul(y0, cy, d)  # [A, L]
+            s1 = min(s0 + self.block, self.samples)
+            d = dist[s0:s1]  # [L]
+            x = torch.addcmul(ray[:, 0:1], ray[:, 2:3], d)  # [A, L]
+            y = torch.addcmul(ray[:, 1:2], ray[:, 3:4], d)
             o = grid.read(loc[..., :1], x, y)[..., 0]
             tau = nn.functional.softplus(o.mul_(self.gain).add_(self.offset))
-            cum = tau.mul_(self.density * step).cumsum(-1).add_(depth)
+            cum = tau.mul_(scale).cumsum(-1).add_(acc[:, :1])
             stop = (torch.exp(tau - cum) * torch.expm1(tau.neg())).neg_()  # as in _march
-            last = s0 + self.block >= self.samples
             v = grid.read_variance(var, x, y, squared=True)[..., 0]  # [A, L]
-            acc = acc + torch.stack([(stop * d).sum(-1), (stop * v).sum(-1)], -1)
-            depth = cum[:, -1:]
-            t_end = torch.exp(-depth[:, 0])  # [A] transmittance past the block
+            sums = torch.stack([(stop * d).sum(-1), (stop * v).sum(-1)], -1)
+            acc = torch.cat([cum[:, -1:], acc[:, 1:] + sums], -1)
+            t_end = torch.exp(-acc[:, 0])  # [A] transmittance past the block
+            last = s1 == self.samples
             drop = torch.ones_like(t_end, dtype=torch.bool) if last else t_end < self.tolerance
             if bool(drop.any()):
-                t_last = t_end[drop]  # [n]
-                ends = torch.stack([t_last * self.max_range, t_last * v[drop, -1]], -1)
-                out[live[drop]] = acc[drop] + ends
-                keep = ~drop
-                live, x0, y0, cx, cy = live[keep], x0[keep], y0[keep], cx[keep], cy[keep]
-                depth, acc = depth[keep], acc[keep]
+                gone = drop.nonzero()[:, 0]
+                ends = torch.stack([t_end[gone] * self.max_range, t_end[gone] * v[gone, -1]], -1)
+                out[live[gone]] = acc[gone, 1:] + ends
+                kept = (~drop).nonzero()[:, 0]
+                live, ray, acc = live[kept], ray[kept], acc[kept]
                 if not len(live):
                     break
         return out[:, 0].reshape(shape), out[:, 1].reshape(shape)
@@ -422,10 +424,10 @@ class RayImageEmission(RayEmission):
 
     reading_range = 1.0  # pixel intensities
 
-    def read_moments(self, grid, loc, scale, z):
+    def read_moments(self, grid, loc, scale, z, variance=None):
         """The predicted image under ``loc`` ``[..., rows * cols]`` and how unknown each pixel
         is: its column's ray's (:meth:`RayEmission.read_moments`), ``[..., rows * cols]``."""
-        var = RayEmission.read_moments(self, grid, loc, scale, z)[1]  # [..., C]
+        var = RayEmission.read_moments(self, grid, loc, scale, z, variance)[1]  # [..., C]
         var = var.unsqueeze(-2).expand(*var.shape[:-1], self.rows, self.cols)
         return self.read(grid, loc, z), var.flatten(-2)
 

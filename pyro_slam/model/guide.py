@@ -140,20 +140,22 @@ class MapLeaves:
     def __init__(self, loc, raw, constraint, cov_factor=None):
         self.loc, self.raw, self.cov_factor = loc, raw, cov_factor
         self.transform = biject_to(constraint)
-        self._std, self._seen = None, -1  # the kept std [w, h, D] and raw's version it is of
+        self._std, self._var = None, None  # the kept std and variance [w, h, D]
+        self._seen = -1  # the raw scale's version they are of
 
-    def marginals(self) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """``q(M)``'s marginal mean and std ``[w, h, D]`` (detached; both change in place
-        with the guide), the std kept between calls: :meth:`write` updates the grid points it
-        writes, any other change of the raw scale (an SVI step) recomputes it. None for a
-        low-rank guide."""
+    def marginals(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """``q(M)``'s marginal mean, std and variance ``[w, h, D]`` (detached; all change in
+        place with the guide), the std and variance kept between calls: :meth:`write` updates
+        the grid points it writes, any other change of the raw scale (an SVI step) recomputes
+        them. None for a low-rank guide."""
         if self.cov_factor is not None:
             return None
         if self._std is None or self._seen != self.raw._version:
             with torch.no_grad():
                 self._std = self.transform(self.raw)
+                self._var = self._std**2
             self._seen = self.raw._version
-        return self.loc.detach(), self._std
+        return self.loc.detach(), self._std, self._var
 
     def _factor(self, i, j):
         """``[P]``: the marginal std over the diagonal scale at ``(i, j)`` (1 without a
@@ -213,6 +215,7 @@ class MapLeaves:
             self.raw[i, j, 0] = self.transform.inv(std)
             if kept:
                 self._std[i, j, 0] = self.transform(self.raw[i, j, 0])
+                self._var[i, j, 0] = self._std[i, j, 0] ** 2
                 self._seen = self.raw._version
 
 

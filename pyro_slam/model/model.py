@@ -49,10 +49,12 @@ from .transitions import Transition
 
 @dataclass
 class MapBelief:
-    """A Gaussian map belief, ``loc`` and ``scale`` ``[w, h, D]`` (e.g. a mean-field ``q(M)``)."""
+    """A Gaussian map belief, ``loc`` and ``scale`` ``[w, h, D]`` (e.g. a mean-field ``q(M)``),
+    with ``variance``, ``scale ** 2``, where its holder keeps it between reads (else None)."""
 
     loc: torch.Tensor
     scale: torch.Tensor
+    variance: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -352,8 +354,11 @@ class DVBFLM(nn.Module):
         the model's own emission at the map mean with the outlier probability ``1 - (1 - eps)
         (1 - v)``. Returns the predicted reading ``mean [..., N]`` and that outlier probability
         ``[..., N]`` (or broadcastable)."""
-        rel = belief.scale if self.prior is None else belief.scale / self.prior_std()
-        mean, v = self.emission.read_moments(self.grid, belief.loc, rel, z)
+        if self.prior is None:  # (the prior's std is 1)
+            rel, rel_var = belief.scale, belief.variance
+        else:
+            rel, rel_var = belief.scale / self.prior_std(), None
+        mean, v = self.emission.read_moments(self.grid, belief.loc, rel, z, rel_var)
         return mean, 1 - (1 - self.outlier_prob) * (1 - v.clamp(0, 1))
 
     def emission_dist(self, mean: torch.Tensor, mask=None, sigma=None, outlier_prob=None):

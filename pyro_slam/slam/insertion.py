@@ -356,19 +356,25 @@ class FusionInserter(ScanInserter):
 
     def surface_points(self, a, b, n):
         """Grid points near the walls and their signed distances: ``(flat index [P], d [P])``,
-        one per grid point (the nearest wall's)."""
+        one per grid point (the nearest wall's). Each wall is sampled every half spacing or
+        closer (``ceil(2 |b - a|) + 1`` points), which puts every grid point within ``BAND``
+        of it within ``r`` grid points of a sample."""
         w, h = self.model.grid.cells
         r = int(math.ceil(BAND + 0.5))  # (the walls are sampled at grid points)
-        steps = int(math.ceil(self.cfg.gap / self.spacing)) * 2 + 1
-        f = torch.linspace(0, 1, steps, dtype=a.dtype)[:, None, None]  # [s, 1, 1]
-        on = (a + f * (b - a)).round()  # [s, W, 2] grid points along each wall
+        ab = b - a  # [W, 2]
+        counts = (2 * ab.norm(dim=-1)).ceil().long() + 1  # [W]
+        wall = torch.repeat_interleave(torch.arange(len(a)), counts)  # [N] each sample's wall
+        first = torch.cumsum(counts, 0) - counts  # [W]
+        k = torch.arange(len(wall)) - first[wall]  # [N] its place along the wall
+        f = (k / (counts[wall] - 1).clamp_min(1)).to(a.dtype)[:, None]  # [N, 1]
+        a, ab, n = a[wall][:, None], ab[wall][:, None], n[wall][:, None]  # [N, 1, 2]
+        on = (a + f[..., None] * ab).round()  # [N, 1, 2] grid points along each wall
         off = torch.stack(torch.meshgrid(*[torch.arange(-r, r + 1)] * 2, indexing="ij"), -1)
-        g = on[:, :, None, :] + off.reshape(1, 1, -1, 2).to(a.dtype)  # [s, W, o, 2]
-        ab = (b - a)[None, :, None, :]
-        t = (((g - a[None, :, None]) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-9)).clamp(0, 1)
-        e = g - (a[None, :, None] + t[..., None] * ab)  # [s, W, o, 2] from the wall
-        d = (e * n[None, :, None]).sum(-1)  # signed distance along the normal
-        lateral = (e - d[..., None] * n[None, :, None]).norm(dim=-1)
+        g = on + off.reshape(1, -1, 2).to(a.dtype)  # [N, o, 2]
+        t = (((g - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-9)).clamp(0, 1)
+        e = g - (a + t[..., None] * ab)  # [N, o, 2] from the wall
+        d = (e * n).sum(-1)  # signed distance along the normal
+        lateral = (e - d[..., None] * n).norm(dim=-1)
         keep = (d.abs() <= BAND) & (lateral <= 0.5)
         inside = (g[..., 0] >= 0) & (g[..., 0] <= w - 1) & (g[..., 1] >= 0) & (g[..., 1] <= h - 1)
         keep &= inside

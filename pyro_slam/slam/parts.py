@@ -93,7 +93,8 @@ class Components:
     def map_belief(self) -> MapBelief:
         """The map belief the filter weighs with: mean and scale of ``q(M)`` ``[w, h, D_m]``
         (detached; with scan insertion into a :class:`~pyro_slam.model.MapGuide`, kept between
-        steps by the guide's leaves, :meth:`~pyro_slam.model.guide.MapLeaves.marginals`)."""
+        steps, with the variance, by the guide's leaves,
+        :meth:`~pyro_slam.model.guide.MapLeaves.marginals`)."""
         if self.inserter is not None and isinstance(self.map_guide, MapGuide):
             kept = self.inserter.leaves.marginals()
             if kept is not None:

@@ -185,7 +185,8 @@ def test_early_stopped_march_matches_the_full_march():
     """Dropping a beam once its transmittance is below the tolerance changes its range by less
     than ``tolerance * max_range`` and its variance by less than ``tolerance``; beams that
     reach the end of the range (an open side of the room) keep their passing term. Checked
-    across several blocks (walls 0.2-0.9 from the poses, 4 points per block), with gradients."""
+    across several blocks (walls 0.2-0.9 from the poses, 4 points per block), with gradients,
+    and with the map's variance passed in as a caller keeps it."""
     grid = MapGrid((41, 41), 1, (0.0, 0.0), (1.0, 1.0))
     walls = torch.tensor([[0.1, 0.05, 0.1, 0.95], [0.1, 0.05, 0.95, 0.05], [0.7, 0.4, 0.7, 0.6]])
     loc = RayEmission.wall_map(grid, walls, width=1.5).double()
@@ -199,6 +200,8 @@ def test_early_stopped_march_matches_the_full_march():
     r0, v0 = full.read_moments(grid, loc, scale, z)  # [3, 23] each
     r1, v1 = early.read_moments(grid, loc, scale, z)
     assert r1.shape == v1.shape == (3, 23)
+    kept = early.read_moments(grid, loc, scale, z, scale**2)  # the variance as a caller keeps it
+    assert torch.equal(kept[0], r1) and torch.equal(kept[1], v1)
     passing = full._range(grid, loc, z)[1]  # [3, 23]
     assert (passing > 0.5).any() and (passing < 1e-6).sum() > 30  # both kinds of beam
     assert (r0 - r1).abs().max() < 1e-6 * 0.8 + 1e-9

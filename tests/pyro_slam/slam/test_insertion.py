@@ -18,7 +18,7 @@ from pyro_slam.metrics import CALIBRATION_START, calibration
 from pyro_slam.model import autoguide, map_marginals
 from pyro_slam.planning.envs import run_env
 from pyro_slam.slam import SLAM, ConfigError, EmissionConfig, ScanInsertionConfig
-from pyro_slam.slam.insertion import FusionInserter, OccupancyInserter, make_inserter
+from pyro_slam.slam.insertion import BAND, FusionInserter, OccupancyInserter, make_inserter
 from pyro_slam.slam.loop import world_std
 from simulators import simulate_traversal
 from simulators.maze import make_maze
@@ -103,7 +103,8 @@ def test_low_rank_guide_insertion_writes_the_marginal(small_traversal):
 def test_the_kept_map_belief_follows_insertion_and_svi(small_traversal):
     """The map belief the filter reads each step is kept between steps by the guide's leaves:
     after a scan's insertion and after an SVI step it equals the guide's own marginal, exactly
-    (the points insertion wrote, and every point an SVI step moved)."""
+    (the points insertion wrote, and every point an SVI step moved), its variance the square of
+    its std."""
     tr = small_traversal
     slam = insertion_slam(tr, "fusion")
 
@@ -111,7 +112,8 @@ def test_the_kept_map_belief_follows_insertion_and_svi(small_traversal):
         kept = slam.map_belief()
         with slam.scope():
             loc, std = (v.detach() for v in map_marginals(slam.map_guide))
-        return torch.equal(kept.loc, loc) and torch.equal(kept.scale, std)
+        same = torch.equal(kept.loc, loc) and torch.equal(kept.scale, std)
+        return same and torch.equal(kept.variance, std**2)
 
     assert agrees()
     first_scan(slam, tr)
@@ -341,3 +343,32 @@ def test_posterior_coverage():
         cal = calibration(res["std"], res["mean"], tr.poses, CALIBRATION_START)
         covered.append(cal["coverage_2sigma"])
     assert 0.6 <= np.mean(covered) <= 0.98, covered
+
+
+def test_surface_points_are_every_grid_point_in_the_band_of_its_nearest_wall(small_traversal):
+    """The walls' grid points, sampled along each wall, are those a brute force over the whole
+    grid finds: every grid point within the band of a wall (``|d| <= BAND``, at most half a
+    spacing past its ends), with the signed distance to its nearest such wall."""
+    inserter = insertion_slam(small_traversal, "fusion").inserter
+    w, h = inserter.model.grid.cells
+    gen = torch.Generator().manual_seed(3)
+    a = torch.rand(12, 2, generator=gen, dtype=torch.float64) * (w - 1)
+    b = a + (torch.rand(12, 2, generator=gen, dtype=torch.float64) - 0.5) * 14  # up to ~10 long
+    b[-3:] = a[-3:]  # isolated hits
+    t = b - a
+    n = torch.stack([t[:, 1], -t[:, 0]], -1) / t.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    n[-3:] = torch.tensor([0.6, 0.8], dtype=torch.float64)
+    idx, d = inserter.surface_points(a, b, n)
+    g = torch.stack(torch.meshgrid(torch.arange(w), torch.arange(h), indexing="ij"), -1)
+    g = g.reshape(-1, 1, 2).double()  # [w h, 1, 2]
+    ab = (b - a)[None]
+    s = (((g - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-9)).clamp(0, 1)
+    e = g - (a + s[..., None] * ab)  # [w h, W, 2]
+    dist_n = (e * n).sum(-1)
+    lateral = (e - dist_n[..., None] * n).norm(dim=-1)
+    near = (dist_n.abs() <= BAND) & (lateral <= 0.5)  # [w h, W]
+    best = torch.where(near, dist_n.abs(), math.inf).argmin(-1)  # [w h]
+    want = near.any(-1).nonzero()[:, 0]
+    assert len(want) > 200
+    assert torch.equal(idx, want)
+    assert torch.allclose(d, dist_n[want, best[want]])
