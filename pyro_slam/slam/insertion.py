@@ -390,17 +390,22 @@ class FusionInserter(ScanInserter):
 
     def free_points(self, x, valid, z) -> torch.Tensor:
         """Flat indices of the grid points the beams passed (up to ``BAND`` spacings before a
-        hit; the whole clip for a reading at it), without repeats."""
+        hit; the whole clip for a reading at it), without repeats: each beam sampled every half
+        spacing up to its reach."""
         em = self.model.emission
         w, h = self.model.grid.cells
         ang = z[2] + em.beam_angles.to(x.dtype)
         u = torch.stack([ang.cos(), ang.sin()], -1)  # [B, 2]
         hit = x < em.max_range * (1 - 1e-3)
         reach = torch.where(hit, x - (BAND + 0.5) * self.spacing, x)  # [B]
-        n = int(math.ceil(em.max_range / (0.5 * self.spacing))) + 1
-        s = torch.arange(n, dtype=x.dtype) * (0.5 * self.spacing)  # [n]
-        on = (s[None, :] <= reach[:, None]) & valid[:, None]  # [B, n]
-        g = self._to_grid(z[:2] + s[None, :, None] * u[:, None, :]).round()[on]  # [P, 2]
+        step = 0.5 * self.spacing
+        n = int(math.ceil(em.max_range / step)) + 1
+        counts = (reach / step).floor().long().add(2).clamp(0, n) * valid  # [B] (one spare)
+        beam = torch.repeat_interleave(torch.arange(len(x)), counts)  # [P] each sample's beam
+        k = torch.arange(len(beam)) - (torch.cumsum(counts, 0) - counts)[beam]
+        s = k.to(x.dtype) * step  # [P]
+        on = s <= reach[beam]
+        g = self._to_grid(z[:2] + s[:, None] * u[beam]).round()[on]  # [P, 2]
         ok = (g[:, 0] >= 0) & (g[:, 0] <= w - 1) & (g[:, 1] >= 0) & (g[:, 1] <= h - 1)
         return torch.unique((g[ok, 0] * h + g[ok, 1]).long())
 

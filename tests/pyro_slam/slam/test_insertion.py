@@ -372,3 +372,36 @@ def test_surface_points_are_every_grid_point_in_the_band_of_its_nearest_wall(sma
     assert len(want) > 200
     assert torch.equal(idx, want)
     assert torch.allclose(d, dist_n[want, best[want]])
+
+
+def test_free_points_are_the_grid_points_along_each_beam_up_to_its_reach(small_traversal):
+    """The free grid points of a scan are the grid points nearest to the points every half
+    spacing along each valid beam, up to ``BAND + 0.5`` spacings before its hit (the whole
+    range for a reading at the range), each once."""
+    slam = insertion_slam(small_traversal, "fusion")
+    inserter = slam.inserter
+    em, (w, h) = inserter.model.emission, inserter.model.grid.cells
+    x = slam.obs[5].clone()
+    x[:3] = em.max_range  # readings at the range
+    valid = torch.ones_like(x, dtype=torch.bool)
+    valid[7] = False
+    z = torch.as_tensor(small_traversal.poses[5], dtype=x.dtype)
+    got = inserter.free_points(x, valid, z)
+    want = set()
+    step = 0.5 * inserter.spacing
+    for b in range(len(x)):
+        if not valid[b]:
+            continue
+        hit = float(x[b]) < em.max_range * (1 - 1e-3)
+        reach = float(x[b]) - (BAND + 0.5) * inserter.spacing if hit else float(x[b])
+        ang = z[2] + em.beam_angles[b].to(x.dtype)
+        u = torch.stack([ang.cos(), ang.sin()])
+        for k in range(int(em.max_range / step) + 2):
+            if k * step > reach:
+                break
+            p = z[:2] + torch.tensor(k * step, dtype=x.dtype) * u
+            i, j = inserter._to_grid(p).round().long().tolist()
+            if 0 <= i < w and 0 <= j < h:
+                want.add(i * h + j)
+    assert len(want) > 50
+    assert got.tolist() == sorted(want)
