@@ -356,23 +356,22 @@ class FusionInserter(ScanInserter):
 
     def surface_points(self, a, b, n):
         """Grid points near the walls and their signed distances: ``(flat index [P], d [P])``,
-        one per grid point (the nearest wall's). Each wall is sampled every half spacing or
-        closer (``ceil(2 |b - a|) + 1`` points), which puts every grid point within ``BAND``
-        of it within ``r`` grid points of a sample."""
+        one per grid point (the nearest wall's). A wall's candidates are the grid points of its
+        bounding box widened by ``sqrt(BAND^2 + 1/4)``: a grid point within ``BAND`` of a wall
+        and at most half a spacing past its ends is no farther than that from it."""
         w, h = self.model.grid.cells
-        r = int(math.ceil(BAND + 0.5))  # (the walls are sampled at grid points)
+        reach = math.sqrt(BAND**2 + 0.25) + 1e-6
+        lo = (torch.minimum(a, b) - reach).ceil()  # [W, 2] the box's first grid point
+        size = ((torch.maximum(a, b) + reach).floor() - lo + 1).long()  # [W, 2] its points
+        counts = size[:, 0] * size[:, 1]  # [W]
+        wall = torch.repeat_interleave(torch.arange(len(a)), counts)  # [N] each one's wall
+        k = torch.arange(len(wall)) - (torch.cumsum(counts, 0) - counts)[wall]
+        ny = size[wall, 1]
+        g = lo[wall] + torch.stack([k // ny, k % ny], -1).to(a.dtype)  # [N, 2]
         ab = b - a  # [W, 2]
-        counts = (2 * ab.norm(dim=-1)).ceil().long() + 1  # [W]
-        wall = torch.repeat_interleave(torch.arange(len(a)), counts)  # [N] each sample's wall
-        first = torch.cumsum(counts, 0) - counts  # [W]
-        k = torch.arange(len(wall)) - first[wall]  # [N] its place along the wall
-        f = (k / (counts[wall] - 1).clamp_min(1)).to(a.dtype)[:, None]  # [N, 1]
-        a, ab, n = a[wall][:, None], ab[wall][:, None], n[wall][:, None]  # [N, 1, 2]
-        on = (a + f[..., None] * ab).round()  # [N, 1, 2] grid points along each wall
-        off = torch.stack(torch.meshgrid(*[torch.arange(-r, r + 1)] * 2, indexing="ij"), -1)
-        g = on + off.reshape(1, -1, 2).to(a.dtype)  # [N, o, 2]
+        a, ab, n = a[wall], ab[wall], n[wall]  # [N, 2]
         t = (((g - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-9)).clamp(0, 1)
-        e = g - (a + t[..., None] * ab)  # [N, o, 2] from the wall
+        e = g - (a + t[..., None] * ab)  # [N, 2] from the wall
         d = (e * n).sum(-1)  # signed distance along the normal
         lateral = (e - d[..., None] * n).norm(dim=-1)
         keep = (d.abs() <= BAND) & (lateral <= 0.5)
