@@ -188,7 +188,7 @@ def main(argv=None) -> int:
         for key, mode, config, smc in runs:
             wall, err = time_run(tr, config, mode, smc)
             row[key] = {
-                "wall_s": round(wall, 1),
+                "wall_s": round(wall, 3),
                 "steps_per_s": round(args.steps / wall, 2),
                 "final_error": round(err, 4),
             }
@@ -214,7 +214,7 @@ def main(argv=None) -> int:
                 )
                 ours = summary["presets"][names[0]][mode]["wall_s"]
                 summary.setdefault("against", {"rev": args.against, "preset": names[0]})[mode] = {
-                    "wall_s": round(wall, 1),
+                    "wall_s": round(wall, 3),
                     "steps_per_s": round(args.steps / wall, 2),
                     "speedup": round(wall / ours, 2),
                 }
