@@ -84,6 +84,13 @@ BAND = RAMP + SHIFT  # grid spacings either side of a surface that carry its sig
 MAX_WEIGHT = 10.0  # scans that weigh in a grid point's running mean
 
 
+def ragged(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """For ``counts [n]`` items of each of ``n`` groups, laid end to end: each item's group and
+    its place in the group, both ``[counts.sum()]``."""
+    group = torch.repeat_interleave(torch.arange(len(counts)), counts)
+    return group, torch.arange(len(group)) - (torch.cumsum(counts, 0) - counts)[group]
+
+
 def surface_offset(emission, ramp, spacing: float, phases: int = 8) -> float:
     """The shift ``delta`` (grid spacings) of the ramp ``ramp(d)`` (loc at signed distance
     ``d``) for which the emission's expected range at a wall seen head-on equals the wall's
@@ -364,8 +371,7 @@ class FusionInserter(ScanInserter):
         lo = (torch.minimum(a, b) - reach).ceil()  # [W, 2] the box's first grid point
         size = ((torch.maximum(a, b) + reach).floor() - lo + 1).long()  # [W, 2] its points
         counts = size[:, 0] * size[:, 1]  # [W]
-        wall = torch.repeat_interleave(torch.arange(len(a)), counts)  # [N] each one's wall
-        k = torch.arange(len(wall)) - (torch.cumsum(counts, 0) - counts)[wall]
+        wall, k = ragged(counts)  # [N] each one's wall and place in its box
         ny = size[wall, 1]
         g = lo[wall] + torch.stack([k // ny, k % ny], -1).to(a.dtype)  # [N, 2]
         ab = b - a  # [W, 2]
@@ -400,8 +406,7 @@ class FusionInserter(ScanInserter):
         step = 0.5 * self.spacing
         n = int(math.ceil(em.max_range / step)) + 1
         counts = (reach / step).floor().long().add(2).clamp(0, n) * valid  # [B] (one spare)
-        beam = torch.repeat_interleave(torch.arange(len(x)), counts)  # [P] each sample's beam
-        k = torch.arange(len(beam)) - (torch.cumsum(counts, 0) - counts)[beam]
+        beam, k = ragged(counts)  # [P] each sample's beam and place along it
         s = k.to(x.dtype) * step  # [P]
         on = s <= reach[beam]
         g = self._to_grid(z[:2] + s[:, None] * u[beam]).round()[on]  # [P, 2]
