@@ -65,15 +65,16 @@ class ParticleFilter:
         ``(loglik [..., K], scan [..., K, B])``, the scans predicted at the map (mean)."""
         m = self.model
         eps = None
+        obs = x.unsqueeze(-2)  # [..., 1, B]
         if isinstance(M, MapBelief):
-            scan, eps = m.marginal_emission(M, z)
+            scan, eps = m.marginal_emission(M, z, obs)
         elif self.autocast_dtype is not None and not torch.is_grad_enabled():
             with torch.autocast(z.device.type, dtype=self.autocast_dtype):
-                scan = m.emission_mean(M, z).to(z.dtype)  # [..., K, B]
+                scan = m.emission_mean(M, z, obs).to(z.dtype)  # [..., K, B]
         else:
-            scan = m.emission_mean(M, z)  # [..., K, B]
+            scan = m.emission_mean(M, z, obs)  # [..., K, B]
         mask = None if mask is None else mask.unsqueeze(-2)
-        ll = m.emission_log_prob(x.unsqueeze(-2), scan, mask, outlier_prob=eps)
+        ll = m.emission_log_prob(obs, scan, mask, outlier_prob=eps)
         if heading is not None and m.heading is not None:
             ll = ll + m.heading_log_prob(z[..., 2], heading.per_particle())
         return ll, scan

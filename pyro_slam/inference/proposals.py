@@ -311,10 +311,10 @@ def _readings(model, M, z, x, mask):
     each reading's weight ``[..., B]``: inlier responsibility over the noise variance (the
     beam mixture, with a belief's unknown readings as outliers), masked."""
     if isinstance(M, MapBelief):
-        r, eps = model.marginal_emission(M, z)
+        r, eps = model.marginal_emission(M, z, x)
         eps = eps[0]
     else:
-        r = model.emission_mean(M, z)
+        r = model.emission_mean(M, z, x)
         eps = torch.as_tensor(model.outlier_prob, dtype=r.dtype)
     s = model.sigma_emission
     e = x - r[0]

@@ -4,10 +4,12 @@ emissions (:mod:`.emissions`), networks (:mod:`.networks`) and transitions
 
 from .emissions import (
     Emission,
+    EndPointEmission,
     ImageEmission,
     LidarEmission,
     RayEmission,
     RayImageEmission,
+    WallRamp,
     rotate_scan,
 )
 from .guide import FrameGuide, GlobalGuide, MapGuide, autoguide, map_marginals
@@ -22,6 +24,7 @@ __all__ = [
     "CircularUniform",
     "Emission",
     "EmissionMLP",
+    "EndPointEmission",
     "FilterModel",
     "FrameGuide",
     "GlobalGuide",
@@ -38,6 +41,7 @@ __all__ = [
     "Transition",
     "TransitionMLP",
     "WallHeading",
+    "WallRamp",
     "WrappedMixture",
     "autoguide",
     "map_marginals",

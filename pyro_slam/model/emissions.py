@@ -16,6 +16,7 @@ Geometric alternatives (not the paper's) read the map along rays instead of at t
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -67,6 +68,9 @@ class Emission(nn.Module):
     # the width of the interval a reading lies in (a range finder's range, a pixel's [0, 1]):
     # a reading the map does not determine is taken as uniform over it (read_moments)
     reading_range: float = 1.0
+    # whether the reading's mean depends on the reading itself (an end-point model): the model
+    # then passes the observation to read / read_moments where there is one
+    reads_observation: bool = False
 
     @property
     def event_size(self) -> int:
@@ -76,20 +80,22 @@ class Emission(nn.Module):
         """Chart ``m [..., D_m]``, pose ``z [..., 3]`` -> predicted observation ``[..., N]``."""
         raise NotImplementedError
 
-    def read(self, grid, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    def read(self, grid, M: torch.Tensor, z: torch.Tensor, x=None) -> torch.Tensor:
         """Predicted observation at poses ``z [..., 3]`` from the map ``M [w, h, D_m]`` on
         ``grid`` (a :class:`~pyro_slam.model.MapGrid`): ``[..., N]``. The paper's read-out, the
         default: the chart ``f_m(z_t, M)`` (bilinear attention at the position), then
         :meth:`mean`. An emission that reads the map elsewhere (:class:`RayEmission`)
-        overrides this."""
+        overrides this. ``x [..., N]``: the observation, read only where
+        :attr:`reads_observation` (:class:`EndPointEmission`)."""
         return self.mean(grid.attend(M, z[..., :2]), z)
 
     def read_moments(
-        self, grid, loc: torch.Tensor, scale: torch.Tensor, z: torch.Tensor, variance=None
+        self, grid, loc: torch.Tensor, scale: torch.Tensor, z: torch.Tensor, variance=None, x=None
     ):
         """The reading at poses ``z [..., 3]`` under a Gaussian map belief, mean ``loc`` and
         std ``scale`` relative to the prior's (``[w, h, D_m]``; ``variance``: ``scale ** 2``
-        where the caller keeps it, or None): ``(mean [..., N], v)`` with ``v`` how unknown the
+        where the caller keeps it, or None; ``x``: the observation, as :meth:`read`):
+        ``(mean [..., N], v)`` with ``v`` how unknown the
         reading is, in ``[0, 1]``: the chart's variance relative to the prior's (``[..., 1]``,
         the same for every entry), which :meth:`~pyro_slam.model.DVBFLM.marginal_emission`
         turns into a variance."""
@@ -228,14 +234,14 @@ class RayEmission(Emission):
         """Each beam's expected range ``[..., B]`` (the LiDAR reading)."""
         return self._range(grid, M, z)[0]
 
-    def read(self, grid, M, z):
+    def read(self, grid, M, z, x=None):
         return self.expected_range(grid, M, z)
 
     @property
     def reading_range(self) -> float:
         return self.max_range
 
-    def read_moments(self, grid, loc, scale, z, variance=None):
+    def read_moments(self, grid, loc, scale, z, variance=None, x=None):
         """Each beam's expected range under ``loc`` and how unknown it is, both ``[..., B]``,
         from one march along the beams: the occupancy's variance relative to the prior's
         (``scale``) where the ray stops under ``loc``, averaged over the stopping point
@@ -287,6 +293,98 @@ class RayEmission(Emission):
                 if not len(live):
                     break
         return out[:, 0].reshape(shape), out[:, 1].reshape(shape)
+
+
+@dataclass(frozen=True)
+class WallRamp:
+    """How a ray-cast map's occupancy logit varies across a wall: linear in the signed distance
+    ``d`` to it (grid spacings, positive behind it), from the free level ``free`` at ``d =
+    -half_width - shift`` to the wall level ``wall`` at ``d = half_width - shift``, constant
+    beyond (``shift``: puts the volume-rendered range of a wall seen head-on on the wall). What
+    fusion insertion writes (:mod:`pyro_slam.slam.insertion`) and what
+    :class:`EndPointEmission` reads a distance from."""
+
+    wall: float
+    free: float
+    half_width: float
+    shift: float = 0.0
+
+    def loc(self, d: torch.Tensor) -> torch.Tensor:
+        """The logit at signed distance ``d [...]`` (grid spacings): ``[...]``."""
+        f = ((d + self.shift + self.half_width) / (2 * self.half_width)).clamp(0, 1)
+        return self.free + f * (self.wall - self.free)
+
+    def distance(self, m: torch.Tensor) -> torch.Tensor:
+        """The signed distance (grid spacings) that the logit ``m [...]`` says, clamped to the
+        ramp: ``[...]``, the inverse of :meth:`loc` on it."""
+        f = ((m - self.free) / (self.wall - self.free)).clamp(0, 1)
+        return f * (2 * self.half_width) - self.half_width - self.shift
+
+
+class EndPointEmission(RayEmission):
+    """Likelihood-field LiDAR emission (Thrun, Burgard and Fox, *Probabilistic Robotics*, 6.4:
+    the end-point model), a second, stated model of the ranges beside :class:`RayEmission`.
+
+    It reads the same occupancy map, as a signed distance through its :class:`WallRamp`
+    ``ramp``: a reading ``x_b`` of beam ``b`` places its end point ``e_b = p + x_b u_b`` (the
+    pose's position ``p``, the beam's world direction ``u_b``), and the map's distance there,
+    ``d_b = s * ramp.distance(M(e_b))`` (grid spacing ``s``), is the reading's error: the
+    emission's mean given the reading is ``x_b - d_b``, so that the model's Gaussian noise
+    scores ``N(d_b; 0, sigma_E)``, Thrun's likelihood field (with the model's beam mixture). A
+    reading at the sensor's range (a miss) is uninformative. Unlike the ray march, the mean
+    depends on the reading itself (:attr:`reads_observation`), and a beam costs two bilinear
+    reads (mean and variance at its end point) instead of a march along it. Without a reading
+    (prediction, sampling) the emission is the ray march's expected range, the mode of the
+    end-point model at a wall seen head-on; the two differ where a beam meets a wall at a
+    grazing angle (the field's distance is the nearest wall's, not the range along the beam).
+
+    Args:
+        as :class:`RayEmission`, and ``ramp``: the map's :class:`WallRamp` (set before use).
+    """
+
+    reads_observation = True
+
+    def __init__(self, beam_angles, max_range: float, ramp: WallRamp | None = None, **rays):
+        super().__init__(beam_angles, max_range, **rays)
+        self.ramp = ramp
+
+    def _end_points(self, z: torch.Tensor, x: torch.Tensor):
+        """The end points' coordinates ``(x, y)``, each ``[..., B]``, and which readings hit."""
+        ang = z[..., 2:3] + self.beam_angles.to(z.dtype)  # [..., B]
+        r = x.to(z.dtype).expand_as(ang)
+        ex = torch.addcmul(z[..., 0:1], r, torch.cos(ang))
+        ey = torch.addcmul(z[..., 1:2], r, torch.sin(ang))
+        return ex, ey, r < self.max_range * (1 - 1e-3)
+
+    def _mean_given(self, grid, M, z, x):
+        """The mean given the reading ``x`` and the end points: ``x - d [..., B]``, ``(ex, ey)``
+        and the hits ``[..., B]``."""
+        if self.ramp is None:
+            raise ValueError("EndPointEmission reads distances through its ramp: set .ramp")
+        ex, ey, hit = self._end_points(z, x)
+        w, h = grid.cells
+        spacing = min(grid.size[0] / (w - 1), grid.size[1] / (h - 1))
+        d = self.ramp.distance(grid.read(M[..., :1], ex, ey)[..., 0]) * spacing
+        r = x.to(z.dtype).expand_as(ex)
+        return torch.where(hit, r - d, r), (ex, ey), hit
+
+    def read(self, grid, M, z, x=None):
+        """The mean given the reading ``x [..., B]`` (class doc), or without one the ray
+        march's expected range: ``[..., B]``."""
+        if x is None:
+            return self.expected_range(grid, M, z)
+        return self._mean_given(grid, M, z, x)[0]
+
+    def read_moments(self, grid, loc, scale, z, variance=None, x=None):
+        """Given the reading ``x``: the mean under ``loc`` and how unknown each reading is, the
+        occupancy's variance relative to the prior's at its end point (1 for a miss), both
+        ``[..., B]``; without one, :meth:`RayEmission.read_moments`."""
+        if x is None:
+            return super().read_moments(grid, loc, scale, z, variance)
+        mean, (ex, ey), hit = self._mean_given(grid, loc, z, x)
+        var = scale[..., :1] ** 2 if variance is None else variance[..., :1]
+        v = grid.read_variance(var, ex, ey, squared=True)[..., 0]
+        return mean, torch.where(hit, v, torch.ones_like(v))
 
 
 class ImageEmission(Emission):
@@ -424,14 +522,14 @@ class RayImageEmission(RayEmission):
 
     reading_range = 1.0  # pixel intensities
 
-    def read_moments(self, grid, loc, scale, z, variance=None):
+    def read_moments(self, grid, loc, scale, z, variance=None, x=None):
         """The predicted image under ``loc`` ``[..., rows * cols]`` and how unknown each pixel
         is: its column's ray's (:meth:`RayEmission.read_moments`), ``[..., rows * cols]``."""
         var = RayEmission.read_moments(self, grid, loc, scale, z, variance)[1]  # [..., C]
         var = var.unsqueeze(-2).expand(*var.shape[:-1], self.rows, self.cols)
         return self.read(grid, loc, z), var.flatten(-2)
 
-    def read(self, grid, M, z):
+    def read(self, grid, M, z, x=None):
         """Predicted image at poses ``z [..., 3]``, flattened row-major: ``[..., rows * cols]``."""
         dt = z.dtype
         rng, passes = self._range(grid, M, z)  # [..., C] each

@@ -291,6 +291,11 @@ class DVBFLM(nn.Module):
             emission = LidarEmission(emission, beam_angles)
         if emission.map_dim != grid.dim:
             raise ValueError(f"emission expects D_m = {emission.map_dim}, map has {grid.dim}")
+        if emission.reads_observation and getattr(transition, "needs_scan", False):
+            raise ValueError(
+                f"{type(emission).__name__}'s mean depends on the observed reading, so it is no "
+                f"predicted scan for {type(transition).__name__}, which reads one"
+            )
         self.grid = grid
         self.emission = emission
         self.transition = transition
@@ -317,14 +322,22 @@ class DVBFLM(nn.Module):
         """The LiDAR beam directions (None for other emissions)."""
         return getattr(self.emission, "beam_angles", None)
 
-    def emission_mean(self, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    def emission_mean(self, M: torch.Tensor, z: torch.Tensor, x=None) -> torch.Tensor:
         """Predicted observation ``mu_E(f_m(z_t, M), z_t)`` (LiDAR: body-frame scan), or the
         emission's own read-out of ``M`` (:meth:`~pyro_slam.model.emissions.Emission.read`; a
-        :class:`~pyro_slam.model.emissions.RayEmission` casts the beams through ``M``).
+        :class:`~pyro_slam.model.emissions.RayEmission` casts the beams through ``M``). Given
+        the observation ``x [..., N]``, an end-point emission's mean given it
+        (:class:`~pyro_slam.model.emissions.EndPointEmission`; other emissions ignore it).
 
         ``z [..., 3]`` -> ``[..., N]``.
         """
-        return self.emission.read(self.grid, M, z)
+        return self.emission.read(self.grid, M, z, x)
+
+    def _observed_mean(self, M, z, scan, x):
+        """The emission's mean for the observed ``x`` where it reads it, else ``scan``."""
+        if x is None or not self.emission.reads_observation:
+            return scan
+        return self.emission_mean(M, z, x)
 
     def noise_dist(self, mean: torch.Tensor, sigma=None, validate: bool = False, outlier_prob=None):
         """The emission noise around ``mean [..., N]``, one distribution per entry (batch
@@ -341,7 +354,7 @@ class DVBFLM(nn.Module):
             d = BeamMixture(d, eps, self.outlier_range, validate_args=False)
         return d
 
-    def marginal_emission(self, belief: MapBelief, z: torch.Tensor):
+    def marginal_emission(self, belief: MapBelief, z: torch.Tensor, x=None):
         """The emission marginalised over a Gaussian map belief ``q(M)``, a stated
         approximation: along each reading ``q(M)`` is either known, at its mean, or unknown,
         with the probability ``v`` in ``[0, 1]`` that the map's variance relative to the
@@ -352,13 +365,14 @@ class DVBFLM(nn.Module):
             p(x_t | z_t, q) ~ (1 - v) p(x_t | z_t, E_q[M]) + v U(0, R),
 
         the model's own emission at the map mean with the outlier probability ``1 - (1 - eps)
-        (1 - v)``. Returns the predicted reading ``mean [..., N]`` and that outlier probability
+        (1 - v)``. Returns the predicted reading ``mean [..., N]`` (given the observation ``x``
+        where the emission reads it, :meth:`emission_mean`) and that outlier probability
         ``[..., N]`` (or broadcastable)."""
         if self.prior is None:  # (the prior's std is 1)
             rel, rel_var = belief.scale, belief.variance
         else:
             rel, rel_var = belief.scale / self.prior_std(), None
-        mean, v = self.emission.read_moments(self.grid, belief.loc, rel, z, rel_var)
+        mean, v = self.emission.read_moments(self.grid, belief.loc, rel, z, rel_var, x)
         return mean, 1 - (1 - self.outlier_prob) * (1 - v.clamp(0, 1))
 
     def emission_dist(self, mean: torch.Tensor, mask=None, sigma=None, outlier_prob=None):
@@ -458,7 +472,7 @@ class DVBFLM(nn.Module):
         M, _ = self.global_model()
         T = poses.shape[0]
         with pyro.plate("data", T, subsample_size=min(batch_size or T, T)) as i:
-            mean = self.emission_mean(M, poses[i])
+            mean = self.emission_mean(M, poses[i], observations[i])
             mask_i = None if mask is None else mask[i]
             pyro.sample("x", self.emission_dist(mean, mask_i), obs=observations[i])
 
@@ -490,7 +504,8 @@ class DVBFLM(nn.Module):
             scan = pyro.deterministic(f"scan_{t}", self.emission_mean(M, z), event_dim=1)
             obs_t = None if observations is None else observations[t]
             mask_t = None if mask is None else mask[t]
-            pyro.sample(f"x_{t}", self.emission_dist(scan, mask_t), obs=obs_t)
+            mean = self._observed_mean(M, z, scan, obs_t)
+            pyro.sample(f"x_{t}", self.emission_dist(mean, mask_t), obs=obs_t)
             if frame is not None:
                 self._observe_heading(t, z, frame, headings)
             poses.append(z)
@@ -526,9 +541,9 @@ class FilterModel:
         m = self.m
         eps = None
         if isinstance(self.M, MapBelief):
-            scan, eps = m.marginal_emission(self.M, z)
+            scan, eps = m.marginal_emission(self.M, z, x)
         else:
-            scan = m.emission_mean(self.M, z)
+            scan = m.emission_mean(self.M, z, x)
         if x is not None:
             d = m.emission_dist(scan, mask, outlier_prob=eps)
             pyro.sample("x", d, obs=x)

@@ -20,6 +20,7 @@ from ..data import Traversal
 from ..model import (
     Emission,
     EmissionMLP,
+    EndPointEmission,
     ImageEmission,
     RayEmission,
     RayImageEmission,
@@ -32,12 +33,17 @@ from ..model.networks import (
     MIN_WORLD_DIRECTIONS,
 )
 from ..pretrained import load_emission, shipped_emission
+from .insertion import wall_ramp
 from .kinds import EMISSIONS
 
 RAY_SAMPLES = 48  # points per ray of the ray-cast emissions (their constructors' default)
 # the occupancy's density per grid spacing of the ray-cast emissions (their constructors' 100
 # per unit length on the mazes' 1/63 grid)
 DENSITY_PER_SPACING = 100 / 63
+# half the width of the walls' ramp that the end-point emission reads its distance from (grid
+# spacings): twice the ray march's, so that a reading within 3 spacings of its wall is scored
+# by its distance (the field is flat beyond)
+ENDPOINT_RAMP = 3.0
 
 
 @dataclass(frozen=True)
@@ -52,6 +58,7 @@ class EmissionKind:
         map_dim: the map's features per cell, or a function of the prepared traversal.
         rays: it reads the map along rays (``emission.ray_spacing``, scan insertion, memory
             per ray point).
+        insertion: the scan insertion kind it needs (None: any, or none).
         learned: SVI learns a new one (False: it has nothing to learn).
         shipped: ``traversal -> emission or None``, a pretrained one where there is one (it is
             then frozen).
@@ -64,6 +71,7 @@ class EmissionKind:
     observation: str = "lidar"
     map_dim: int | Callable[[Traversal], int] = 1
     rays: bool = False
+    insertion: str | None = None
     learned: bool = True
     shipped: Callable[[Traversal], Emission | EmissionMLP | None] | None = None
     load: Callable[[object, Traversal], Emission | EmissionMLP] | None = None
@@ -115,6 +123,13 @@ def _raycast(traversal, config, reach):
     return RayEmission(traversal.beam_angles, reach, **ray_settings(config, reach))
 
 
+def _endpoint(traversal, config, reach):
+    em = EndPointEmission(traversal.beam_angles, reach, **ray_settings(config, reach))
+    insert, spacing = config.emission.insert, config.emission.resolution
+    em.ramp = wall_ramp(insert, em, spacing, half_width=ENDPOINT_RAMP)
+    return em
+
+
 def _image_mlp(traversal, config, reach):
     rows, cols = _image_shape(traversal)
     angles = traversal.beam_angles[:cols]
@@ -135,6 +150,7 @@ register_emission(
     )
 )
 register_emission(EmissionKind("raycast", _raycast, rays=True, learned=False))
+register_emission(EmissionKind("endpoint", _endpoint, rays=True, insertion="fusion", learned=False))
 register_emission(
     EmissionKind(
         "image_mlp",

@@ -111,6 +111,8 @@ class EmissionConfig:
 
     ``kind``: ``"mlp"`` (the paper's LiDAR chart + ``mu_E`` MLP), ``"raycast"`` (LiDAR ranges
     volume-rendered through an occupancy map, each beam's uncertainty read where it stops),
+    ``"endpoint"`` (the likelihood field: each reading's end point scored by the distance that
+    the fused occupancy map says there; ``"fusion"`` insertion only),
     ``"image_mlp"`` (the paper's visual row MLPs) or ``"ray_camera"`` (a pinhole camera through
     an occupancy and albedo map). ``resolution``: grid spacing (world units); ``margin``: the
     grid's margin around the walls; ``sigma``: the model's ``sigma_E``; ``outlier_prob``: the
@@ -153,6 +155,12 @@ class EmissionConfig:
             raise ConfigError(
                 "emission.insert writes LiDAR hits into an occupancy map: it needs a ray-cast "
                 f"LiDAR emission.kind such as 'raycast', got {self.kind!r}"
+            )
+        need = getattr(kind, "insertion", None)
+        if need is not None and (self.insert is None or self.insert.kind != need):
+            raise ConfigError(
+                f"emission.kind {self.kind!r} reads the map that {need!r} scan insertion "
+                f"writes: it needs emission.insert.kind = {need!r}"
             )
 
     @property
@@ -203,8 +211,8 @@ class TrainingConfig:
     """SVI on the particle-chunk ELBO of the model (paper eq. 3): ``chunks`` chunks of
     ``chunk_length`` steps with ``particles`` particles each per SVI step, map learning rate
     ``lr`` (Adam; ``lr_emission`` for an emission learned from scratch); the online sweep takes
-    one SVI step every ``every`` steps; the particle cache keeps ``cache_particles`` per step
-    (paper III-D2)."""
+    one SVI step every ``every`` steps (0: none, the map belief is scan insertion's alone); the
+    particle cache keeps ``cache_particles`` per step (paper III-D2)."""
 
     particles: int = 16
     chunk_length: int = 4
@@ -215,8 +223,9 @@ class TrainingConfig:
     cache_particles: int = 50
 
     def __post_init__(self):
-        for name in ("particles", "chunk_length", "chunks", "every", "cache_particles"):
+        for name in ("particles", "chunk_length", "chunks", "cache_particles"):
             _positive(f"training.{name}", getattr(self, name), integer=True)
+        _non_negative("training.every", self.every, integer=True)
         _positive("training.lr", self.lr)
         _positive("training.lr_emission", self.lr_emission)
 

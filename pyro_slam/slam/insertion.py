@@ -50,37 +50,41 @@ Two kinds (``emission.insert.kind``):
     a truncated signed distance (TSDF; Curless and Levoy 1996) per grid point, in grid
     spacings, positive behind a surface:
 
-    * near each **surface**, the grid points within ``BAND`` spacings of the scan's walls get
+    * near each **surface**, the grid points within ``band = ramp + SHIFT`` spacings of the
+      scan's walls get
       their signed distance to them: the hits of neighbouring beams closer than ``gap`` are one
       wall (a segment, its normal pointing away from the sensor); an isolated hit is a wall
       across its beam, read along the beam;
-    * along each beam, the grid points the beam **passed** before reaching ``BAND`` spacings of
-      its hit (all of it for a reading at the range clip) are free: distance ``-BAND``;
+    * along each beam, the grid points the beam **passed** before reaching ``band`` spacings of
+      its hit (all of it for a reading at the range clip) are free: distance ``-band``;
     * each grid point keeps the running mean of what the scans said (at most ``MAX_WEIGHT``
       scans weigh, so that the map follows a changed pose estimate).
 
-    A fused grid point's reading is a linear ramp in its distance, from the free level at
-    ``-RAMP`` to ``occupancy`` at ``+RAMP``, shifted (by at most ``SHIFT``) so that the
-    emission's expected range at a wall seen head-on is the wall's distance
-    (:func:`surface_offset`); bilinear interpolation reproduces a linear ramp exactly, so the
-    ray stops at the wall to within a fraction of a grid spacing whatever the wall's position
-    in its cell. Its precision is ``scans / noise^2`` (the fused scans' readings). For real
-    walls, which have a back side no beam sees.
+    A fused grid point's reading is a linear ramp in its distance
+    (:class:`~pyro_slam.model.WallRamp`), from the free level at ``-ramp`` to ``occupancy`` at
+    ``+ramp`` (``RAMP`` spacings), shifted (by at most ``SHIFT``) so that the emission's
+    expected range at a wall seen head-on is the wall's distance (:func:`surface_offset`); an
+    emission that reads the ramp itself (:class:`~pyro_slam.model.EndPointEmission`) states
+    its own, and insertion writes that one. Bilinear interpolation reproduces a linear ramp
+    exactly, so the ray stops at the wall to within a fraction of a grid spacing whatever the
+    wall's position in its cell. Its precision is ``scans / noise^2`` (the fused scans'
+    readings). For real walls, which have a back side no beam sees.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import torch
 
 from ..geometry import interleave
+from ..model.emissions import WallRamp
 from ..model.model import MapGrid
 from .config import ScanInsertionConfig
 
-RAMP = 1.5  # half the width of the wall's ramp in q(M)'s mean (grid spacings)
+RAMP = 1.5  # half the width of a wall's ramp in q(M)'s mean (grid spacings), by default
 SHIFT = 1.0  # the most the ramp may shift to put the expected range on the wall
-BAND = RAMP + SHIFT  # grid spacings either side of a surface that carry its signed distance
 MAX_WEIGHT = 10.0  # scans that weigh in a grid point's running mean
 
 
@@ -114,6 +118,16 @@ def surface_offset(emission, ramp, spacing: float, phases: int = 8) -> float:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if bias(mid) > 0 else (lo, mid)
     return 0.5 * (lo + hi)
+
+
+def wall_ramp(
+    config: ScanInsertionConfig, emission, spacing: float, half_width: float = RAMP
+) -> WallRamp:
+    """The ramp that fusion insertion writes across a wall for ``emission``: from the free level
+    ``-occupancy / 2`` to ``occupancy`` over ``2 half_width`` spacings, shifted by
+    :func:`surface_offset` (for a grid of ``spacing``)."""
+    base = WallRamp(config.occupancy, -0.5 * config.occupancy, half_width)
+    return replace(base, shift=surface_offset(emission, base.loc, spacing))
 
 
 class ScanInserter:
@@ -328,18 +342,14 @@ class FusionInserter(ScanInserter):
         self.sdf = torch.zeros((w, h), dtype=torch.float64)  # weighted sum of distances
         self.weight = torch.zeros((w, h), dtype=torch.float64)  # scans fused
         self.placed = torch.zeros((w, h), dtype=torch.float64)  # weighted sum of placement vars
-        self.delta = surface_offset(model.emission, self.ramp, self.spacing)
+        own = getattr(model.emission, "ramp", None)  # an emission that reads one states it
+        self.ramp = own if own is not None else wall_ramp(config, model.emission, self.spacing)
+        # grid spacings either side of a surface that carry its signed distance
+        self.band = self.ramp.half_width + SHIFT
 
     @property
     def inserted(self) -> torch.Tensor:
         return self.weight > 0
-
-    def ramp(self, d: torch.Tensor) -> torch.Tensor:
-        """``q(M)``'s loc at signed distance ``d`` (grid spacings): linear from the free value
-        at ``-RAMP`` to the wall's at ``RAMP``, constant beyond."""
-        wall, free = self.cfg.occupancy, self.free
-        f = ((d + RAMP) / (2 * RAMP)).clamp(0, 1)
-        return free + f * (wall - free)
 
     def surfaces(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor):
         """The scan's walls: ``a, b [W, 2]`` (grid coordinates) and their unit normals ``n [W,
@@ -364,10 +374,10 @@ class FusionInserter(ScanInserter):
     def surface_points(self, a, b, n):
         """Grid points near the walls and their signed distances: ``(flat index [P], d [P])``,
         one per grid point (the nearest wall's). A wall's candidates are the grid points of its
-        bounding box widened by ``sqrt(BAND^2 + 1/4)``: a grid point within ``BAND`` of a wall
+        bounding box widened by ``sqrt(band^2 + 1/4)``: a grid point within ``band`` of a wall
         and at most half a spacing past its ends is no farther than that from it."""
         w, h = self.model.grid.cells
-        reach = math.sqrt(BAND**2 + 0.25) + 1e-6
+        reach = math.sqrt(self.band**2 + 0.25) + 1e-6
         lo = (torch.minimum(a, b) - reach).ceil()  # [W, 2] the box's first grid point
         size = ((torch.maximum(a, b) + reach).floor() - lo + 1).long()  # [W, 2] its points
         counts = size[:, 0] * size[:, 1]  # [W]
@@ -380,7 +390,7 @@ class FusionInserter(ScanInserter):
         e = g - (a + t[..., None] * ab)  # [N, 2] from the wall
         d = (e * n).sum(-1)  # signed distance along the normal
         lateral = (e - d[..., None] * n).norm(dim=-1)
-        keep = (d.abs() <= BAND) & (lateral <= 0.5)
+        keep = (d.abs() <= self.band) & (lateral <= 0.5)
         inside = (g[..., 0] >= 0) & (g[..., 0] <= w - 1) & (g[..., 1] >= 0) & (g[..., 1] <= h - 1)
         keep &= inside
         idx = (g[..., 0] * h + g[..., 1]).long()[keep]
@@ -394,7 +404,7 @@ class FusionInserter(ScanInserter):
         return idx[uniq], d[uniq]
 
     def free_points(self, x, valid, z) -> torch.Tensor:
-        """Flat indices of the grid points the beams passed (up to ``BAND`` spacings before a
+        """Flat indices of the grid points the beams passed (up to ``band`` spacings before a
         hit; the whole clip for a reading at it), without repeats: each beam sampled every half
         spacing up to its reach."""
         em = self.model.emission
@@ -402,7 +412,7 @@ class FusionInserter(ScanInserter):
         ang = z[2] + em.beam_angles.to(x.dtype)
         u = torch.stack([ang.cos(), ang.sin()], -1)  # [B, 2]
         hit = x < em.max_range * (1 - 1e-3)
-        reach = torch.where(hit, x - (BAND + 0.5) * self.spacing, x)  # [B]
+        reach = torch.where(hit, x - (self.band + 0.5) * self.spacing, x)  # [B]
         step = 0.5 * self.spacing
         n = int(math.ceil(em.max_range / step)) + 1
         counts = (reach / step).floor().long().add(2).clamp(0, n) * valid  # [B] (one spare)
@@ -420,14 +430,14 @@ class FusionInserter(ScanInserter):
         free = self.free_points(x, valid, z)
         free = free[~torch.isin(free, idx)]
         idx = torch.cat([idx, free])
-        d = torch.cat([d.double(), torch.full((len(free),), -BAND, dtype=torch.float64)])
+        d = torch.cat([d.double(), torch.full((len(free),), -self.band, dtype=torch.float64)])
         sdf, weight = self.sdf.view(-1), self.weight.view(-1)
         keep = ((MAX_WEIGHT - 1) / weight[idx].clamp_min(1e-9)).clamp(max=1)  # cap the weight
         sdf[idx] = sdf[idx] * keep + d
         placed = self.placed.view(-1)
         placed[idx] = placed[idx] * keep + var
         weight[idx] = weight[idx] * keep + 1
-        y = self.ramp(sdf[idx] / weight[idx] + self.delta)
+        y = self.ramp.loc(sdf[idx] / weight[idx])
         h = self.model.grid.cells[1]
         prec, var = weight[idx] * self.precision, placed[idx] / weight[idx]
         self._observe(idx // h, idx % h, y, prec, var)

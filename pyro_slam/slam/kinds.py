@@ -16,16 +16,19 @@ from dataclasses import dataclass
 class EmissionTraits:
     """What the configuration knows of an emission kind: its ``name`` (``emission.kind``), the
     ``observation`` it explains (``"lidar"`` ranges or ``"image"`` camera frames) and whether
-    it reads the map along ``rays`` (scan insertion needs a ray-cast LiDAR)."""
+    it reads the map along ``rays`` (scan insertion needs a ray-cast LiDAR); ``insertion``:
+    the scan insertion kind it needs (None: any, or none)."""
 
     name: str
     observation: str = "lidar"
     rays: bool = False
+    insertion: str | None = None
 
 
 BUILTIN = (
     EmissionTraits("mlp"),
     EmissionTraits("raycast", rays=True),
+    EmissionTraits("endpoint", rays=True, insertion="fusion"),
     EmissionTraits("image_mlp", "image"),
     EmissionTraits("ray_camera", "image", rays=True),
 )

@@ -105,8 +105,9 @@ def online_sweep(
 ) -> None:
     """The online sweep from ``st.t``: at each step the filter under the current map belief,
     scan insertion at the cloud's mean, the walls' frame refined with its heading, and every
-    ``training.every`` steps one SVI step on the newest chunk and replayed older ones."""
-    T, L = data.T, data.cfg.training.chunk_length
+    ``training.every`` steps (0: never) one SVI step on the newest chunk and replayed older
+    ones."""
+    T, L, every = data.T, data.cfg.training.chunk_length, data.cfg.training.every
     bar = tqdm(total=T, initial=st.t, desc="online SLAM", disable=not progress)
     while st.t < T:
         t = st.t
@@ -124,7 +125,7 @@ def online_sweep(
             c.inserter.insert(data.obs[t], data.valid(t), mean, var)
         if c.heading is not None:  # (with the weighted cloud's heading std)
             c.heading.refine(t, float(mean[2]), float(st.particles.std()[2]))
-        if t >= L - 1 and t % data.cfg.training.every == 0:
+        if every and t >= L - 1 and t % every == 0:
             c.elbo.num_steps_seen = t + 1
             st.losses.append(svi_step(c, st, data, 0, t - L + 1, t - L + 1))
         st.t += 1

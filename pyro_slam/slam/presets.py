@@ -13,8 +13,9 @@ default); the others say how they differ from it.
 ``visual``                the paper's visual model (row MLPs)
 ``visual-raycast``        the ray camera
 ``visual-manhattan``      the ray camera plus the heading factor read from the frames
-``real``                  real laser logs (CARMEN, ROS): ray-cast emission on a metric grid,
-                          heading factor; sensor settings derived from the log
+``real``                  real laser logs (CARMEN, ROS): end-point (likelihood-field) emission
+                          on a metric grid, heading factor; sensor settings derived from the
+                          log
 ========================  ===============================================================
 
 The figures of each are on the results page (``docs/results.md``).
@@ -158,34 +159,31 @@ VISUAL_RAYCAST = replace(
     ),
 )
 VISUAL_MANHATTAN = replace(VISUAL_RAYCAST, heading=HeadingConfig())
-# real logs (metres): the ray-cast emission on a 0.05 m grid (under a map fused at a log's
-# reference poses, the likelihood peaks closer to those poses than on a 0.1 m grid) with scan
-# insertion (hits farther apart than 0.5 m are separate walls) fused as a signed distance (real
-# walls have a back side no beam sees), one point per grid spacing along each ray (the walls'
-# ramp in q(M) spans three spacings: the expected range then varies smoothly with the pose),
-# sigma_E 0.05 m (the residuals of laser ranges against a fused map at reference poses have
-# median |r| 0.035 m, 0.67 sigma for a Gaussian), the beam mixture, the kinematic odometry
-# transition (its noise read from the log), and the heading factor in the walls' frame
-# estimated from the log, which switches itself off where the walls do not support it.
-# Insertion fuses every scan into the map, so SVI refines it on a light schedule (4 chunks of 8
-# particles every 32 steps), and the filter's 64 particles, drawn by the heading-conditioned
-# transition against that map, are as accurate as 128. Offline: one filter pass over the whole
-# log under the online map, without SVI rounds (the most accurate offline setting measured
-# over both logs together: SVI rounds over the whole log helped CSAIL less than they hurt Intel).
-# The filter's march along a beam stops once its transmittance is below 1e-6 (a range within
-# 1e-6 of the full march's; a beam on a real log ends on a wall about a third of the way out)
+# real logs (metres): the end-point (likelihood-field) emission on a 0.05 m grid, each reading
+# scored by the signed distance that the map's wall ramp (3 grid spacings either side) says at
+# its end point, sigma_E 0.075 m, the beam mixture; scan insertion (hits farther apart than
+# 0.5 m are separate walls) fused as a signed distance (real walls have a back side no beam
+# sees); the kinematic odometry transition (its noise read from the log), the heading factor in
+# the walls' frame estimated from the log, which switches itself off where the walls do not
+# support it. The map belief is scan insertion's (no online SVI: with an SVI step every 32
+# scans both logs were less accurate); the filter's 64 particles are drawn by the
+# heading-conditioned transition. Offline: one filter pass over the whole log under the online
+# map. Predicted scans (planning, sampling) are the ray march's, stopped once a beam's
+# transmittance is below 1e-6. Measured over both logs and five seeds against the ray-cast
+# emission (docs/results.md): more accurate on both, three times faster.
 REAL = SLAMConfig(
     emission=EmissionConfig(
+        "endpoint",
         resolution=0.05,
         margin=0.0,
-        sigma=0.05,
+        sigma=0.075,
         insert=ScanInsertionConfig(kind="fusion", gap=0.5),
         ray_spacing=1.0,
         march_tolerance=1e-6,
     ),
     transition=TransitionConfig("kinematic", scale=(1.0, 1.0, 1.0)),
     filter=FilterConfig(particles=64, proposal="transition"),
-    training=TrainingConfig(particles=8, chunks=4, every=32),
+    training=TrainingConfig(every=0),
     offline=OfflineConfig(rounds=0, estimate="forward"),
 )
 
@@ -215,7 +213,7 @@ PRESETS: dict[str, Preset] = {
         ),
         Preset(
             "real",
-            "real laser logs: metric ray-cast grid + heading observation",
+            "real laser logs: end-point emission on a metric grid + heading observation",
             REAL,
             adapt_real_log,
         ),

@@ -30,7 +30,7 @@ def _negative_elbo(model: DVBFLM, loc, log_scale, obs, mask, poses, idx, T: int)
     with the model's own map prior and emission noise (Monte Carlo KL where no closed form)."""
     q = dist.Normal(loc, log_scale.exp()).to_event(1)  # batch [w, h], event [D_m]
     M = q.rsample()
-    mean = model.emission_mean(M, poses[idx])
+    mean = model.emission_mean(M, poses[idx], obs[idx])
     ll = model.emission_log_prob(obs[idx], mean, None if mask is None else mask[idx])
     prior = model.map_prior()
     try:
@@ -83,7 +83,7 @@ def pretrain_emission(
         bar.set_postfix(loss=f"{loss.item():.2f}")
     with torch.no_grad():
         m, (obs, mask, poses, loc, _) = models[0], data[0]
-        rmse = (m.emission_mean(loc, poses) - obs).pow(2).mean().sqrt().item()
+        rmse = (m.emission_mean(loc, poses, obs) - obs).pow(2).mean().sqrt().item()
     if isinstance(emission, LidarEmission):  # the network (what the LiDAR checkpoints hold)
         emission = emission.net
     return emission, {"final_loss": loss.item(), "rmse_first_traversal": rmse}

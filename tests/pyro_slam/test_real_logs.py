@@ -137,6 +137,28 @@ def test_slam_runs_on_subsampled_metric_log():
     assert np.abs(res["mean"][:, :2] - odo[:, :2]).max() < 1.0
 
 
+def test_real_preset_corrects_a_biased_odometry_in_a_room():
+    """The ``real`` preset (the end-point emission) on a room log whose odometry overstates
+    each step by 8 % and turns 0.01 rad too far per step: odometry ends 0.73 m off, SLAM within
+    0.15 m at every step (measured 0.06), its final std of the order of its error."""
+    tr, poses = room_log(T=24)
+    u = tr.controls.copy()
+    u[:, 0] *= 1.08
+    u[:, 2] += 0.01
+    tr = replace(tr, controls=u)
+    cfg = with_overrides(presets.get("real").for_traversal(tr), {"filter": {"particles": 32}})
+    res = SLAM(tr, cfg, seed=0).run("online", progress=False)
+
+    def error(xy):  # [T] from the true path, both from their first pose (heading 0 there)
+        return np.linalg.norm(xy - xy[:1] - (poses[:, :2] - poses[:1, :2]), axis=1)
+
+    assert error(odometry_poses(tr)[:, :2]).max() > 0.7
+    err = error(res["mean"][:, :2])
+    assert err.max() < 0.15
+    std = float(np.linalg.norm(res["std"][-1, :2]))
+    assert err[-1] < 3 * std and std < 0.15
+
+
 def test_scan_consistency_prefers_the_true_poses():
     tr, poses = room_log(T=40)
     tr.poses = poses

@@ -164,7 +164,7 @@ def test_beam_mixture_weights_bound_one_wild_beam():
         outlier_prob, outlier_range = eps, rng
         noise_dist, emission_log_prob = DVBFLM.noise_dist, DVBFLM.emission_log_prob
 
-        def emission_mean(self, M, z):
+        def emission_mean(self, M, z, x=None):
             return scan
 
     lp, _ = ParticleFilter(Model()).log_likelihood(torch.zeros(3, 3), torch.zeros(1), x)

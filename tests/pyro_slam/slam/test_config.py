@@ -116,7 +116,7 @@ def test_bad_particle_counts_are_rejected_by_name(value):
         ({"training": {"cache_particles": 0}}, "training.cache_particles must be a positive"),
         ({"training": {"lr_emission": 0}}, "training.lr_emission must be a positive number"),
         ({"training": {"chunk_length": 0}}, "training.chunk_length must be a positive integer"),
-        ({"training": {"every": 1.5}}, "training.every must be a positive integer"),
+        ({"training": {"every": 1.5}}, "training.every must be an integer >= 0"),
         ({"training": {"lr": -1}}, "training.lr must be a positive number"),
         ({"offline": {"rounds": -1}}, "offline.rounds must be an integer >= 0"),
         ({"offline": {"estimate": "smooth"}}, "offline.estimate must be one of"),

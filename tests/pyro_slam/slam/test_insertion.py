@@ -18,7 +18,7 @@ from pyro_slam.metrics import CALIBRATION_START, calibration
 from pyro_slam.model import autoguide, map_marginals
 from pyro_slam.planning.envs import run_env
 from pyro_slam.slam import SLAM, ConfigError, EmissionConfig, ScanInsertionConfig
-from pyro_slam.slam.insertion import BAND, FusionInserter, OccupancyInserter, make_inserter
+from pyro_slam.slam.insertion import FusionInserter, OccupancyInserter, make_inserter
 from pyro_slam.slam.loop import world_std
 from simulators import simulate_traversal
 from simulators.maze import make_maze
@@ -347,7 +347,7 @@ def test_posterior_coverage():
 
 def test_surface_points_are_every_grid_point_in_the_band_of_its_nearest_wall(small_traversal):
     """The walls' grid points, sampled along each wall, are those a brute force over the whole
-    grid finds: every grid point within the band of a wall (``|d| <= BAND``, at most half a
+    grid finds: every grid point within the band of a wall (``|d| <= band``, at most half a
     spacing past its ends), with the signed distance to its nearest such wall."""
     inserter = insertion_slam(small_traversal, "fusion").inserter
     w, h = inserter.model.grid.cells
@@ -366,7 +366,7 @@ def test_surface_points_are_every_grid_point_in_the_band_of_its_nearest_wall(sma
     e = g - (a + s[..., None] * ab)  # [w h, W, 2]
     dist_n = (e * n).sum(-1)
     lateral = (e - dist_n[..., None] * n).norm(dim=-1)
-    near = (dist_n.abs() <= BAND) & (lateral <= 0.5)  # [w h, W]
+    near = (dist_n.abs() <= inserter.band) & (lateral <= 0.5)  # [w h, W]
     best = torch.where(near, dist_n.abs(), math.inf).argmin(-1)  # [w h]
     want = near.any(-1).nonzero()[:, 0]
     assert len(want) > 200
@@ -376,7 +376,7 @@ def test_surface_points_are_every_grid_point_in_the_band_of_its_nearest_wall(sma
 
 def test_free_points_are_the_grid_points_along_each_beam_up_to_its_reach(small_traversal):
     """The free grid points of a scan are the grid points nearest to the points every half
-    spacing along each valid beam, up to ``BAND + 0.5`` spacings before its hit (the whole
+    spacing along each valid beam, up to ``band + 0.5`` spacings before its hit (the whole
     range for a reading at the range), each once."""
     slam = insertion_slam(small_traversal, "fusion")
     inserter = slam.inserter
@@ -393,7 +393,7 @@ def test_free_points_are_the_grid_points_along_each_beam_up_to_its_reach(small_t
         if not valid[b]:
             continue
         hit = float(x[b]) < em.max_range * (1 - 1e-3)
-        reach = float(x[b]) - (BAND + 0.5) * inserter.spacing if hit else float(x[b])
+        reach = float(x[b]) - (inserter.band + 0.5) * inserter.spacing if hit else float(x[b])
         ang = z[2] + em.beam_angles[b].to(x.dtype)
         u = torch.stack([ang.cos(), ang.sin()])
         for k in range(int(em.max_range / step) + 2):

@@ -14,6 +14,7 @@ import torch
 
 from pyro_slam.data import Traversal
 from pyro_slam.model import (
+    EndPointEmission,
     ImageEmission,
     KinematicTransition,
     LearnedTransition,
@@ -88,6 +89,7 @@ def maze_traversal():
 EMISSIONS = {
     "mlp": LidarEmission,
     "raycast": RayEmission,
+    "endpoint": EndPointEmission,
     "image_mlp": ImageEmission,
     "ray_camera": RayImageEmission,
 }
@@ -163,17 +165,17 @@ def test_presets_differ_from_each_other_as_documented():
     )
     real = presets.get("real").config
     assert real.emission == EmissionConfig(
-        "raycast",
+        "endpoint",
         resolution=0.05,
         margin=0.0,
-        sigma=0.05,
+        sigma=0.075,
         insert=ScanInsertionConfig(kind="fusion", gap=0.5),
         ray_spacing=1.0,
         march_tolerance=1e-6,
     )
     assert real.transition.kind == "kinematic" and real.heading == HeadingConfig()
     assert real.filter.particles == 64 and real.filter.proposal == "transition"
-    assert real.training.every == 32 and real.offline == OfflineConfig(0, estimate="forward")
+    assert real.training.every == 0 and real.offline == OfflineConfig(0, estimate="forward")
 
 
 def test_unknown_preset_lists_the_names():

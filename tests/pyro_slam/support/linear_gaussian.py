@@ -48,7 +48,7 @@ class LinearGaussian:
         self.init_scale = torch.tensor(S0, dtype=dtype)
         self.heading = heading
 
-    def emission_mean(self, M, z):
+    def emission_mean(self, M, z, x=None):
         return z @ M.T
 
 
