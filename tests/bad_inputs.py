@@ -307,7 +307,7 @@ def config_cases(shared) -> list[Case]:
         ("training", "chunk_length", 0),
         ("training", "lr", 0),
         ("training", "lr", -0.02),
-        ("training", "every", 0),
+        ("training", "every", -1),
         ("training", "objective", "tempered"),
         ("training", "particles", 10**6),
         ("offline", "rounds", -1),

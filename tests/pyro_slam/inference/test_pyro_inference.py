@@ -353,11 +353,12 @@ def test_predictive_rollouts_of_the_model_under_planned_controls():
     assert abs(float(turned[1] - turned[0]) - 0.5) < 0.3  # the second sequence turned
 
 
-def _read_marginal(model, belief, z):
-    """The stated marginalisation, written out: the reading at the belief's mean and its chance
-    of being unknown, ``1 - (1 - eps)(1 - v)``."""
+def _read_marginal(model, belief, z, x=None):
+    """The stated marginalisation, written out: the reading at the belief's mean (given the
+    scan ``x`` where the emission reads it) and its chance of being unknown, ``1 - (1 - eps)(1
+    - v)``."""
     rel = belief.scale / model.prior_std()
-    mean, v = model.emission.read_moments(model.grid, belief.loc, rel, z)
+    mean, v = model.emission.read_moments(model.grid, belief.loc, rel, z, x=x)
     return mean, 1 - (1 - model.outlier_prob) * (1 - v.clamp(0, 1))
 
 
@@ -434,10 +435,10 @@ def _expected_increments(slam, prev: Particles, z, M, t):
     model, x, u = slam.model, slam.obs[t], slam.ctl[t - 1]
     mask = None if slam.mask is None else slam.mask[t]
     if isinstance(M, MapBelief):
-        mean, eps = _read_marginal(model, M, z)
+        mean, eps = _read_marginal(model, M, z, x)
         ll = model.emission_dist(mean, mask, outlier_prob=eps).log_prob(x)
     else:
-        ll = model.emission_dist(model.emission_mean(M, z), mask).log_prob(x)
+        ll = model.emission_dist(model.emission_mean(M, z, x), mask).log_prob(x)
     h = None if slam.heading is None else slam.heading.evidence().at(t)
     if h is not None:
         ll = ll + model.heading_log_prob(z[:, 2], h)
