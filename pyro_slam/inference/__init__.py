@@ -17,7 +17,7 @@ from .proposals import (
 )
 from .resampling import ParticleFilterFailed
 from .smc import ProposalGuide, PyroSMCFilter
-from .smoothing import ParticleHistory
+from .smoothing import ParticleHistory, transition_log_density
 
 __all__ = [
     "PROPOSALS",
@@ -28,6 +28,7 @@ __all__ = [
     "ParticleFilter",
     "ParticleFilterFailed",
     "ParticleHistory",
+    "transition_log_density",
     "Particles",
     "Proposal",
     "ProposalGuide",

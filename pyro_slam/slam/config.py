@@ -193,8 +193,9 @@ class FilterConfig:
     (:mod:`pyro_slam.inference.proposals`; with the heading factor, the transition is
     conditioned on it). The weights are the model's likelihood, under the map belief its
     stated marginalisation (:meth:`~pyro_slam.model.DVBFLM.marginal_emission`). The reported
-    online poses are smoothed with the particles ``lag`` steps later traced back along their
-    ancestry (0: the filtered means); offline, along the ancestral path of the final pass."""
+    online poses are smoothed with the weights of the step ``lag`` steps later carried back
+    by the transition's backward kernels (:class:`~pyro_slam.inference.ParticleHistory`; 0: the
+    filtered means); offline, with those of the final pass's last step."""
 
     particles: int = 128
     proposal: str = "scan-match"

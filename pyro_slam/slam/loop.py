@@ -26,7 +26,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..geometry import wrap_angle
-from ..inference import ChunkBatch
+from ..inference import ChunkBatch, transition_log_density
 from ..model import MapBelief
 from .insertion import ScanInserter
 from .parts import Components, RunData
@@ -224,7 +224,7 @@ def offline(
     st.estimates, st.stds, st.anchors = final(c, st, data, progress, "final filter pass")
 
 
-def estimates(st: SLAMState, data: RunData) -> dict:
+def estimates(st: SLAMState, data: RunData, model) -> dict:
     """The run's pose estimates (see :meth:`~pyro_slam.slam.runner.SLAM.result`): the filtered
     means and world-frame stds ``[T, 3]``, smoothed over the particles' history once the run is
     done (with the placement variance of :func:`world_std` added), the SVI losses and the
@@ -234,7 +234,8 @@ def estimates(st: SLAMState, data: RunData) -> dict:
     mean, std = filtered, filtered_std
     if st.phase == Phase.DONE and st.history.filled.any():
         lag = data.T if st.mode == "offline" else data.cfg.filter.lag
-        m, sd = st.history.smoothed(lag)
+        log_f = transition_log_density(model, st.history, data.ctl)
+        m, sd = st.history.smoothed(lag, log_f)
         mean, std = m.double().numpy(), sd.double().numpy()
         mean[:, 2] = wrap_angle(mean[:, 2])
         if len(st.anchors) == len(std):

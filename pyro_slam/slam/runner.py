@@ -122,6 +122,7 @@ class SLAM:
         with scope():
             parts = (transition, emission, learn_emission, guide, prior, noise, smc)
             self.components: Components = assemble(self.data, self.state, scope, *parts)
+        self.state.history.keep_scans = self.model.transition.needs_scan
         # the networks and map grid the run starts from (given, shipped or drawn from the seed)
         self.model_fingerprint = state_fingerprint(self.model.state_dict())
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
@@ -219,12 +220,13 @@ class SLAM:
 
     def result(self) -> dict:
         """``mean``, ``std`` ``[T, 3]``: the pose posterior smoothed over the particles'
-        history (online with a lag of ``filter.lag`` steps, offline along the ancestral path
-        of the final pass); ``filtered_mean``, ``filtered_std`` ``[T, 3]``: the filter's own;
-        ``losses``, ``map_loc``, ``map_scale`` ``[w, h, D_m]`` (``q(M)``) and, offline, the
-        initial sweep's ``sweep_mean [T, 3]`` (:func:`~pyro_slam.slam.loop.estimates`)."""
+        history by forward filtering, backward smoothing (online with a lag of ``filter.lag``
+        steps, offline over the whole final pass); ``filtered_mean``, ``filtered_std``
+        ``[T, 3]``: the filter's own; ``losses``, ``map_loc``, ``map_scale`` ``[w, h, D_m]``
+        (``q(M)``) and, offline, the initial sweep's ``sweep_mean [T, 3]``
+        (:func:`~pyro_slam.slam.loop.estimates`)."""
         belief = self.map_belief()
-        out = loop.estimates(self.state, self.data)
+        out = loop.estimates(self.state, self.data, self.model)
         return {**out, "map_loc": belief.loc.numpy(), "map_scale": belief.scale.numpy()}
 
     # --------------------------------------------------------------------------- checkpoints

@@ -7,13 +7,14 @@ from __future__ import annotations
 import math
 
 import torch
-from linear_gaussian import S0, LinearGaussian, Q, kalman, simulate
+from linear_gaussian import S0, LinearGaussian, Q, T, kalman, simulate
 
-from pyro_slam.inference import ParticleFilter, ParticleHistory, Particles
+from pyro_slam.inference import ParticleFilter, ParticleHistory, Particles, transition_log_density
 
 
 def rts(h, x, u, z0):
-    """Exact smoothed means ``[T, 3]`` of the random walk of ``test_filtering`` (float64)."""
+    """Exact smoothed means and stds ``[T, 3]`` of the random walk of ``test_filtering``
+    (float64)."""
     h, x, u, m = (a.to(torch.float64) for a in (h, x, u, z0))
     P = torch.diag(torch.tensor(S0, dtype=torch.float64) ** 2)
     Qm = torch.diag(torch.tensor(Q, dtype=torch.float64) ** 2)
@@ -27,16 +28,17 @@ def rts(h, x, u, z0):
         m, P = m + K @ (x[t] - h @ m), (torch.eye(3, dtype=torch.float64) - K @ h) @ P
         ms.append(m)
         Ps.append(P)
-    out = [ms[-1]]
+    out, cov = [ms[-1]], [Ps[-1]]
     for t in range(x.shape[0] - 2, -1, -1):
         C = Ps[t] @ torch.linalg.inv(preds[t + 1])
         out.insert(0, ms[t] + C @ (out[0] - ms[t] - u[t]))
-    return torch.stack(out)
+        cov.insert(0, Ps[t] + C @ (cov[0] - preds[t + 1]) @ C.T)
+    return torch.stack(out), torch.stack([c.diagonal().sqrt() for c in cov])
 
 
-def filter_history(K: int, seed: int):
+def filter_history(K: int, seed: int, steps: int = T):
     """One particle filter over the simulated sequence, recorded step by step."""
-    h, x, u, z0 = simulate(torch.float64)
+    h, x, u, z0 = simulate(torch.float64, steps=steps)
     model = LinearGaussian(torch.float64)
     g = torch.Generator().manual_seed(seed)
     pf = ParticleFilter(model, generator=g)
@@ -49,7 +51,7 @@ def filter_history(K: int, seed: int):
     for t in range(1, T):
         p, _ = pf.step(p, h, x[t], u[t - 1], step=t)
         hist.record(t, p)
-    return hist, (h, x, u, z0)
+    return hist, (h, x, u, z0), transition_log_density(model, hist, u)
 
 
 def test_smoothing_moves_the_estimates_towards_the_exact_smoother():
@@ -58,36 +60,75 @@ def test_smoothing_moves_the_estimates_towards_the_exact_smoother():
     (the Kalman filter's)."""
     errs = {"smoothed": [], "filtered": []}
     for seed in range(4):
-        hist, data = filter_history(2000, seed)
-        exact, kf = rts(*data), kalman(*data)[0]
-        smoothed, _ = hist.smoothed(lag=100)
-        filtered, _ = hist.smoothed(lag=0)
+        hist, data, log_f = filter_history(2000, seed)
+        exact, kf = rts(*data)[0], kalman(*data)[0]
+        smoothed, _ = hist.smoothed(100, log_f)
+        filtered, _ = hist.smoothed(0, log_f)
         assert (filtered - kf).abs().max() < 0.05  # the filter's own means
         errs["smoothed"].append(float((smoothed.double() - exact).abs().mean()))
         errs["filtered"].append(float((filtered.double() - exact).abs().mean()))
     assert sum(errs["smoothed"]) < 0.5 * sum(errs["filtered"]), errs
 
 
-def test_lineages_are_traced_through_resampling_and_stop_at_a_fresh_cloud():
-    """Hand-made ancestors: each step's estimate is the weighted mean of the ancestors (at that
-    step) of the particles ``lag`` steps later, never across a fresh start."""
-    K, T = 3, 4
+def test_smoothed_std_is_the_exact_smoothers():
+    """Over a long run the smoothed std is the Rauch-Tung-Striebel smoother's at every step
+    (within sampling error): each step keeps all its particles, weighted by the later evidence.
+    The ancestors of the last step's particles collapse to a few lineages far back, whose
+    spread is far narrower."""
+    ratios = []
+    for seed in range(3):
+        hist, data, log_f = filter_history(300, seed, steps=150)
+        _, exact_std = rts(*data)
+        _, std = hist.smoothed(100, log_f)
+        ratios.append(std.double() / exact_std)
+    ratios = torch.stack(ratios)  # [seeds, T, 3]
+    assert 0.9 < float(ratios.mean()) < 1.1, ratios.mean()
+    assert float(ratios.quantile(0.1)) > 0.75, ratios.quantile(0.1)
+
+
+def test_backward_kernels_weigh_each_particle_by_the_filter_and_the_transition():
+    """Hand-made history: step 0's smoothed weights are ``w_0^i sum_j w_1^j f_ji / sum_l w_0^l
+    f_jl``; a lineage that ends (step 2 starts fresh) keeps its own weights, and the transition
+    is never evaluated across the fresh start."""
+    K, T = 2, 3
     hist = ParticleHistory(T, K)
-    uniform = torch.full((K,), -math.log(K))
-    positions = [torch.tensor([0.0, 1.0, 2.0]), torch.tensor([10.0, 11.0, 12.0])]
-    positions += [torch.tensor([20.0, 21.0, 22.0]), torch.tensor([30.0, 31.0, 32.0])]
-    ancestors = [None, torch.tensor([2, 2, 0]), torch.tensor([1, 1, 1]), None]
-    for t in range(T):
+    w0, w1, w2 = torch.tensor([0.6, 0.4]), torch.tensor([0.8, 0.2]), torch.tensor([0.3, 0.7])
+    f = torch.tensor([[0.9, 0.1], [0.2, 0.8]])  # f(z_1^j | z_0^i) [j, i]
+    for t, (w, x) in enumerate([(w0, [0.0, 1.0]), (w1, [10.0, 11.0]), (w2, [20.0, 21.0])]):
         z = torch.zeros(K, 3)
-        z[:, 0] = positions[t]
-        logw = uniform if t < 2 else torch.log(torch.tensor([0.5, 0.25, 0.25]))
-        hist.record(t, Particles(z, logw, None, ancestors[t]), fresh=t in (0, 3))
-    mean, _ = hist.smoothed(lag=1)
-    # step 0 from step 1's particles: ancestors 2, 2, 0 at uniform weights
-    assert math.isclose(float(mean[0, 0]), (2 + 2 + 0) / 3, rel_tol=1e-6)
-    # step 1 from step 2's: all descend from particle 1 (position 11)
-    assert math.isclose(float(mean[1, 0]), 11.0, rel_tol=1e-6)
-    # step 2: its lineage ends there (step 3 starts fresh): its own weighted mean
-    assert math.isclose(float(mean[2, 0]), 0.5 * 20 + 0.25 * 21 + 0.25 * 22, rel_tol=1e-6)
-    full, _ = hist.smoothed(lag=10)  # the ancestral path of step 2's particles
-    assert math.isclose(float(full[0, 0]), 0.5 * 2 + 0.25 * 2 + 0.25 * 2, rel_tol=1e-6)
+        z[:, 0] = torch.tensor(x)
+        ancestors = None if t == 2 else torch.arange(K)
+        hist.record(t, Particles(z, w.log(), None, ancestors), fresh=t == 0)
+
+    def log_f(u):
+        assert u == 0, "the transition is evaluated across a fresh start"
+        return f.log()
+
+    expected = w0 * ((w1[:, None] * f) / (f * w0).sum(-1, keepdim=True)).sum(0)  # [K]
+    for lag in (1, 10):
+        mean, _ = hist.smoothed(lag, log_f)
+        assert math.isclose(float(mean[0, 0]), float(expected[1]), rel_tol=1e-6)
+        assert math.isclose(float(mean[1, 0]), 0.8 * 10 + 0.2 * 11, rel_tol=1e-6)
+        assert math.isclose(float(mean[2, 0]), 0.3 * 20 + 0.7 * 21, rel_tol=1e-6)
+    filtered, _ = hist.smoothed(0, log_f)
+    assert math.isclose(float(filtered[0, 0]), 0.4, rel_tol=1e-6)
+
+
+def test_the_transition_reads_the_kept_scans():
+    """A transition that reads the predicted scan is evaluated between steps with the scans
+    that the history kept for the earlier step."""
+    K = 3
+    hist = ParticleHistory(2, K)
+    hist.keep_scans = True
+    scans = [torch.full((K, 5), 1.0), torch.full((K, 5), 2.0)]
+    for t in range(2):
+        hist.record(t, Particles(torch.zeros(K, 3), torch.zeros(K), scans[t], torch.arange(K)))
+    seen = []
+
+    class Stub:
+        def transition_dist(self, z, u, scan, validate=None):
+            seen.append(scan)
+            return LinearGaussian(torch.float32).transition_dist(z, u, None, validate=False)
+
+    out = transition_log_density(Stub(), hist, torch.zeros(1, 3))(0)
+    assert out.shape == (K, K) and torch.equal(seen[0], scans[0])

@@ -52,14 +52,14 @@ class LinearGaussian:
         return z @ M.T
 
 
-def simulate(dtype, seed=0):
+def simulate(dtype, seed=0, steps=T):
     g = torch.Generator().manual_seed(seed)
     h = torch.tensor(H, dtype=torch.float64)
     z = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
     z0 = z.clone()
-    u = 0.1 * torch.randn(T - 1, 3, generator=g, dtype=torch.float64)
+    u = 0.1 * torch.randn(steps - 1, 3, generator=g, dtype=torch.float64)
     xs = []
-    for t in range(T):
+    for t in range(steps):
         if t:
             z = z + u[t - 1] + torch.tensor(Q, dtype=torch.float64) * torch.randn(3, generator=g)
         xs.append(h @ z + R * torch.randn(4, generator=g, dtype=torch.float64))
