@@ -21,9 +21,9 @@ class ParticleHistory:
     """Each recorded step's particles ``z [T, K, 3]`` and normalised weights ``logw [T, K]``; a
     step recorded with ``fresh=True``, or from particles without ancestors (a cloud not
     descended from the previous step's, e.g. a chunk started from the cache), starts a new
-    lineage, which smoothing does not cross. With ``keep_scans`` set, also
-    each particle's predicted scan ``scan [T, K, B]`` (what a transition that reads the scan
-    needs to be evaluated between steps)."""
+    lineage, which smoothing does not cross. With ``keep_scans`` set, also each particle's
+    predicted scan ``scan [T, K, B]`` (what a transition that reads the scan needs to be
+    evaluated between steps)."""
 
     def __init__(self, num_steps: int, num_particles: int):
         T, K = num_steps, num_particles

@@ -228,7 +228,8 @@ def estimates(st: SLAMState, data: RunData, model) -> dict:
     """The run's pose estimates (see :meth:`~pyro_slam.slam.runner.SLAM.result`): the filtered
     means and world-frame stds ``[T, 3]``, smoothed over the particles' history once the run is
     done (with the placement variance of :func:`world_std` added), the SVI losses and the
-    offline sweep's means."""
+    offline sweep's means. ``model``: the :class:`~pyro_slam.model.DVBFLM` whose transition
+    density the smoother's backward kernels use."""
     filtered = np.asarray(st.estimates, dtype=np.float64).reshape(-1, 3)
     filtered_std = np.asarray(st.stds, dtype=np.float64).reshape(-1, 3)
     mean, std = filtered, filtered_std
