@@ -1065,6 +1065,34 @@ def test_likelihood_peak_finds_the_pose_the_map_was_fused_at():
     assert moved[0] == pytest.approx(0.08, abs=0.02) and abs(moved[1]) < 0.02
 
 
+@pytest.mark.skipif(
+    not (REPO.parent / "shared" / "data" / "intel.gfs.log").is_file(),
+    reason="the real laser logs (../shared/data) are not here",
+)
+def test_localisation_follows_the_fused_map_and_leaves_it_unchanged():
+    """``benchmarks.likelihood_peak``'s localisation floor: the filter localises on the map as
+    fused (nothing inserted), so a map fused at the poses moved 8 cm along x moves the smoothed
+    trajectory 8 cm along x."""
+    import torch
+
+    from benchmarks.likelihood_peak import fused_at_reference, localise
+    from benchmarks.real_data import DATA, log_config, noisy_odometry
+    from pyro_slam.io import read_any
+    from pyro_slam.slam.runner import SLAM
+
+    tr = noisy_odometry(read_any(DATA / "intel.gfs.log")).slice(0, 60)
+    ref = torch.as_tensor(np.asarray(tr.poses), dtype=torch.float32)
+    means = {}
+    for moved in (False, True):
+        slam = SLAM(tr, log_config(tr), seed=0, threads=1)
+        fused_at_reference(slam, ref + torch.tensor([0.08, 0.0, 0.0]) if moved else ref)
+        before = slam.map_belief().loc.clone()
+        means[moved] = localise(slam)["mean"]  # [60, 3]
+        assert torch.equal(slam.map_belief().loc, before)
+    moved = (means[True] - means[False])[20:, :2].mean(0)  # [2]
+    assert moved[0] == pytest.approx(0.08, abs=0.02) and abs(moved[1]) < 0.02
+
+
 def test_mrpt_runs_in_a_relative_output_folder(tmp_path, monkeypatch):
     """``real_data``'s MRPT row with ``--out`` given relative to the working directory (its
     tools run inside the row's folder, so the files are named from there)."""
