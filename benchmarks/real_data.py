@@ -1,6 +1,6 @@
 """DVBF-LM SLAM on real laser logs vs odometry alone vs MRPT's icp-slam.
 
-    python -m benchmarks.real_data --out out/real_data            # both logs, 5 seeds, 1 thread
+    python -m benchmarks.real_data --out out/real_data            # both logs, 10 seeds, 1 thread
     python -m benchmarks.real_data --steps 300 --seeds 1 --out /tmp/rd   # quick look
     python -m benchmarks.real_data --config '{"filter": {"particles": 256}}' --out out/rd_k256
 
@@ -35,7 +35,7 @@ sets ``localizationLinDistance = localizationAngDistance = 0`` (ICP against the 
 scan, i.e. pure scan matching without an odometry prior). Without MRPT installed the MRPT rows
 are skipped with a message.
 
-Seeds: DVBF-LM runs with seeds 0..N-1 (``--seeds N``, default 5; the Intel odometry noise keeps
+Seeds: DVBF-LM runs with seeds 0..N-1 (``--seeds N``, default 10; the Intel odometry noise keeps
 seed 0, odometry and MRPT have no seed). Each DVBF-LM row holds every figure as the mean over the
 seeds, ``std`` their sample standard deviations and ``worst`` the seed with the highest CSAIL
 scan consistency / Intel relation error; stderr shows mean ± std and the worst run per row. Each
@@ -448,9 +448,9 @@ def parse(argv):
     p.add_argument(
         "--seeds",
         type=int,
-        default=5,
+        default=10,
         metavar="N",
-        help="run DVBF-LM with seeds 0..N-1 (default 5); rows report mean, std and the worst seed",
+        help="run DVBF-LM with seeds 0..N-1 (default 10); rows report mean, std and the worst seed",
     )
     add_config_args(p, "real")
     add_threads_arg(p)

@@ -756,9 +756,9 @@ def _add_slam(sub) -> None:
     s.add_argument(
         "--odometry-noise",
         type=_number(float, 0.0, inclusive=False),
-        help="the real preset: transition std on x/y as this fraction of the RMS odometry step, "
-        "and on the heading where the scans' walls do not show odometry's heading drift "
-        f"(default {presets.REAL_LOG.odometry_noise:g}; refused with another preset)",
+        help="the real preset: transition std on x/y as this fraction of the RMS odometry step "
+        f"(default {presets.REAL_LOG.odometry_noise:g}; the heading's is the drift that the "
+        "scans' walls show, else a share of the motion; refused with another preset)",
     )
     s.add_argument(
         "--scan-topic",

@@ -89,13 +89,15 @@ def odometry_sigma(
 @dataclass(frozen=True)
 class RealLogAdaptation:
     """The numbers :func:`adapt_real_log` reads a real log with: at most ``target_beams``
-    beams, readings clipped at the ``range_quantile`` percentile, transition std the fraction
-    ``odometry_noise`` of the RMS odometry step (the heading's only where the scans' walls do
-    not show odometry's heading drift)."""
+    beams, readings clipped at the ``range_quantile`` percentile, transition std on x/y the
+    fraction ``odometry_noise`` of the RMS odometry step, and on the heading, where the scans'
+    walls do not show odometry's heading drift, the fraction ``heading_noise`` of the RMS turn
+    plus the RMS step (per metre)."""
 
     target_beams: int = 46
     range_quantile: float = 99.0
-    odometry_noise: float = 0.1
+    odometry_noise: float = 0.08
+    heading_noise: float = 0.1
 
 
 REAL_LOG = RealLogAdaptation()
@@ -108,6 +110,7 @@ def adapt_real_log(
     target_beams: int = REAL_LOG.target_beams,
     range_quantile: float = REAL_LOG.range_quantile,
     odometry_noise: float = REAL_LOG.odometry_noise,
+    heading_noise: float = REAL_LOG.heading_noise,
 ) -> SLAMConfig:
     """``config`` for a metric real log: every ``beam_stride``-th beam so that at most
     ``target_beams`` remain (361 -> every 8th); readings clipped at the ``range_quantile``
@@ -115,12 +118,12 @@ def adapt_real_log(
     the kinematic ``sigma_T`` on x/y from :func:`odometry_sigma` with fraction
     ``odometry_noise``, and on the heading the drift of odometry's heading that the scans' wall
     directions show (:func:`~pyro_slam.slam.heading.odometry_heading_noise`, with the heading
-    factor), else the same fraction."""
+    factor), else :func:`odometry_sigma`'s with fraction ``heading_noise``."""
     stride = max(1, int(math.ceil(traversal.num_beams / target_beams)))
     valid = traversal.valid_ranges()
     clip = float(np.percentile(valid, range_quantile)) if valid.size else traversal.max_range
     config = replace(config, beam_stride=stride, range_clip=round(clip, 2))
-    s_x, s_y, s_h = odometry_sigma(traversal.controls, odometry_noise, odometry_noise)
+    s_x, s_y, s_h = odometry_sigma(traversal.controls, odometry_noise, heading_noise)
     drift = odometry_heading_noise(traversal, config)
     if drift is not None:  # what the scans show beats a share of the motion
         s_h = max(drift, ODOMETRY_FLOOR)

@@ -641,7 +641,7 @@ def test_checkpoint_interval_and_real_log_numbers_have_one_default():
     noise = next(a for a in slam._actions if "--odometry-noise" in a.option_strings)
     assert f"default {presets.REAL_LOG.odometry_noise:g}" in noise.help
     adapt = inspect.signature(presets.adapt_real_log).parameters
-    for name in ("target_beams", "range_quantile", "odometry_noise"):
+    for name in ("target_beams", "range_quantile", "odometry_noise", "heading_noise"):
         assert adapt[name].default == getattr(presets.REAL_LOG, name), name
 
 

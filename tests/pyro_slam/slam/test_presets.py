@@ -44,8 +44,10 @@ from pyro_slam.slam import (
     with_overrides,
 )
 from pyro_slam.slam.insertion import ScanInserter
-from pyro_slam.slam.presets import odometry_sigma
+from pyro_slam.slam.presets import REAL_LOG, odometry_sigma
 from simulators import simulate_traversal
+
+NOISE = (REAL_LOG.odometry_noise, REAL_LOG.heading_noise)  # the real-log noise fractions
 
 PRESET_NAMES = [
     "paper",
@@ -194,7 +196,7 @@ def test_real_preset_reads_beam_stride_range_clip_and_odometry_noise_from_the_lo
     assert tr.subsample_beams(cfg.beam_stride).num_beams == 46
     valid = tr.observations[tr.obs_mask]
     assert cfg.range_clip == round(float(np.percentile(valid, 99)), 2) and cfg.range_clip < 8
-    assert cfg.transition.sigma == pytest.approx(odometry_sigma(tr.controls, 0.1, 0.1))
+    assert cfg.transition.sigma == pytest.approx(odometry_sigma(tr.controls, *NOISE))
     assert all(isinstance(s, float) for s in cfg.transition.sigma)
     # the rest is the preset's
     assert replace(cfg, beam_stride=1, range_clip=None, transition=real.config.transition) == (
@@ -202,7 +204,7 @@ def test_real_preset_reads_beam_stride_range_clip_and_odometry_noise_from_the_lo
     )
     noisy = presets.adapt_real_log(tr, real.config, target_beams=100, odometry_noise=0.2)
     assert noisy.beam_stride == 4
-    assert noisy.transition.sigma == pytest.approx(odometry_sigma(tr.controls, 0.2, 0.2))
+    assert noisy.transition.sigma == pytest.approx(odometry_sigma(tr.controls, 0.2, NOISE[1]))
     assert presets.adapt_real_log(tr, real.config, range_quantile=50).range_clip < cfg.range_clip
 
 
