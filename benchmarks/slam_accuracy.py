@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import multiprocessing as mp
 import time
 from pathlib import Path
@@ -131,9 +132,9 @@ def run_one(job) -> dict:
         "std": np.asarray(res["std"], dtype=np.float32),  # [T, 3] the filter's posterior std
     }
     if slam.heading is not None:  # the Manhattan frame's error (modulo a quarter turn)
-        out["frame_error"] = metrics.frame_error(
-            slam.heading.frame.mean, world.get("rotation", 0.0)
-        )
+        frame = slam.heading.frame
+        out["frame_error"] = metrics.frame_error(frame.mean, world.get("rotation", 0.0))
+        out["frame_std"] = math.sqrt(frame.var)  # its guide's std at the end
     np.savez(path, **out)
     final, pi_final = float(out["slam"][-1]), float(out["pi"][-1])
     return {
@@ -291,9 +292,13 @@ def _mode_summary(data: list, e: np.ndarray, dist: np.ndarray) -> dict:
     out["aligning_rotation_abs_mean"] = float(np.mean([abs(a[1]) for a in al]))
     if all("frame_error" in d for d in data):  # the heading observation's frame
         out["frame_error_abs_max"] = float(max(abs(d["frame_error"]) for d in data))
+    if all("frame_std" in d for d in data):  # and its guide's calibration: |error| / std
+        z = [abs(float(d["frame_error"])) / max(float(d["frame_std"]), 1e-12) for d in data]
+        out["frame_std_median"] = float(np.median([d["frame_std"] for d in data]))
+        out["frame_error_over_std_median"] = float(np.median(z))
     if all("std" in d for d in data):  # runs from before the std was saved lack it
-        # calibration: the filter's position std over its actual error (1: calibrated), raw
-        # and after the rigid alignment
+        # calibration: the filter's position std over its actual error (1.13 for a
+        # calibrated Gaussian, metrics.std_over_error), raw and after the rigid alignment
         start = metrics.CALIBRATION_START
         cal = [metrics.calibration(d["std"], d["estimate"], d["truth"], start) for d in data]
         for key in cal[0] if cal else ():

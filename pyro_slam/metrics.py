@@ -116,8 +116,10 @@ def aligned_error(est: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, float]
 
 def std_over_error(std: np.ndarray, error: np.ndarray) -> float:
     """The posterior's calibration over one run: its time-averaged position std (``std [T,
-    >= 2]``, the filter's ``x, y`` std) over the time-averaged position error ``error [T]`` (1:
-    calibrated; below 1: overconfident)."""
+    >= 2]``, the filter's ``x, y`` std; per step their hypot) over the time-averaged position
+    error ``error [T]``: below 1 overconfident, above 2 underconfident. A calibrated isotropic
+    Gaussian reads ``sqrt(2) / sqrt(pi / 2) = 1.13`` (its mean distance is ``sqrt(pi / 2)``
+    per-axis stds)."""
     spread = float(np.hypot(std[:, 0], std[:, 1]).mean())
     return spread / max(float(np.mean(error)), 1e-12)
 
@@ -138,9 +140,9 @@ def calibration(std: np.ndarray, est: np.ndarray, true: np.ndarray, start: int =
     """How the posterior's spread compares with its error over one run, from step ``start``
     on (from the first step in a run no longer than twice ``start``): the time-averaged
     position std (``std [T, 3]``) over the time-averaged position error of ``est [T, 3]``, raw
-    and after the rigid alignment of :func:`aligned_error` (1: calibrated; below 1:
-    overconfident; :func:`std_over_error`), and the 2-sigma :func:`coverage` of the true
-    positions (0.865 for a calibrated Gaussian)."""
+    and after the rigid alignment of :func:`aligned_error` (1.13 for a calibrated isotropic
+    Gaussian; below 1: overconfident; :func:`std_over_error`), and the 2-sigma
+    :func:`coverage` of the true positions (0.865 for a calibrated Gaussian)."""
     start = start if len(true) > 2 * start else 0
     aligned = aligned_error(est, true)[0][start:]
     std, est, true = std[start:], est[start:], true[start:]

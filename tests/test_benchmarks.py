@@ -154,6 +154,12 @@ def test_slam_accuracy_benchmark_writes_summary_plot_and_resumable_runs(tmp_path
         np.testing.assert_allclose(err, z["slam"], atol=1e-5)
         assert math.isclose(summary["online"]["time_avg_mean"], float(z["slam"].mean()))
         assert (z["std"] >= 0).all()
+        # the walls' frame: its error and its guide's std (the default preset observes it)
+        frame_error, frame_std = float(z["frame_error"]), float(z["frame_std"])
+    assert abs(frame_error) < 0.01 and 5e-5 < frame_std < 0.05  # a std (rad), not a variance
+    frame = abs(frame_error) / frame_std
+    assert summary["online"]["frame_std_median"] == pytest.approx(frame_std)
+    assert summary["online"]["frame_error_over_std_median"] == pytest.approx(frame)
     assert summary["online"]["std_over_error_median"] > 0
     assert summary["online"]["std_over_aligned_error_median"] > 0
     # diagnostic: the error left after a rigid alignment of each trajectory to the truth

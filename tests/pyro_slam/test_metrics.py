@@ -13,6 +13,7 @@ from pyro_slam.metrics import (
     aligned_error,
     ate,
     calibration,
+    coverage,
     distance_travelled,
     frame_error,
     localisation_error,
@@ -80,6 +81,19 @@ def test_std_over_error_is_the_time_averaged_position_std_over_the_mean_error():
     assert std_over_error(std, np.array([1.0, 2.0])) == pytest.approx(0.75 / 1.5)
     assert std_over_error(std, np.array([0.25, 0.25])) == pytest.approx(3.0)  # underconfident
     assert std_over_error(std, np.zeros(2)) == pytest.approx(0.75 / 1e-12)  # no error: no NaN
+
+
+def test_a_calibrated_gaussian_reads_1_13_and_covers_0_865():
+    """Errors drawn from the posterior itself (isotropic, per-axis std 0.01): the position std
+    (the hypot of the per-axis stds) over the mean distance is sqrt(2) / sqrt(pi / 2), not 1,
+    and the 2-sigma ellipse holds 1 - exp(-2) of the steps."""
+    rng = np.random.default_rng(0)
+    std = np.full((20_000, 3), 0.01)
+    true = np.zeros((20_000, 3))
+    est = true + rng.normal(0.0, 0.01, true.shape)
+    err = localisation_error(est, true)
+    assert std_over_error(std, err) == pytest.approx(math.sqrt(4 / math.pi), abs=0.01)
+    assert coverage(std, est, true) == pytest.approx(1 - math.exp(-2), abs=0.01)
 
 
 def test_calibration_compares_the_spread_with_the_raw_and_the_aligned_error():
