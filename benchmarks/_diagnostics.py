@@ -33,7 +33,7 @@ def pin_cache(slam, poses, noise: float = 1e-3, seed: int = 0) -> None:
     if slam.inserter is not None:
         insert = slam.inserter.insert
 
-        def insert_pinned(x, valid, z, var=0.0):  # the current step's scan at its pinned pose
-            insert(x, valid, poses[slam.state.t].to(x.dtype), var)
+        def insert_pinned(x, valid, z, var=0.0, scale=1.0):  # the step's scan at its pinned pose
+            insert(x, valid, poses[slam.state.t].to(x.dtype), var, scale)
 
         slam.inserter.insert = insert_pinned

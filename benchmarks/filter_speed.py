@@ -60,7 +60,7 @@ def smcfilter(model, M, obs, ctl, init, K, steps):
         smc.init(init_pose=init, x=obs[0])
         t0 = time.perf_counter()
         for t in range(1, steps + 1):
-            smc.step(obs[t], ctl[t - 1])
+            smc.step(t, obs[t], ctl[t - 1])
             _ = smc.get_empirical()["z"].mean
         return steps / (time.perf_counter() - t0)
 

@@ -26,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from pyro import poutine
 from torch.distributions import kl_divergence
 
 from benchmarks._common import add_threads_arg, print_json_main
@@ -57,10 +56,9 @@ def traversal_elbo(slam: SLAM, draws: int) -> dict:
         st.gen.manual_seed(EVAL_SEED)
         for _ in range(draws):
             c.elbo.cache = copy.deepcopy(cache)  # the chunks refresh it
-            g = poutine.trace(c.guide).get_trace()
-            m = poutine.trace(poutine.replay(c.model.global_model, trace=g)).get_trace()
+            g, m = c.elbo.global_traces(c.model.handled(), c.guide)
             kls.append(float(kl_divergence(g.nodes["map"]["fn"], m.nodes["map"]["fn"]).sum()))
-            frame = g.nodes["frame"]["value"] if "frame" in g.nodes else None
+            frame = m.nodes["frame"]["value"] if "frame" in m.nodes else None
             ev = c.elbo.chunk_log_evidence(g.nodes["map"]["value"], ChunkBatch(starts, L), frame)
             evs.append(float(ev.sum()) * data.T / (len(starts) * L))
     c.elbo.cache = cache

@@ -12,7 +12,11 @@ from slamdata.angles import wrap_angle  # noqa: F401 (the one angle helper, re-e
 
 def interleave(x: torch.Tensor, y: torch.Tensor, dtype=None) -> torch.Tensor:
     """``torch.stack([x, y], -1).to(dtype)`` for ``x, y [...]``: ``[..., 2]``, written into one
-    buffer (a last-axis ``stack`` of large tensors runs several times slower on CPU)."""
+    buffer (a last-axis ``stack`` of large tensors runs several times slower on CPU). Tensor
+    subclasses (Pyro's provenance tracking, :func:`pyro.infer.inspect.get_dependencies`) go
+    through ``torch.stack``, which they follow; item assignment into a new buffer they cannot."""
+    if type(x) is not torch.Tensor or type(y) is not torch.Tensor:
+        return torch.stack(torch.broadcast_tensors(x, y), -1).to(dtype or x.dtype)
     out = torch.empty(*x.shape, 2, dtype=dtype or x.dtype, device=x.device)
     out[..., 0] = x
     out[..., 1] = y

@@ -16,12 +16,13 @@ from .proposals import (
     sequence_guide,
 )
 from .resampling import ParticleFilterFailed
-from .smc import ProposalGuide, PyroSMCFilter
+from .smc import EvidenceSMCFilter, ProposalGuide, PyroSMCFilter
 from .smoothing import ParticleHistory, transition_log_density
 
 __all__ = [
     "PROPOSALS",
     "ChunkBatch",
+    "EvidenceSMCFilter",
     "HeadingProposal",
     "ParticleCache",
     "ParticleChunkELBO",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import torch
@@ -9,7 +10,7 @@ from pyro import poutine
 from pyro.infer import ELBO
 from torch.distributions import kl_divergence
 
-from ..model.model import HeadingEvidence
+from ..model.model import FrameBelief, HeadingEvidence, Window
 from .cache import ParticleCache
 from .filter import ParticleFilter
 from .particles import Particles
@@ -26,18 +27,25 @@ class ChunkBatch:
 class ParticleChunkELBO(ELBO):
     """Negative ELBO of paper eq. (3) for :class:`pyro.infer.SVI`, on chunks of one traversal.
 
-    ``model`` samples the global sites -- the site ``"map"`` and, with a heading factor,
-    ``"frame"`` (:meth:`DVBFLM.global_model`) -- and ``guide`` is any guide over them
-    (:class:`~pyro_slam.model.MapGuide`, an autoguide, with
-    :class:`~pyro_slam.model.FrameGuide`, ...). For each chunk the start particles come from
-    the cache, the particle filter runs ``length`` steps under one reparameterised sample of
-    the globals, and the cache is refreshed with the filtered particles (and one step beyond
-    the chunk through the transition). The loss, divided by ``T`` to keep the scale per time
-    step, is
+    ``model`` is :meth:`DVBFLM.model <pyro_slam.model.DVBFLM.model>` (or the model under
+    handlers, :meth:`~pyro_slam.model.DVBFLM.handled`) and ``guide`` any guide of its global
+    sites -- ``"map"`` and, with a heading factor, ``"frame"`` -- called with the model's
+    arguments (:class:`~pyro_slam.model.GlobalGuide`: a :class:`~pyro_slam.model.MapGuide`,
+    an autoguide over ``poutine.block(model, expose=["map"])``, ..., with
+    :class:`~pyro_slam.model.FrameGuide`). Each SVI step traces the guide, replays it into the
+    model's global :class:`~pyro_slam.model.Window` (a handler that sets a global site wins),
+    and, for each chunk, starts particles from the cache, filters ``length`` steps through the
+    model's one-step windows under that sample of the globals (:class:`~.filter.ParticleFilter`)
+    and refreshes the cache with the filtered particles (and one step beyond the chunk through
+    the transition). The loss, divided by ``T`` to keep the scale per time step, is
 
         -(T / (C L)) sum_chunks log p^(x_chunk | M, phi) + KL(q(M, phi) || p(M, phi)),
 
-    with an analytic KL per site where both sides have one (Monte Carlo otherwise).
+    with an analytic KL per site where both sides have one (Monte Carlo otherwise), as
+    :class:`pyro.infer.TraceMeanField_ELBO` takes it. With one particle and one chunk over the
+    whole traversal from the initial-pose prior, its value and gradient times ``T`` are
+    ``TraceMeanField_ELBO``'s on the same trace of the model and the SLAM guide
+    (:func:`~.proposals.sequence_guide`).
 
     Args:
         pf: the :class:`~.filter.ParticleFilter` (shares the model).
@@ -49,6 +57,7 @@ class ParticleChunkELBO(ELBO):
         headings: the wall directions seen in the scans, a
             :class:`~pyro_slam.model.HeadingEvidence` with ``direction [T]`` (nan where none),
             observed under the model's heading factor in the sampled frame.
+        init_pose: the start pose ``[3]`` (the model's argument; the guide's too).
     """
 
     def __init__(
@@ -62,13 +71,21 @@ class ParticleChunkELBO(ELBO):
         proposal: str = "gaussian",
         refresh: bool = True,
         headings: HeadingEvidence | None = None,
+        init_pose=None,
     ):
         super().__init__(num_particles=1)
         self.pf, self.cache, self.headings = pf, cache, headings
         self.observations, self.controls, self.mask = observations, controls, mask
+        self.init_pose = init_pose
         self.K, self.proposal, self.refresh = num_particles, proposal, refresh
         self.num_steps_seen = observations.shape[0]
         self.last_log_evidence = None
+
+    @property
+    def model_args(self) -> tuple:
+        """The model's (and guide's) arguments: ``(observations, controls, init_pose, mask,
+        headings)``."""
+        return self.observations, self.controls, self.init_pose, self.mask, self.headings
 
     def chunk_log_evidence(self, M, batch: ChunkBatch, frame=None):
         """Run the filter over the chunks under the map ``M`` and the frame ``frame`` (a sample;
@@ -78,8 +95,9 @@ class ParticleChunkELBO(ELBO):
         z0 = self.cache.propose(t, self.K, self.proposal, generator=self.pf.generator)
         z0 = z0.to(obs.dtype)
         headings = None
-        if self.headings is not None and frame is not None:
-            headings = replace(self.headings, frame=frame, frame_var=0.0)
+        loc, var = (frame.mean, frame.var) if isinstance(frame, FrameBelief) else (frame, 0.0)
+        if self.headings is not None and loc is not None and not math.isnan(float(loc)):
+            headings = replace(self.headings, frame=loc, frame_var=var)
         h0 = None if headings is None else headings.at(t)
         p, ev = self.pf.init(
             z0, M, obs[t], None if mask is None else mask[t], step=int(t[0]), heading=h0
@@ -107,9 +125,17 @@ class ParticleChunkELBO(ELBO):
             z = self.pf.propagate(q, self.controls[nxt[ok] - 1])
             self.cache.store(nxt[ok], Particles(z, q.logw), self.pf.generator)
 
+    def global_traces(self, model, guide):
+        """The guide's trace and the model's trace of its global window, replayed from it."""
+        args = self.model_args
+        guide_tr = poutine.trace(guide).get_trace(*args)
+        model_tr = poutine.trace(poutine.replay(model, trace=guide_tr)).get_trace(
+            *args, window=Window(frame=FrameBelief())
+        )
+        return guide_tr, model_tr
+
     def differentiable_loss(self, model, guide, batch: ChunkBatch, *args, **kwargs):
-        guide_tr = poutine.trace(guide).get_trace()
-        model_tr = poutine.trace(poutine.replay(model, trace=guide_tr)).get_trace()
+        guide_tr, model_tr = self.global_traces(model, guide)
         kl = 0.0
         for name, g in guide_tr.nodes.items():
             if g["type"] != "sample" or g["is_observed"]:
@@ -118,12 +144,14 @@ class ParticleChunkELBO(ELBO):
             if m is None:  # a guide-only site (an autoguide's auxiliary latent): Monte Carlo
                 kl = kl + g["fn"].log_prob(g["value"]).sum()
                 continue
+            if m["is_observed"]:  # a handler set the model's value: the guide's is unused
+                continue
             try:
                 kl = kl + kl_divergence(g["fn"], m["fn"]).sum()
             except NotImplementedError:
                 kl = kl + (g["fn"].log_prob(g["value"]) - m["fn"].log_prob(g["value"])).sum()
-        M = guide_tr.nodes["map"]["value"]
-        frame = guide_tr.nodes["frame"]["value"] if "frame" in guide_tr.nodes else None
+        M = model_tr.nodes["map"]["value"]
+        frame = model_tr.nodes["frame"]["value"] if "frame" in model_tr.nodes else None
         ev = self.chunk_log_evidence(M, batch, frame)  # [C]
         self.last_log_evidence = ev.detach()
         T = self.num_steps_seen

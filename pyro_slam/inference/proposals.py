@@ -52,7 +52,7 @@ class PoseProposal(TorchDistribution):
 
     arg_constraints = {}
     support = constraints.real_vector
-    has_rsample = False
+    has_rsample = True
 
     def __init__(self, loc, scale, alt_loc=None, alt_scale=None, alt_weight=None):
         self.loc, self.scale = loc, scale
@@ -92,6 +92,12 @@ class PoseProposal(TorchDistribution):
         return xy + torch.where(w > 0, h, base)
 
     def sample(self, sample_shape=(), generator=None):
+        with torch.no_grad():
+            return self.rsample(sample_shape, generator)
+
+    def rsample(self, sample_shape=(), generator=None):
+        """A draw, differentiable in the parameters within the component it falls in (the
+        heading's mixture weight gets no gradient)."""
         shape = torch.Size(sample_shape) + self.loc.shape
         eps = torch.randn(shape, generator=generator, dtype=self.loc.dtype)
         z = self.loc + eps * self.scale
@@ -115,18 +121,42 @@ class Proposal:
 
     @torch.no_grad()
     def propose(self, model, p: Particles, u, generator=None, **step):
-        """Sample ``z_t [..., K, 3]`` for the particles ``p``; returns it with the importance
-        correction ``log p(z_t | z_{t-1}) - log q(z_t)`` ``[..., K]`` (None for the
-        transition). ``u [..., D_u]`` (one per batch element); ``step`` as :meth:`dist`, with
-        ``heading`` per batch element."""
-        if step.get("heading") is not None:
-            step["heading"] = step["heading"].per_particle()
-        q = self.dist(model, p.z, p.scan, u.unsqueeze(-2), **step)
+        """Sample ``z_t [..., K, 3]`` for the particles ``p`` with ``generator``; returns it
+        with ``q`` (the distribution it was drawn from, batch ``[..., K]``: for the transition,
+        the model's own transition distribution, whose importance correction is then exactly
+        zero). ``u [..., 1, D_u]`` and ``step`` (:meth:`dist`'s, ``heading`` per particle,
+        :meth:`~pyro_slam.model.HeadingEvidence.per_particle`) broadcast against the
+        particles."""
+        q = self.dist(model, p.z, p.scan, u, **step)
         z = q.sample(generator=generator)
         if self.is_transition:
-            return z, None
-        trans = model.transition_dist(p.z, u.unsqueeze(-2), p.scan, validate=False)
-        return z, trans.log_prob(z) - q.log_prob(z)
+            q = model.transition_dist(p.z, u, p.scan, validate=False)
+        return z, q
+
+
+class Drawn(TorchDistribution):
+    """A distribution ``q`` with a value already drawn from it (by the filter's own generator):
+    ``sample()`` returns ``value``, ``log_prob`` is ``q``'s. The pose site of the filter's
+    one-step guide, which the model's trace replays."""
+
+    arg_constraints = {}
+    has_rsample = False
+
+    def __init__(self, q, value: torch.Tensor):
+        self.q, self.value = q, value
+        super().__init__(q.batch_shape, q.event_shape, validate_args=False)
+
+    @property
+    def support(self):
+        return self.q.support
+
+    def sample(self, sample_shape=()):
+        if sample_shape:
+            raise ValueError("a drawn value has no further samples")
+        return self.value
+
+    def log_prob(self, value):
+        return self.q.log_prob(value)
 
 
 class TransitionProposal(Proposal):
@@ -178,7 +208,7 @@ class MatchedProposal(TorchDistribution):
 
     arg_constraints = {}
     support = constraints.real_vector
-    has_rsample = False
+    has_rsample = True
 
     def __init__(self, loc, scale, mu, cov, defensive: float):
         self.loc, self.scale, self.mu, self.defensive = loc, scale, mu, float(defensive)
@@ -218,6 +248,12 @@ class MatchedProposal(TorchDistribution):
         return torch.logaddexp(math.log(a) + lt, math.log1p(-a) + lm)
 
     def sample(self, sample_shape=(), generator=None):
+        with torch.no_grad():
+            return self.rsample(sample_shape, generator)
+
+    def rsample(self, sample_shape=(), generator=None):
+        """A draw, differentiable in the parameters of the component it falls in (the
+        defensive share is a constant)."""
         shape = torch.Size(sample_shape) + self.loc.shape
         eps = torch.randn(shape, generator=generator, dtype=self.loc.dtype)
         zt = self.loc + eps * self.scale
@@ -373,28 +409,44 @@ PROPOSALS = {
 }
 
 
+def _global_values(out):
+    """``(M, frame)`` from what a guide of the global sites returns: a
+    :class:`~pyro_slam.model.GlobalGuide`'s pair, an autoguide's dict of sites, or a map."""
+    if isinstance(out, dict):
+        return out["map"], out.get("frame")
+    if isinstance(out, tuple):
+        return out
+    return out, None
+
+
 def sequence_guide(model, proposal: Proposal, global_guide):
     """The SLAM guide of a whole traversal as a Pyro guide of :meth:`DVBFLM.model
-    <pyro_slam.model.DVBFLM.model>` (same arguments): the global sites from ``global_guide``
-    (a :class:`~pyro_slam.model.GlobalGuide`, returning ``(M, phi)``), the start pose from the
-    model's prior, then each pose ``z_t`` from ``proposal`` at the previous one (a single
-    particle), reading the step's scan, the sampled map and the heading evidence in the
-    sampled frame. With it, Pyro's :class:`~pyro.infer.Trace_ELBO` estimates the bound that
+    <pyro_slam.model.DVBFLM.model>` (same arguments, which it hands to ``global_guide``): the
+    global sites from ``global_guide`` (a :class:`~pyro_slam.model.GlobalGuide` returning
+    ``(M, phi)``, or any guide of the site ``"map"``, e.g. ``AutoNormal(poutine.block(model,
+    expose=["map"]))``), the start pose from the model's prior, then each pose ``z_t`` from
+    ``proposal`` at the previous one (a single particle), reading the step's scan, the
+    sampled map and the heading evidence in the sampled frame. As the particle cache does
+    (paper eq. 3), the proposals read the map and the poses without their gradient: no
+    gradient, and no score-function term, comes from the proposal, whose sites are
+    reparameterised. With it, Pyro's :class:`~pyro.infer.Trace_ELBO` (and
+    ``TraceMeanField_ELBO``, ``TraceGraph_ELBO``) estimates the bound that
     :class:`~.elbo.ParticleChunkELBO` estimates with one particle."""
 
     def guide(observations, controls, init_pose, mask=None, headings=None):
-        M, frame = global_guide()
+        M, frame = _global_values(global_guide(observations, controls, init_pose, mask, headings))
+        M = M.detach()
         z = pyro.sample("z_0", dist.Normal(init_pose, model.init_scale).to_event(1))
-        scan = model.emission_mean(M, z)
+        reads = model.transition.needs_scan
+        scan = model.emission_mean(M, z) if reads else None
         if headings is not None and frame is not None:
-            headings = replace(headings, frame=frame, frame_var=0.0)
+            headings = replace(headings, frame=frame.detach(), frame_var=0.0)
         for t in range(1, controls.shape[-2] + 1):
             step = {"x": observations[t], "mask": None if mask is None else mask[t], "M": M}
             if headings is not None and frame is not None:
                 step["heading"] = headings.at(t)
-            z = pyro.sample(
-                f"z_{t}", proposal.dist(model, z, scan, controls[..., t - 1, :], **step)
-            )
-            scan = model.emission_mean(M, z)
+            q = proposal.dist(model, z.detach(), scan, controls[..., t - 1, :], **step)
+            z = pyro.sample(f"z_{t}", q)
+            scan = model.emission_mean(M, z.detach()) if reads else None
 
     return guide

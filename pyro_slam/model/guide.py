@@ -21,6 +21,7 @@ import pyro.distributions as dist
 import torch
 from pyro import poutine
 from pyro.distributions import constraints
+from pyro.infer.autoguide import AutoDelta
 from torch.distributions import biject_to, kl_divergence
 
 from .model import DVBFLM
@@ -114,20 +115,24 @@ def autoguide(cls, **kwargs):
 ONE_SIGMA = 0.8413447460685429
 
 
-def map_marginals(guide) -> tuple[torch.Tensor, torch.Tensor]:
+def map_marginals(guide, args=()) -> tuple[torch.Tensor, torch.Tensor]:
     """The marginal mean and std ``[w, h, D_m]`` of a map guide's ``q(M)``: from its
-    ``params()`` (:class:`MapGuide` and any guide with that method), or from Pyro's public
+    ``params()`` (:class:`MapGuide` and any guide with that method), from Pyro's public
     ``quantiles`` (autoguides: median and the one-sigma quantile, exact for Gaussian
-    marginals)."""
+    marginals), from ``median`` with a zero std for a point estimate (``AutoDelta``), or else
+    from 64 draws of the site (``args``: the model's arguments, which the guide is called
+    with)."""
     if hasattr(guide, "params"):
         return guide.params()
-    if hasattr(guide, "quantiles"):
-        q = guide.quantiles([0.5, ONE_SIGMA])["map"]  # [2, w, h, D_m]
+    if isinstance(guide, AutoDelta):
+        loc = guide.median(*args)["map"]
+        return loc, torch.zeros_like(loc)
+    try:
+        q = guide.quantiles([0.5, ONE_SIGMA], *args)["map"]  # [2, w, h, D_m]
         return q[0], q[1] - q[0]
-    raise TypeError(
-        f"a map guide needs params() -> (loc, scale) or Pyro's quantiles(); got "
-        f"{type(guide).__name__}"
-    )
+    except (AttributeError, NotImplementedError):
+        draws = sample_maps(guide, 64, args)  # [64, w, h, D_m]
+        return draws.mean(0), draws.std(0)
 
 
 class MapLeaves:
@@ -242,10 +247,11 @@ class ParamScope:
             self._depth -= 1
 
 
-def sample_maps(guide, n: int) -> torch.Tensor:
-    """``n`` draws of the site ``"map"`` from a map guide: ``[n, w, h, D_m]``."""
+def sample_maps(guide, n: int, args=()) -> torch.Tensor:
+    """``n`` draws of the site ``"map"`` from a map guide (called with ``args``):
+    ``[n, w, h, D_m]``."""
     with torch.no_grad():
-        draws = [poutine.trace(guide).get_trace().nodes["map"]["value"] for _ in range(n)]
+        draws = [poutine.trace(guide).get_trace(*args).nodes["map"]["value"] for _ in range(n)]
     return torch.stack(draws)
 
 

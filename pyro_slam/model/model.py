@@ -31,6 +31,7 @@ view, then row-wise MLPs). Model, guide, filter and ELBO are the same for both.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -38,6 +39,7 @@ import pyro
 import pyro.distributions as dist
 import torch
 import torch.nn.functional as F
+from pyro.poutine.messenger import Messenger
 from torch import nn
 
 from ..geometry import interleave
@@ -69,7 +71,7 @@ class WallHeading:
     outlier_prob: float = 0.0
 
 
-@dataclass
+@dataclass(eq=False)
 class HeadingEvidence:
     """The wall directions seen in the scans: ``direction [...]`` (rad in ``[0, period)``, nan
     where a scan shows no straight wall), their std ``sigma [...]`` (or a number), and the walls'
@@ -239,6 +241,44 @@ class MapGrid:
         return corner.add_(a2.div_((rest * rest).add_(a2)))
 
 
+class _Independent(dist.Independent):
+    """An :class:`~pyro.distributions.Independent` whose expansion to its own batch shape is
+    itself: a plate leaves the model's transition the object a proposal drew from (whose
+    importance correction is then zero by construction, even for a deterministic one)."""
+
+    def expand(self, batch_shape, _instance=None):
+        if torch.Size(batch_shape) == self.batch_shape:
+            return self
+        return super().expand(batch_shape, _instance)
+
+
+class _Memo:
+    """The last distribution built from some tensors, kept with them: a later call on the same
+    tensor objects, unchanged since (their version), gets it back. Tensors that need a
+    gradient are never kept."""
+
+    def __init__(self):
+        self.args, self.versions, self.value = None, None, None
+
+    @staticmethod
+    def _versions(args) -> tuple | None:
+        if any(torch.is_tensor(a) and a.requires_grad for a in args):
+            return None
+        return tuple(a._version if torch.is_tensor(a) else None for a in args)
+
+    def get(self, args):
+        if self.args is None or len(args) != len(self.args):
+            return None
+        if all(a is b for a, b in zip(args, self.args)) and self._versions(args) == self.versions:
+            return self.value
+        return None
+
+    def put(self, args, value) -> None:
+        versions = self._versions(args)
+        if versions is not None:
+            self.args, self.versions, self.value = tuple(args), versions, value
+
+
 class DVBFLM(nn.Module):
     """DVBF-LM.
 
@@ -263,6 +303,14 @@ class DVBFLM(nn.Module):
             :class:`~pyro_slam.model.noise.BeamMixture` of the noise and a uniform density over
             ``outlier_range`` (the sensor's range).
         heading: the heading factor (:class:`WallHeading`), or None.
+        learn_emission, learn_transition: whether the model hands the emission's and the
+            transition's networks to Pyro (``pyro.module``), so that SVI on :meth:`model`
+            trains them; a network that is not learned is frozen (no gradient). Default: the
+            emission is learned (a new network is the paper's), a (shipped) transition is not.
+        handler: Pyro handlers applied to :meth:`model` wherever this library runs it (the
+            filter's weights, scan insertion, SLAM's SVI, the planner's rollouts, MI): a
+            function ``fn -> handled fn`` such as ``lambda fn: poutine.condition(fn, data)``,
+            or a messenger such as ``poutine.scale(scale=0.5)`` (:meth:`handled`).
 
     Every factor is a Pyro distribution (:meth:`map_prior`, :meth:`emission_dist`,
     :meth:`transition_dist`), and everything that evaluates the model -- the Pyro model, the
@@ -283,6 +331,9 @@ class DVBFLM(nn.Module):
         outlier_prob: float = 0.0,
         outlier_range: float = 1.0,
         heading: WallHeading | None = None,
+        learn_emission: bool = True,
+        learn_transition: bool = False,
+        handler=None,
     ):
         super().__init__()
         if not isinstance(emission, Emission):
@@ -311,6 +362,9 @@ class DVBFLM(nn.Module):
             raise ValueError(f"outlier_range must be positive, got {outlier_range!r}")
         self.outlier_prob, self.outlier_range = float(outlier_prob), float(outlier_range)
         self.heading = heading
+        self.learn_emission, self.learn_transition = bool(learn_emission), bool(learn_transition)
+        self.handler = handler
+        self._memo = _Memo()  # the last transition distribution (:meth:`transition_dist`)
 
     # ----------------------------------------------------------------- factors as functions
     def chart(self, M: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -395,7 +449,15 @@ class DVBFLM(nn.Module):
         deterministic transition, ``sigma_T = 0``, can be filtered)."""
         s = self.transition.sigma if sigma is None else sigma
         validate = dist.is_validation_enabled() if validate is None else validate
-        return dist.Normal(self.transition.mean(z, u, scan), s, validate_args=validate).to_event(1)
+        args = (z, u, scan, s, validate)
+        keep = not any(p.requires_grad for p in self.transition.parameters())
+        if keep and (d := self._memo.get(args)) is not None:
+            return d
+        mean = self.transition.mean(z, u, scan)
+        d = _Independent(dist.Normal(mean, s, validate_args=validate), 1)
+        if keep:
+            self._memo.put(args, d)
+        return d
 
     def heading_dist(self, theta: torch.Tensor, frame, scale):
         """``p(h_t | theta_t, phi)``: the wall direction seen at headings ``theta [...]`` (event
@@ -438,8 +500,41 @@ class DVBFLM(nn.Module):
         return var.sqrt()
 
     # ------------------------------------------------------------------------ Pyro model
-    learn_emission = True
     heading_scale = 1e-3  # std of sampled wall directions (rad), where none are observed
+
+    @property
+    def learn_emission(self) -> bool:
+        """Whether :meth:`model` hands the emission's network to Pyro (SVI trains it); a
+        network that is not learned is frozen."""
+        return self._learn_emission
+
+    @learn_emission.setter
+    def learn_emission(self, value: bool) -> None:
+        self._learn_emission = bool(value)
+        self.emission.requires_grad_(self._learn_emission)
+
+    @property
+    def learn_transition(self) -> bool:
+        """Whether :meth:`model` hands the transition's network to Pyro; frozen otherwise."""
+        return self._learn_transition
+
+    @learn_transition.setter
+    def learn_transition(self, value: bool) -> None:
+        self._learn_transition = bool(value)
+        self.transition.requires_grad_(self._learn_transition)
+
+    def handled(self):
+        """:meth:`model` under the model's ``handler`` (itself without one): what the filter,
+        scan insertion, SLAM's SVI, the planner and MI run."""
+        return self.model if self.handler is None else self.handler(self.model)
+
+    def _register_networks(self) -> None:
+        """``pyro.module`` for the networks the model learns (:attr:`learn_emission`,
+        :attr:`learn_transition`), and nothing else: a frozen network is not a parameter."""
+        if self.learn_emission and any(True for _ in self.emission.parameters()):
+            pyro.module("emission", self.emission)
+        if self.learn_transition and any(True for _ in self.transition.parameters()):
+            pyro.module("transition", self.transition)
 
     def sample_map(self) -> torch.Tensor:
         """The global map site ``"map"`` under its two plates; returns ``M [w, h, D_m]``."""
@@ -454,29 +549,20 @@ class DVBFLM(nn.Module):
             return None
         return pyro.sample("frame", CircularUniform(self.heading.period))
 
-    def global_model(self, *args, **kwargs):
-        """The global sites of the model: ``mu_E`` (if learned), the map and (with a heading
-        factor) the frame. Returns ``(M [w, h, D_m], phi or None)``. This is the ``model``
-        handed to :class:`pyro.infer.SVI` with
-        :class:`~pyro_slam.inference.ParticleChunkELBO`, which adds the local part (poses,
-        scans, wall directions) by particle filtering."""
-        if self.learn_emission:
-            pyro.module("emission", self.emission)
-        return self.sample_map(), self.sample_frame()
-
     def mapping_model(self, poses, observations, mask=None, batch_size=None):
-        """The model of scans taken at known poses (mapping): the global sites, then each
-        scan ``observations [T, N]`` at ``poses [T, 3]`` (``mask [T, N]``) under the emission,
-        in a plate ``"data"`` that subsamples ``batch_size`` of them per call. The ``model`` of
-        :func:`~pyro_slam.slam.fit_map` and of exploration's mapper."""
-        M, _ = self.global_model()
+        """The model of scans taken at known poses (mapping): the map, then each scan
+        ``observations [T, N]`` at ``poses [T, 3]`` (``mask [T, N]``) under the emission, in a
+        plate ``"data"`` that subsamples ``batch_size`` of them per call. The ``model`` of
+        :func:`~pyro_slam.slam.fit_map`."""
+        self._register_networks()
+        M = self.sample_map()
         T = poses.shape[0]
         with pyro.plate("data", T, subsample_size=min(batch_size or T, T)) as i:
             mean = self.emission_mean(M, poses[i], observations[i])
             mask_i = None if mask is None else mask[i]
             pyro.sample("x", self.emission_dist(mean, mask_i), obs=observations[i])
 
-    def model(self, observations, controls, init_pose, mask=None, headings=None):
+    def model(self, observations, controls, init_pose, mask=None, headings=None, window=None):
         """The full generative model of one traversal.
 
         Args:
@@ -488,76 +574,220 @@ class DVBFLM(nn.Module):
             headings: the wall directions ``direction [T]`` and their std of a
                 :class:`HeadingEvidence` (its frame is ignored: the model samples ``phi``);
                 None: with a heading factor, the directions are sampled.
+            window: None for the whole traversal; a :class:`Window` runs a part of it (the
+                global sites alone, or one step vectorised over particles, with the step's
+                data from the window): what the filter and SLAM's objective trace.
         Returns:
-            poses ``[..., T, 3]``. Sites: ``map``, (``frame``,) ``z_t``, ``x_t``, (``h_t``,)
-            and the predicted observation ``scan_t`` (deterministic, ``mu_E``) of every step.
+            poses ``[..., T, 3]`` (a window: see :class:`Window`). Sites: ``map``,
+            (``frame``,) ``z_t``, ``x_t``, (``h_t``,) and the predicted observation ``scan_t``
+            (deterministic, ``mu_E``) of every step.
         """
-        pyro.module("dvbflm", self)
+        self._register_networks()
+        if window is not None:
+            return window.run(self)
         T = controls.shape[-2] + 1
         M, frame = self.sample_map(), self.sample_frame()
-        z = pyro.sample("z_0", dist.Normal(init_pose, self.init_scale).to_event(1))
         poses = []
-        scan = None
+        prev = None
         for t in pyro.markov(range(T)):
-            if t > 0:
-                z = pyro.sample(f"z_{t}", self.transition_dist(z, controls[..., t - 1, :], scan))
-            scan = pyro.deterministic(f"scan_{t}", self.emission_mean(M, z), event_dim=1)
-            obs_t = None if observations is None else observations[t]
-            mask_t = None if mask is None else mask[t]
-            mean = self._observed_mean(M, z, scan, obs_t)
-            pyro.sample(f"x_{t}", self.emission_dist(mean, mask_t), obs=obs_t)
-            if frame is not None:
-                self._observe_heading(t, z, frame, headings)
-            poses.append(z)
+            u = None if t == 0 else controls[..., t - 1, :]
+            x = None if observations is None else observations[t]
+            m = None if mask is None else mask[t]
+            h = None if headings is None else headings.at(t)
+            prev = self.step(t, M, frame, prev, u, x, m, h, init=init_pose)
+            poses.append(prev[0])
         return torch.stack(torch.broadcast_tensors(*poses), -2)
 
-    def _observe_heading(self, t: int, z, frame, headings: HeadingEvidence | None) -> None:
-        """The site ``h_t``: observed where step ``t``'s scan shows a wall direction."""
-        if headings is None:
-            pyro.sample(f"h_{t}", self.heading_dist(z[..., 2], frame, self.heading_scale))
+    def step(self, t: int, M, frame, prev, u, x, mask=None, evidence=None, **how):
+        """The sites of step ``t`` (:meth:`model`'s loop body), given the previous step's
+        ``prev = (z, scan)`` (poses ``[..., 3]`` and their predicted scans) or None:
+
+        * ``z_t`` from the transition at ``prev`` under the control ``u``; without ``prev``,
+          from the initial-pose prior about ``how["init"]``, or, with ``how["given"]``, the
+          poses of step ``t`` themselves (no site: a chunk's start particles);
+        * ``scan_t`` (deterministic), the predicted observation at ``z_t``;
+        * ``x_t``, observed at ``x`` (None: sampled) with ``mask``, under the map ``M`` (a
+          :class:`MapBelief`: the emission marginalised over it);
+        * with a heading factor, ``h_t``, the wall direction of ``evidence`` (a
+          :class:`HeadingEvidence`; None: sampled) in the frame ``frame`` (a
+          :class:`FrameBelief`: marginalised over it).
+
+        ``how["window"]``: run in a :class:`Window` (the emission's mean read once, given the
+        observation; ``how["dtype"]``: its reduced precision without gradients). Returns
+        ``(z_t, scan_t)``."""
+        if prev is not None:
+            z = pyro.sample(f"z_{t}", self.transition_dist(prev[0], u, prev[1], validate=False))
+        elif how.get("given") is not None:
+            z = how["given"]
+        else:
+            z = pyro.sample(f"z_{t}", dist.Normal(how["init"], self.init_scale).to_event(1))
+        scan, mean, eps = self._read(M, z, x, how.get("window", False), how.get("dtype"))
+        pyro.deterministic(f"scan_{t}", scan, event_dim=1)
+        pyro.sample(f"x_{t}", self.emission_dist(mean, mask, outlier_prob=eps), obs=x)
+        if frame is not None:
+            self._observe_heading(t, z, frame, evidence)
+        return z, scan
+
+    def _read(self, M, z, x, window: bool, dtype=None):
+        """``(scan, mean, outlier_prob)`` at poses ``z``: the predicted scan, the mean the
+        observation ``x`` is scored with (given ``x`` where the emission reads it) and the
+        outlier probability (None: the model's). Under a :class:`MapBelief`, the marginalised
+        emission (:meth:`marginal_emission`); in a window, one read given ``x`` serves as
+        both."""
+        if isinstance(M, MapBelief):
+            mean, eps = self.marginal_emission(M, z, x)
+            return mean, mean, eps
+        if not window:
+            scan = self.emission_mean(M, z)
+            return scan, self._observed_mean(M, z, scan, x), None
+        if dtype is not None and not torch.is_grad_enabled():
+            with torch.autocast(z.device.type, dtype=dtype):
+                mean = self.emission_mean(M, z, x).to(z.dtype)
+        else:
+            mean = self.emission_mean(M, z, x)
+        return mean, mean, None
+
+    def _observe_heading(self, t: int, z, frame, evidence: HeadingEvidence | None) -> None:
+        """The site ``h_t``: observed where step ``t``'s scan shows a wall direction (in a
+        known frame), with the scan's std and the frame belief's variance."""
+        loc, var = (frame.mean, frame.var) if isinstance(frame, FrameBelief) else (frame, 0.0)
+        if evidence is None:
+            pyro.sample(f"h_{t}", self.heading_dist(z[..., 2], loc, self.heading_scale))
             return
-        e = headings.at(t)
-        seen = ~torch.isnan(e.direction)
-        scale = torch.as_tensor(e.sigma, dtype=z.dtype)
-        d = self.heading_dist(z[..., 2], frame, scale).mask(seen)
+        e = HeadingEvidence(evidence.direction, evidence.sigma, loc, var)
+        frame = torch.as_tensor(loc, dtype=z.dtype).nan_to_num()  # (unknown: unseen)
+        d = self.heading_dist(z[..., 2], frame, e.std().to(z.dtype)).mask(e.seen())
         pyro.sample(f"h_{t}", d, obs=e.direction.nan_to_num())
 
 
+@dataclass(frozen=True, eq=False)
+class FrameBelief:
+    """A Gaussian belief ``N(mean, var)`` of the walls' frame ``phi``: the value the site
+    ``"frame"`` takes in a filter's :class:`Window` (the heading factor is then marginalised
+    over it, exact for its Gaussian component); ``mean`` nan: no frame known (no wall direction
+    is used)."""
+
+    mean: float | torch.Tensor = math.nan
+    var: float | torch.Tensor = 0.0
+
+
+class _Defaults(Messenger):
+    """Gives the named sample sites a value unless a handler outside sets another (it runs
+    first: a ``poutine.condition`` or ``poutine.replay`` around the model still sets theirs)."""
+
+    def __init__(self, values: dict):
+        super().__init__()
+        self.values = {k: v for k, v in values.items() if v is not None}
+
+    def _pyro_sample(self, msg) -> None:
+        if msg["name"] in self.values and msg["value"] is None:
+            msg["value"] = self.values[msg["name"]]
+            msg["done"] = True
+
+
+@dataclass(eq=False)
+class Window:
+    """A part of :meth:`DVBFLM.model` that the filter and SLAM's objective trace, in the way
+    :class:`pyro.infer.SMCFilter` traces a model's ``step`` (the model's own sites, under
+    whatever handlers wrap :meth:`DVBFLM.model`).
+
+    Without a ``step``: the global sites alone, ``"map"`` taking the value ``map`` and
+    ``"frame"`` the value ``frame`` unless a handler sets them (a :class:`MapBelief` and a
+    :class:`FrameBelief`: the beliefs a filter marginalises over); returns ``(M, frame)``.
+
+    With a ``step`` ``t``: that step's sites (:meth:`DVBFLM.step`) under the resolved globals
+    ``map`` and ``frame``, vectorised over particles ``[..., K]`` in the plates
+    ``"particles"`` (dim -1) and ``"chunks"`` (dim -2) (``plates=False``: an enclosing plate
+    holds them, SMCFilter's): ``z_t`` from the transition at ``poses [..., K, 3]`` (the
+    previous step's, with their predicted ``scans [..., K, B]``); with ``given``, ``poses`` are
+    step ``t``'s own (no site ``z_t``: start particles weighed by their observation alone);
+    without ``poses``, ``z_t`` from the initial-pose prior about ``init [3]`` over a batch of
+    ``particles`` (a shape). The step's data broadcast against the particles: the control
+    ``u [..., 1, D_u]``, the observation ``x [..., 1, N]`` and ``mask``, the wall directions
+    ``heading`` (:meth:`HeadingEvidence.per_particle`; None: no site ``h_t``). ``dtype``: the
+    emission's reduced precision where no gradient is needed. Returns ``(z_t, scan_t)``.
+
+    A batch of chunks (``[C, K]``) holds different time steps; their sites are named after the
+    first chunk's step."""
+
+    step: int | None = None
+    map: object = None
+    frame: object = None
+    poses: torch.Tensor | None = None
+    scans: torch.Tensor | None = None
+    given: bool = False
+    init: torch.Tensor | None = None
+    particles: tuple = ()
+    u: torch.Tensor | None = None
+    x: torch.Tensor | None = None
+    mask: torch.Tensor | None = None
+    heading: HeadingEvidence | None = None
+    plates: bool = True
+    dtype: torch.dtype | None = None
+
+    def run(self, model: DVBFLM):
+        if self.step is None:
+            with _Defaults({"map": self.map, "frame": self.frame}):
+                return model.sample_map(), model.sample_frame()
+        prev = None if self.poses is None or self.given else (self.poses, self.scans)
+        frame = None if self.heading is None else self.frame
+        with self._plates():
+            return model.step(
+                self.step,
+                self.map,
+                frame,
+                prev,
+                self.u,
+                self.x,
+                self.mask,
+                self.heading,
+                init=self.init,
+                given=self.poses if self.given else None,
+                window=True,
+                dtype=self.dtype,
+            )
+
+    def _plates(self):
+        """The particle plates of the batch ``[..., K]`` (at most two dims)."""
+        shape = self.poses.shape[:-1] if self.poses is not None else tuple(self.particles)
+        stack = contextlib.ExitStack()
+        if not self.plates:
+            return stack
+        if len(shape) > 2:
+            raise ValueError(f"a window's particles are [K] or [C, K], got {tuple(shape)}")
+        for name, size, d in zip(("particles", "chunks"), reversed(shape), (-1, -2)):
+            stack.enter_context(pyro.plate(name, size, dim=d))
+        return stack
+
+
 class FilterModel:
-    """The DVBF-LM time step as a model object for :class:`pyro.infer.SMCFilter`.
+    """The model's one-step :class:`Window`\\ s as the model object of
+    :class:`pyro.infer.SMCFilter` (``init``/``step``; SMCFilter's particle plate holds the
+    particles): each step runs :meth:`DVBFLM.model` under the model's handlers
+    (:meth:`DVBFLM.handled`) with the global values ``M`` (a map ``[w, h, D_m]``, e.g. a sample
+    of ``q(M)``, or a :class:`MapBelief`) and ``frame`` (a number or a :class:`FrameBelief`;
+    None: from each step's :class:`HeadingEvidence`). ``state["z"]`` holds the poses and
+    ``state["scan"]`` their predicted scans (the transition's input at the next step); the
+    sites are the model's own, ``z_t``, ``scan_t``, ``x_t`` and ``h_t``."""
 
-    ``M`` is a map ``[w, h, D_m]`` (e.g. a sample of ``q(M)``) or a :class:`MapBelief`, under
-    which the scan is observed through :meth:`DVBFLM.marginal_emission`. ``state["z"]`` holds
-    the poses, ``state["scan"]`` the predicted scan at them (the transition's input at the next
-    step) and ``state["log_lik"]`` each particle's log-likelihood of the step's scan (for the
-    log-evidence). With the model's heading factor, a step's :class:`HeadingEvidence` is the
-    observed site ``"h"``.
-    """
+    def __init__(self, dvbflm: DVBFLM, M, frame=None):
+        self.m, self.M, self.frame = dvbflm, M, frame
 
-    def __init__(self, dvbflm: DVBFLM, M):
-        self.m, self.M = dvbflm, M
-
-    def _observe(self, state, z, x, mask, heading):
-        m = self.m
-        eps = None
-        if isinstance(self.M, MapBelief):
-            scan, eps = m.marginal_emission(self.M, z, x)
-        else:
-            scan = m.emission_mean(self.M, z, x)
-        if x is not None:
-            d = m.emission_dist(scan, mask, outlier_prob=eps)
-            pyro.sample("x", d, obs=x)
-            state["log_lik"] = d.log_prob(x)
-        if heading is not None and m.heading is not None:
-            frame, std = torch.as_tensor(heading.frame, dtype=z.dtype), heading.std()
-            d = m.heading_dist(z[..., 2], frame, std).mask(heading.seen())
-            pyro.sample("h", d, obs=heading.direction.nan_to_num().expand(z.shape[:-1]))
+    def _run(self, state, window: Window) -> None:
+        if window.frame is None and window.heading is not None:
+            h = window.heading
+            window.frame = FrameBelief(h.frame, h.frame_var)
+        z, scan = self.m.handled()(None, None, None, window=window)
         state["z"], state["scan"] = z, scan
 
     def init(self, state, init_pose, x=None, mask=None, heading=None):
-        z = pyro.sample("z", dist.Normal(init_pose, self.m.init_scale).to_event(1))
-        self._observe(state, z, x, mask, heading)
+        self._run(state, self._window(0, x, None, mask, heading, init=init_pose))
 
-    def step(self, state, x, u, mask=None, heading=None):
-        z = pyro.sample("z", self.m.transition_dist(state["z"], u, state["scan"]))
-        self._observe(state, z, x, mask, heading)
+    def step(self, state, t, x, u, mask=None, heading=None):
+        w = self._window(t, x, u, mask, heading, poses=state["z"], scans=state["scan"])
+        self._run(state, w)
+
+    def _window(self, t, x, u, mask, heading, **kw) -> Window:
+        return Window(
+            t, self.M, self.frame, u=u, x=x, mask=mask, heading=heading, plates=False, **kw
+        )

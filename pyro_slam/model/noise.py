@@ -56,9 +56,9 @@ class BeamMixture(TorchDistribution):
 
     def expand(self, batch_shape, _instance=None):
         base = self.base.expand(batch_shape)
-        eps = self.outlier_prob
-        eps = eps.expand(batch_shape) if torch.is_tensor(eps) else eps
-        return type(self)(base, eps, self.outlier_range, validate_args=False)
+        # (the outlier probability broadcasts as it is: an expanded copy would send log_prob's
+        # elementwise functions down another kernel, which rounds differently)
+        return type(self)(base, self.outlier_prob, self.outlier_range, validate_args=False)
 
     def log_prob(self, value: torch.Tensor) -> torch.Tensor:
         lp = self.base.log_prob(value)

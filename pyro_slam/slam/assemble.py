@@ -42,6 +42,7 @@ def assemble(
     prior,
     noise,
     smc: bool,
+    handler=None,
 ) -> Components:
     """The run's components, inside its parameter ``scope`` (see
     :class:`~pyro_slam.slam.runner.SLAM` for the other arguments): the filters and the
@@ -56,13 +57,22 @@ def assemble(
     if learn_emission is None:
         learn_emission = emission is None and kind.learned
     pyro.set_rng_seed(data.seed)  # (after loading: building a network draws its weights)
-    model, map_guide = build_model(data.tr, cfg, transition, emission, prior, noise)
-    model.learn_emission = bool(learn_emission)
+    heading = heading_data(data)
+    model, map_guide = build_model(
+        data.tr,
+        cfg,
+        transition,
+        emission,
+        prior,
+        noise,
+        heading=None if heading is None else heading.factor(),
+        learn_emission=bool(learn_emission),
+        handler=handler,
+    )
     if guide is not None:
         map_guide = guide(model)
-    heading = heading_data(data, model)
     if heading is not None:
-        model.heading = heading.factor()
+        heading.estimate_frame(data.tr, float(model.transition.sigma[2]))
     global_guide = GlobalGuide(map_guide, None if heading is None else heading.frame)
     name = cfg.filter.proposal
     proposal = HeadingProposal() if heading and name == "transition" else PROPOSALS[name]()
@@ -77,28 +87,28 @@ def assemble(
         data.mask,
         num_particles=cfg.training.particles,
         headings=None if heading is None else heading.evidence(),
+        init_pose=data.init_pose,
     )
     lr, lr_emission = cfg.training.lr, cfg.training.lr_emission
     optim = Adam(lambda name, _p: {"lr": lr_emission if name.startswith("emission") else lr})
-    svi = SVI(model.global_model, global_guide, optim, loss=elbo)
+    svi = SVI(handled_model(model), global_guide, optim, loss=elbo)
     warm_optimizers()
-    create_guide_params(map_guide)
+    create_guide_params(map_guide, elbo.model_args)
     insert = None if cfg.emission.insert is None else inserter(cfg, model, map_guide)
     return Components(
         scope, model, map_guide, global_guide, heading, proposal, pf, elbo, optim, svi, insert
     )
 
 
-def heading_data(data: RunData, model: DVBFLM) -> ManhattanHeading | None:
-    """The wall directions of the run's scans and the walls' frame guide (with the configured
-    heading factor; None without)."""
+def heading_data(data: RunData) -> ManhattanHeading | None:
+    """The wall directions of the run's scans (with the configured heading factor; None
+    without); the walls' frame guide is estimated once the model's transition is known."""
     cfg = data.cfg
     if cfg.heading is None:
         return None
     image = cfg.emission.observation == "image"
-    drift = float(model.transition.sigma[2])
     return ManhattanHeading(
-        data.tr, data.obs, data.mask, cfg.heading, image, drift, cfg.emission.outlier_prob
+        data.tr, data.obs, data.mask, cfg.heading, image, cfg.emission.outlier_prob
     )
 
 
@@ -117,12 +127,22 @@ def inserter(cfg, model: DVBFLM, map_guide) -> ScanInserter | None:
     return make_inserter(cfg.emission.insert, model, leaves)
 
 
-def create_guide_params(map_guide) -> None:
+def create_guide_params(map_guide, args=()) -> None:
     """Create a map guide's parameters now (checkpoints need them): a
-    :class:`~pyro_slam.model.MapGuide` through ``params()``; another guide by one draw
-    (outside any inference)."""
+    :class:`~pyro_slam.model.MapGuide` through ``params()``; another guide by one draw with
+    the model's arguments ``args`` (outside any inference)."""
     if hasattr(map_guide, "params"):
         map_guide.params()
         return
     with torch.no_grad(), poutine.block():
-        map_guide()
+        map_guide(*args)
+
+
+def handled_model(model: DVBFLM):
+    """``model.model`` under the model's handlers as they stand at each call
+    (:meth:`~pyro_slam.model.DVBFLM.handled`): the model SLAM's SVI steps on."""
+
+    def run(*args, **kwargs):
+        return model.handled()(*args, **kwargs)
+
+    return run

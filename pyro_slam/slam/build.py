@@ -222,6 +222,7 @@ def build_model(
     emission: Emission | EmissionMLP | None = None,
     prior=None,
     noise=None,
+    **parts,
 ):
     """A :class:`~pyro_slam.model.DVBFLM` and :class:`~pyro_slam.model.MapGuide` sized to a
     prepared traversal's extent (see :func:`prepare_traversal`); ``prior`` and ``noise``: the
@@ -233,7 +234,9 @@ def build_model(
     for a new one of the configured kind (:func:`make_emission`); ``transition``: None for the
     configured kinematic one. SLAM filters
     with ``sigma_T`` times ``config.transition.scale`` (the transition passed in is copied, not
-    changed)."""
+    changed). ``parts``: the model's other constructor arguments (``heading``,
+    ``learn_emission``, ``learn_transition``, ``handler``; :class:`~pyro_slam.model.DVBFLM`),
+    so that it is built complete."""
     if emission is None:
         emission = make_emission(traversal, config)
     elif isinstance(emission, LidarEmission):  # re-read at this traversal's beams
@@ -260,6 +263,7 @@ def build_model(
         noise=noise,
         outlier_prob=e.outlier_prob,
         outlier_range=_reading_range(emission),
+        **parts,
     )
     return model, MapGuide(grid.shape, init_scale=model.prior_std())
 

@@ -64,7 +64,6 @@ class ManhattanHeading:
         config: the :class:`~pyro_slam.slam.config.HeadingConfig` (``sigma``: the std floor;
             ``support``: agreeing segments needed).
         image: camera frames (the walls' edges) instead of LiDAR ranges.
-        drift: the heading's odometry noise per step (rad), which weighs the early scans.
         outlier_prob: the outlier component's weight where the scans show range noise (the
             filter's); a noise-free sensor's observation is Gaussian.
     """
@@ -76,7 +75,6 @@ class ManhattanHeading:
         mask,
         config: HeadingConfig,
         image: bool,
-        drift: float,
         outlier_prob: float = 0.0,
     ):
         angles = torch.as_tensor(traversal.beam_angles, dtype=obs.dtype)
@@ -100,6 +98,11 @@ class ManhattanHeading:
         self.direction = direction  # [T] in [0, pi / 2)
         self.ok = support >= config.support  # [T]
         self.sigma = std.clamp_min(config.sigma)  # [T] the observation's std
+        self.frame = FrameGuide()  # (:meth:`estimate_frame`)
+
+    def estimate_frame(self, traversal: Traversal, drift: float) -> None:
+        """Set the frame guide from the first supported scans (:meth:`_initial_frame`), with
+        ``drift`` the transition's heading std per step (rad), which weighs the early scans."""
         self.frame = FrameGuide(*self._initial_frame(traversal, drift))
 
     def _lidar(self, traversal, obs, mask, angles, config: HeadingConfig):
@@ -202,7 +205,5 @@ def odometry_heading_noise(traversal: Traversal, config: SLAMConfig) -> float | 
     tr = prepare_traversal(traversal, config)
     obs, _, mask, _ = traversal_tensors(tr)
     outliers = config.emission.outlier_prob
-    walls = ManhattanHeading(
-        tr, obs, mask, config.heading, image=False, drift=0.0, outlier_prob=outliers
-    )
+    walls = ManhattanHeading(tr, obs, mask, config.heading, image=False, outlier_prob=outliers)
     return walls.odometry_drift(odometry_poses(tr, tr.start_pose)[:, 2])

@@ -157,9 +157,13 @@ class ScanInserter:
         """``[w, h]`` bool: grid points some scan wrote a wall or a distance into."""
         raise NotImplementedError
 
-    def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor, var=0.0) -> None:
+    def insert(
+        self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor, var=0.0, scale=1.0
+    ) -> None:
         """Update ``q(M)`` with scan ``x [B]`` (``valid [B]`` bool) placed from pose ``z [3]``,
-        whose world-frame position variance (per axis) is ``var``."""
+        whose world-frame position variance (per axis) is ``var``; ``scale``: the scale of the
+        scan's site in the model (a handler's ``poutine.scale``), which scales each reading's
+        precision as it scales the likelihood."""
         raise NotImplementedError
 
     def placement_at(self, z: torch.Tensor) -> float:
@@ -311,17 +315,18 @@ class OccupancyInserter(ScanInserter):
         p = z[:2] + d[..., None] * torch.stack([ang.cos(), ang.sin()], -1)  # [n, V, 2]
         return self._nearest(p.reshape(-1, 2))
 
-    def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor, var=0.0) -> None:
+    def insert(self, x, valid, z, var=0.0, scale=1.0) -> None:
         """Read scan ``x [B]`` (``valid [B]``) placed from pose ``z [3]`` (position variance
-        ``var``): its walls where no scan hit yet, then its free space where nothing was read
-        yet."""
+        ``var``; ``scale``: :meth:`ScanInserter.insert`): its walls where no scan hit yet, then
+        its free space where nothing was read yet."""
+        precision = self.precision * scale
         i, j = self.hit_cells(x, valid, z)
         new = ~self.walls[i, j]  # [P]
-        self._observe(i[new], j[new], self.cfg.occupancy, self.precision, var)
+        self._observe(i[new], j[new], self.cfg.occupancy, precision, var)
         self.walls[i[new], j[new]] = True
         i, j = self.free_cells(x, valid, z)
         new = ~(self.walls[i, j] | self.freed[i, j])
-        self._observe(i[new], j[new], self.free, self.precision, var)
+        self._observe(i[new], j[new], self.free, precision, var)
         self.freed[i[new], j[new]] = True
 
     def state_dict(self) -> dict:
@@ -423,9 +428,10 @@ class FusionInserter(ScanInserter):
         ok = (g[:, 0] >= 0) & (g[:, 0] <= w - 1) & (g[:, 1] >= 0) & (g[:, 1] <= h - 1)
         return torch.unique((g[ok, 0] * h + g[ok, 1]).long())
 
-    def insert(self, x: torch.Tensor, valid: torch.Tensor, z: torch.Tensor, var=0.0) -> None:
+    def insert(self, x, valid, z, var=0.0, scale=1.0) -> None:
         """Fuse scan ``x [B]`` (``valid [B]``) placed from pose ``z [3]`` (position variance
-        ``var``) and update ``q(M)`` at the fused grid points."""
+        ``var``; ``scale``: :meth:`ScanInserter.insert`) and update ``q(M)`` at the fused grid
+        points."""
         idx, d = self.surface_points(*self.surfaces(x, valid, z))
         free = self.free_points(x, valid, z)
         free = free[~torch.isin(free, idx)]
@@ -439,7 +445,7 @@ class FusionInserter(ScanInserter):
         weight[idx] = weight[idx] * keep + 1
         y = self.ramp.loc(sdf[idx] / weight[idx])
         h = self.model.grid.cells[1]
-        prec, var = weight[idx] * self.precision, placed[idx] / weight[idx]
+        prec, var = weight[idx] * (self.precision * scale), placed[idx] / weight[idx]
         self._observe(idx // h, idx % h, y, prec, var)
 
     def state_dict(self) -> dict:

@@ -82,6 +82,20 @@ def world_std(
     return out, var
 
 
+def insertion_scale(pf, t: int) -> float | None:
+    """How scan insertion reads step ``t``'s scan under the model's handlers, from the filter's
+    traces of the step: the scale of the site ``x_t`` (1 without a handler), or None where a
+    handler gives the map (the site ``"map"`` observed: no belief to update)."""
+    glob = getattr(pf, "last_globals", None)
+    if glob is not None and glob.nodes["map"]["is_observed"]:
+        return None
+    tr = getattr(pf, "last_trace", None)
+    site = None if tr is None else tr.nodes.get(f"x_{t}")
+    if site is None or site["mask"] is False:
+        return 1.0 if site is None else 0.0
+    return float(site["scale"])
+
+
 def svi_step(
     c: Components, st: SLAMState, data: RunData, lo: int, hi: int, newest: int | None
 ) -> float:
@@ -120,9 +134,10 @@ def online_sweep(
             st.anchors.append(anchor)
         else:  # offline SLAM's initial sweep: kept for diagnostics (result's "sweep_mean")
             st.sweep_estimates.append(mean.tolist())
-        if c.inserter is not None:
+        scale = insertion_scale(c.pf, t) if c.inserter is not None else None
+        if scale is not None:
             var = float((std[:2] ** 2).mean())
-            c.inserter.insert(data.obs[t], data.valid(t), mean, var)
+            c.inserter.insert(data.obs[t], data.valid(t), mean, var, scale)
         if c.heading is not None:  # (with the weighted cloud's heading std)
             c.heading.refine(t, float(mean[2]), float(st.particles.std()[2]))
         if every and t >= L - 1 and t % every == 0:

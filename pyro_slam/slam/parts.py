@@ -74,7 +74,7 @@ class Components:
         pf: the pose filter (ours or Pyro's ``SMCFilter``).
         elbo: the training objective (:class:`~pyro_slam.inference.ParticleChunkELBO`).
         optim: the optimiser of SVI.
-        svi: SVI on ``model.global_model`` and ``guide``.
+        svi: SVI on ``model.model`` (under its handlers) and ``guide``.
         inserter: scan insertion into the map guide (None: off).
     """
 
@@ -100,7 +100,7 @@ class Components:
             if kept is not None:
                 return MapBelief(*kept)
         with self.scope():
-            loc, scale = map_marginals(self.map_guide)
+            loc, scale = map_marginals(self.map_guide, self.elbo.model_args)
         return MapBelief(loc.detach(), scale.detach())
 
     def state_dict(self) -> dict:

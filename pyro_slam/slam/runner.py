@@ -71,6 +71,12 @@ class SLAM:
             results depend on the count).
         checkpoint: path of the checkpoint written every ``checkpoint_every`` steps.
         seed: seeds Pyro and the run's own ``torch.Generator``.
+        handler: Pyro handlers around the model (:class:`~pyro_slam.model.DVBFLM`'s
+            ``handler``): a function ``fn -> handled fn`` such as ``lambda fn:
+            poutine.condition(fn, data={"frame": torch.tensor(0.1)})``, or a messenger such as
+            ``poutine.scale(scale=0.5)``. The filter's weights, scan insertion, SVI, and the
+            planner and MI on this run all run the model under them (``slam.model.handler``
+            may also be set later).
 
     Each run keeps its parameters in its own scope of Pyro's parameter store
     (:meth:`pyro.params.param_store.ParamStoreDict.scope`): two runs in one process never share
@@ -105,6 +111,7 @@ class SLAM:
         noise=None,
         smc: bool = False,
         threads: int | None = None,
+        handler=None,
     ):
         cfg = presets.resolve(config, traversal)
         if not (isinstance(checkpoint_every, int) and checkpoint_every > 0):
@@ -120,7 +127,7 @@ class SLAM:
         self.state = SLAMState.new(seed, self.data.T, N, K)
         scope = ParamScope()  # this run's parameters (``with slam.scope():``)
         with scope():
-            parts = (transition, emission, learn_emission, guide, prior, noise, smc)
+            parts = (transition, emission, learn_emission, guide, prior, noise, smc, handler)
             self.components: Components = assemble(self.data, self.state, scope, *parts)
         self.state.history.keep_scans = self.model.transition.needs_scan
         # the networks and map grid the run starts from (given, shipped or drawn from the seed)

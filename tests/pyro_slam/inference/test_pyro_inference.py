@@ -15,12 +15,13 @@ import pyro.distributions as dist
 import pytest
 import torch
 from pyro import poutine
-from pyro.infer import SMCFilter, Trace_ELBO
+from pyro.infer import Trace_ELBO
 from pyro.infer.autoguide import AutoNormal
 from synthetic_logs import room_log
 
 from pyro_slam.inference import (
     ChunkBatch,
+    EvidenceSMCFilter,
     ParticleFilter,
     Particles,
     ProposalGuide,
@@ -109,7 +110,7 @@ def slam_objective(slam, n: int, seed: int = 3) -> list[float]:
             slam.cache.store(
                 torch.tensor([0]), Particles(z0[None], torch.full((1, N), -math.log(N)))
             )
-            out.append(T * elbo.loss(slam.model.global_model, slam.guide, batch))
+            out.append(T * elbo.loss(slam.model.model, slam.guide, batch))
     return out
 
 
@@ -278,31 +279,25 @@ def test_swapped_emission_noise_reaches_filter():
 
 
 def smc_run(model, M, obs, ctl, init, K, resample=True):
-    """Pyro's SMCFilter on ``FilterModel``: weighted means ``[T, 3]`` and (without resampling)
-    the log-evidence from the particles' log-likelihoods and weights."""
+    """Pyro's SMCFilter (:class:`EvidenceSMCFilter`) on ``FilterModel``: weighted means
+    ``[T, 3]`` and the log-evidence."""
     guide = ProposalGuide(model, TransitionProposal())
-    smc = SMCFilter(
+    smc = EvidenceSMCFilter(
         FilterModel(model, M),
         guide,
         K,
         max_plate_nesting=0,
         ess_threshold=0.5 if resample else 1e-12,
     )
-    log_ev = 0.0
     means = []
     with torch.no_grad():
         for t in range(obs.shape[0]):
-            # (a copy: SMCFilter updates its weights in place)
-            prev = smc.get_empirical()["z"].log_weights.clone() if t else None
             if t == 0:
                 smc.init(init_pose=init, x=obs[0])
-                prev = torch.full((K,), -math.log(K))
             else:
-                smc.step(obs[t], ctl[t - 1])
-            prev = prev - torch.logsumexp(prev, 0)
-            log_ev += float(torch.logsumexp(prev + smc.state["log_lik"], 0))
+                smc.step(t, obs[t], ctl[t - 1])
             means.append(smc.get_empirical()["z"].mean)
-    return torch.stack(means), log_ev
+    return torch.stack(means), smc.log_evidence
 
 
 @pytest.mark.parametrize("ignore_scans", [False, True], ids=["ours", "scans-ignored"])

@@ -109,14 +109,14 @@ def test_time_loop_is_first_order_markov():
     m = tiny_model()
     obs, ctl, init = toy_data(T=4)
     tr = poutine.trace(m.model).get_trace(obs, ctl, init)
-    # the global map and the initial pose are sampled before the time loop
+    # the global map is sampled before the time loop; the initial pose opens it, seeing nothing
     assert "_markov_scope" not in tr.nodes["map"]["infer"]
-    assert "_markov_scope" not in tr.nodes["z_0"]["infer"]
-    assert set(tr.nodes["x_0"]["infer"]["_markov_scope"]) == {"scan_0"}
+    assert set(tr.nodes["z_0"]["infer"]["_markov_scope"]) == set()
+    assert set(tr.nodes["x_0"]["infer"]["_markov_scope"]) == {"z_0", "scan_0"}
     for t in range(1, 4):
         z, x = tr.nodes[f"z_{t}"]["infer"], tr.nodes[f"x_{t}"]["infer"]
         # (scan_t: the deterministic site of the predicted observation mu_E at z_t)
-        prev = {f"x_{t - 1}", f"scan_{t - 1}"} | ({f"z_{t - 1}"} if t > 1 else set())
+        prev = {f"x_{t - 1}", f"scan_{t - 1}", f"z_{t - 1}"}
         assert set(z["_markov_scope"]) == prev  # z_t sees step t-1 only
         assert set(x["_markov_scope"]) == prev | {f"z_{t}", f"scan_{t}"}
         assert z["_markov_depth"] == x["_markov_depth"] == 1  # one loop, not nested
@@ -289,7 +289,7 @@ def elbo_setup(tr, dtype=torch.float32, ess_threshold=0.5, seed=0):
 def test_gradients_flow_into_map_and_emission(small_traversal):
     model, guide, elbo, poses = elbo_setup(small_traversal)
     batch = ChunkBatch(torch.tensor([0, 6]), 4)
-    loss = elbo.loss_and_grads(model.global_model, guide, batch)
+    loss = elbo.loss_and_grads(model.model, guide, batch)
     assert math.isfinite(loss)
     store = pyro.get_param_store()
     loc, scale = store["map_loc"], store.get_param("map_scale").unconstrained()
@@ -333,7 +333,7 @@ def test_particle_elbo_gradient_matches_finite_differences(small_traversal, ess_
         elbo.cache.load_state_dict(snapshot)
         elbo.pf.generator.set_state(gen_state)
         torch.manual_seed(11)  # the map sample
-        return elbo.differentiable_loss(model.global_model, guide, batch)
+        return elbo.differentiable_loss(model.model, guide, batch)
 
     loc = store["map_loc"]
     scale = store.get_param("map_scale").unconstrained()
@@ -406,7 +406,7 @@ def test_guide_and_model_replay_under_poutine():
 def test_smcfilter_on_learned_map_agrees_with_particle_filter(small_traversal):
     tr = small_traversal
     model, guide, elbo, poses = elbo_setup(tr)
-    svi = SVI(model.global_model, guide, Adam({"lr": 0.05}), loss=elbo)
+    svi = SVI(model.model, guide, Adam({"lr": 0.05}), loss=elbo)
     g = torch.Generator().manual_seed(0)
     losses = [svi.step(ChunkBatch(torch.randint(0, 13, (4,), generator=g), 4)) for _ in range(60)]
     assert all(math.isfinite(v) for v in losses)
@@ -424,7 +424,7 @@ def test_smcfilter_on_learned_map_agrees_with_particle_filter(small_traversal):
         smc.init(init_pose=init, x=obs[0])
         smc_means = [smc.get_empirical()["z"].mean]
         for t in range(1, len(obs)):
-            smc.step(obs[t], ctl[t - 1])
+            smc.step(t, obs[t], ctl[t - 1])
             smc_means.append(smc.get_empirical()["z"].mean)
     smc_means = torch.stack(smc_means)
     assert smc_means.shape == (16, 3) and torch.isfinite(smc_means).all()

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 
-import pyro
 import pytest
 import torch
 from small_slam import ray_slam
@@ -159,15 +158,19 @@ def test_beam_mixture_weights_bound_one_wild_beam():
     x = torch.tensor([0.3, 0.2])  # [B]
     scan = torch.tensor([[0.3, 0.2], [0.3, 0.45], [0.31, 0.2]])  # [K=3, B]
 
-    class Model:  # the model's factors the weights read: its noise and its predicted scans
-        noise, sigma_emission, heading = pyro.distributions.Normal, s, None
-        outlier_prob, outlier_range = eps, rng
-        noise_dist, emission_log_prob = DVBFLM.noise_dist, DVBFLM.emission_log_prob
-
-        def emission_mean(self, M, z, x=None):
+    class Fixed(RayEmission):  # an emission that predicts these scans
+        def read(self, grid, M, z, x=None):
             return scan
 
-    lp, _ = ParticleFilter(Model()).log_likelihood(torch.zeros(3, 3), torch.zeros(1), x)
+    model = DVBFLM(
+        MapGrid((5, 5), 1),
+        Fixed([0.0, 1.0], rng),
+        KinematicTransition(1e-3),
+        sigma_emission=s,
+        outlier_prob=eps,
+        outlier_range=rng,
+    )
+    lp, _ = ParticleFilter(model).log_likelihood(torch.zeros(3, 3), torch.zeros(5, 5, 1), x)
     gauss = -0.5 * ((x - scan) / s) ** 2 - math.log(s) - 0.5 * math.log(2 * math.pi)
     expect = torch.log((1 - eps) * gauss.exp() + eps / rng).sum(-1)
     assert torch.allclose(lp, expect, atol=1e-5)

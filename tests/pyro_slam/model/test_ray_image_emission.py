@@ -152,7 +152,7 @@ def test_gradients_reach_occupancy_albedo_and_camera_constants(image_traversal):
     loop.filter_pass(slam.components, slam.state, slam.data, False, "fill cache")
     with slam.scope():
         loss = slam.elbo.differentiable_loss(
-            slam.model.global_model, slam.guide, ChunkBatch(torch.tensor([0, 20]), 4)
+            slam.model.model, slam.guide, ChunkBatch(torch.tensor([0, 20]), 4)
         )
         assert torch.isfinite(loss)
         loss.backward()

@@ -3,8 +3,6 @@ emission it reads, its arguments."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 import torch
@@ -100,9 +98,8 @@ def test_the_marginal_emission_prefers_particles_whose_readings_the_map_knows(tr
     z[:, 0] = torch.linspace(x0 + 0.05, x1 - 0.05, 64)
     z[:, 1] = 0.5 * (y0 + y1)
     pf = ParticleFilter(slam.model)
-    flat = torch.full((64,), -math.log(64))
     x = slam.model.emission_mean(belief.loc, z[0]).detach()  # [B] a perfect match everywhere
-    p, _ = pf._weigh(z, belief, x, None, flat, step=0)
+    p, _ = pf.init(z, belief, x, step=0)  # (uniform prior weights)
     logw = p.logw.detach()
     assert logw[-1] - logw[0] > 1.0 and (logw.diff() >= -1e-6).all()
 

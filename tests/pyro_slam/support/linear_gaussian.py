@@ -14,6 +14,7 @@ import pyro
 import torch
 
 from pyro_slam.model import DVBFLM, Transition
+from pyro_slam.model.model import _Memo
 
 Q = (0.2, 0.15, 0.1)  # transition std per pose dimension
 R = 0.5  # observation std
@@ -32,14 +33,19 @@ class RandomWalk(Transition):
 class LinearGaussian:
     """Duck-typed stand-in for :class:`DVBFLM`: linear-Gaussian emission ``x ~ N(M z, R^2)``."""
 
-    # DVBF-LM's own factors: emission noise and log-density, transition distribution, the
-    # heading factor
+    # DVBF-LM's own factors (emission noise and log-density, transition distribution, the
+    # heading factor) and its Pyro model, whose one-step windows the filter traces
     noise_dist = DVBFLM.noise_dist
+    emission_dist = DVBFLM.emission_dist
     emission_log_prob = DVBFLM.emission_log_prob
     transition_dist = DVBFLM.transition_dist
     heading_dist = DVBFLM.heading_dist
     heading_log_prob = DVBFLM.heading_log_prob
+    model, step, handled = DVBFLM.model, DVBFLM.step, DVBFLM.handled
+    _read, _observe_heading = DVBFLM._read, DVBFLM._observe_heading
     outlier_prob, outlier_range = 0.0, 1.0
+    heading_scale = DVBFLM.heading_scale
+    handler = None
 
     def __init__(self, dtype, heading=None):
         self.noise = pyro.distributions.Normal
@@ -47,6 +53,10 @@ class LinearGaussian:
         self.transition = RandomWalk(torch.tensor(Q, dtype=dtype))
         self.init_scale = torch.tensor(S0, dtype=dtype)
         self.heading = heading
+        self._memo = _Memo()
+
+    def _register_networks(self):  # (no networks)
+        pass
 
     def emission_mean(self, M, z, x=None):
         return z @ M.T
