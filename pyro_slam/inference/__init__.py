@@ -1,17 +1,20 @@
 """Inference for DVBF-LM: weighted particles (:mod:`.particles`), resampling
 (:mod:`.resampling`), pose proposals as SMC guides (:mod:`.proposals`), the particle filter
 (:mod:`.filter`), the asynchronous particle cache (:mod:`.cache`), the particle-chunk ELBO
-(:mod:`.elbo`) and Pyro's SMCFilter behind the same interface (:mod:`.smc`)."""
+(:mod:`.elbo`), Pyro's SMCFilter behind the same interface (:mod:`.smc`) and the model's
+predictive of scans (:mod:`.predictive`)."""
 
 from . import resampling
 from .cache import ParticleCache
 from .elbo import ChunkBatch, ParticleChunkELBO
 from .filter import ParticleFilter
 from .particles import Particles, pose_moments, weighted_pose_mean
+from .predictive import band_coverage, scan_error
 from .proposals import (
     PROPOSALS,
     HeadingProposal,
     Proposal,
+    ScanMatchProposal,
     TransitionProposal,
     sequence_guide,
 )
@@ -33,10 +36,13 @@ __all__ = [
     "Particles",
     "Proposal",
     "ProposalGuide",
+    "ScanMatchProposal",
     "PyroSMCFilter",
     "TransitionProposal",
+    "band_coverage",
     "pose_moments",
     "resampling",
+    "scan_error",
     "sequence_guide",
     "weighted_pose_mean",
 ]

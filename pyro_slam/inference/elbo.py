@@ -167,5 +167,6 @@ class ParticleChunkELBO(ELBO):
 
     def loss_and_grads(self, model, guide, *args, **kwargs):
         loss = self.differentiable_loss(model, guide, *args, **kwargs)
-        loss.backward()
+        if getattr(loss, "requires_grad", False):  # (as Trace_ELBO: nothing to train, no step)
+            loss.backward()
         return float(loss.detach())

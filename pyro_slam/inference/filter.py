@@ -226,7 +226,7 @@ class ParticleFilter:
         tr, inc_w = self._trace(w)
         scan = tr.nodes["_RETURN"]["value"][1]
         logw, inc = self._weigh(inc_w, logw, step, scan)
-        return Particles(w.poses, logw, scan.detach()), inc
+        return Particles(w.poses, logw, scan), inc
 
     def propagate(self, p: Particles, u: torch.Tensor) -> torch.Tensor:
         """Sample ``z_{t+1} ~ p(. | z_t, u_t, mu_E(m_t))``: ``[..., K, 3]`` (no gradient)."""
@@ -262,7 +262,7 @@ class ParticleFilter:
         tr, inc_w = self._trace(w, guide)
         scan = tr.nodes["_RETURN"]["value"][1]
         logw, inc = self._weigh(inc_w, p.logw, step, scan)
-        return Particles(tr.nodes[name]["value"], logw, scan.detach(), p.ancestors), inc
+        return Particles(tr.nodes[name]["value"], logw, scan, p.ancestors), inc
 
     @torch.no_grad()
     def run(self, M, observations, controls, init_pose, num_particles, mask=None, init_scale=None):

@@ -344,20 +344,38 @@ def _squeeze_particles(heading: HeadingEvidence, dim: int) -> HeadingEvidence:
 
 def _readings(model, M, z, x, mask):
     """The predicted readings at poses ``z [4, ..., 3]`` (a pose and its three offsets) and
-    each reading's weight ``[..., B]``: inlier responsibility over the noise variance (the
-    beam mixture, with a belief's unknown readings as outliers), masked."""
+    each reading's weight ``[..., B]`` (:func:`reading_weights`: the model's noise family, a
+    belief's unknown readings as outliers), masked."""
     if isinstance(M, MapBelief):
         r, eps = model.marginal_emission(M, z, x)
         eps = eps[0]
     else:
         r = model.emission_mean(M, z, x)
         eps = torch.as_tensor(model.outlier_prob, dtype=r.dtype)
-    s = model.sigma_emission
     e = x - r[0]
-    inlier = (1 - eps) * torch.exp(-0.5 * (e / s) ** 2) / (s * math.sqrt(2 * math.pi))
-    resp = inlier / (inlier + eps / model.outlier_range).clamp_min(1e-30)
-    w = resp / s**2
+    w = reading_weights(model, x, r[0], e, eps)
     return r, e, w if mask is None else w * mask
+
+
+def reading_weights(model, x, r, e, eps) -> torch.Tensor:
+    """Each reading's weight in the scan match's iteratively reweighted least squares: the
+    score of the model's emission (its noise family mixed with the outlier component of
+    probability ``eps``) at the predicted reading ``r``, over the residual ``e = x - r``, i.e.
+    ``d/dr log p(x | r) / e`` (the noise's precision times the reading's inlier responsibility
+    for the Gaussian, in closed form; for another family, e.g. Student-t, by autograd, with
+    the residual kept at least 1e-6 sigma_E from zero)."""
+    s = model.sigma_emission
+    if model.noise is dist.Normal:
+        inlier = (1 - eps) * torch.exp(-0.5 * (e / s) ** 2) / (s * math.sqrt(2 * math.pi))
+        resp = inlier / (inlier + eps / model.outlier_range).clamp_min(1e-30)
+        return resp / s**2
+    tiny = 1e-6 * s
+    e = torch.where(e.abs() < tiny, torch.where(e < 0, -tiny, tiny), e)
+    with torch.enable_grad():
+        loc = (x - e).detach().requires_grad_(True)
+        lp = model.noise_dist(loc, outlier_prob=eps).log_prob(x)
+        (score,) = torch.autograd.grad(lp.sum(), loc)
+    return (score / e).clamp_min(0.0)
 
 
 def _match(model, M, x, mask, heading, centre, prior, iterations: int):

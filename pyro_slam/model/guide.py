@@ -7,7 +7,7 @@
 * :class:`FrameGuide` -- ``q(phi) = N(mean, var)`` of the walls' frame of the heading factor,
   fitted by Kalman updates from the data (:mod:`pyro_slam.slam.heading`) rather than by SVI.
 * :class:`GlobalGuide` -- a map guide and (with a heading factor) the frame guide: the guide of
-  :meth:`~pyro_slam.model.DVBFLM.global_model`.
+  the model's global sites ``"map"`` and ``"frame"``.
 * The SMC guides over poses are the proposals of :mod:`pyro_slam.inference.proposals`.
 """
 
@@ -84,8 +84,9 @@ class FrameGuide:
 
 
 class GlobalGuide:
-    """The guide of :meth:`~pyro_slam.model.DVBFLM.global_model`: a map guide (any guide over
-    the site ``"map"``) and, where given, a :class:`FrameGuide`. Returns ``(M, phi)``."""
+    """The guide of the model's global sites: a map guide (any guide over the site ``"map"``,
+    called with the model's arguments) and, where given, a :class:`FrameGuide` (the site
+    ``"frame"``). Returns ``(M, phi)``."""
 
     def __init__(self, map_guide, frame: FrameGuide | None = None):
         self.map, self.frame = map_guide, frame

@@ -88,9 +88,10 @@ class TransitionMLP(nn.Module):
         self.register_buffer("out_scale", torch.ones(3))
 
     def features(self, z: torch.Tensor, u: torch.Tensor, scan: torch.Tensor) -> torch.Tensor:
-        h = z[..., 2:3]
-        u = u.expand(*z.shape[:-1], u.shape[-1])
-        scan = scan.expand(*z.shape[:-1], scan.shape[-1])
+        batch = torch.broadcast_shapes(z.shape[:-1], u.shape[:-1], scan.shape[:-1])
+        h = z[..., 2:3].expand(*batch, 1)
+        u = u.expand(*batch, u.shape[-1])
+        scan = scan.expand(*batch, scan.shape[-1])
         return torch.cat([torch.cos(h), torch.sin(h), u, scan], dim=-1)
 
     def fit_normalisation(self, feats: torch.Tensor, deltas: torch.Tensor) -> None:
@@ -100,6 +101,7 @@ class TransitionMLP(nn.Module):
         self.out_scale.copy_(deltas.std(0).clamp_min(1e-6))
 
     def forward(self, z: torch.Tensor, u: torch.Tensor, scan: torch.Tensor) -> torch.Tensor:
-        """``z [..., 3]``, ``u [..., D_u]``, ``scan [..., n_scan]`` -> next pose ``[..., 3]``."""
+        """``z [..., 3]``, ``u [..., D_u]``, ``scan [..., n_scan]`` (broadcasting) -> next pose
+        ``[..., 3]``."""
         x = (self.features(z, u, scan) - self.in_loc) / self.in_scale
         return z + self.net(x) * self.out_scale

@@ -21,7 +21,11 @@ class NavigationConfig:
     the target scan within ``accept_tol`` (mean absolute range difference;
     :func:`~pyro_slam.planning.seek_observation`); a goal without a plan is explored towards
     (the agent scans at the reached place nearest to it and plans again) up to
-    ``observe_rounds`` times.
+    ``observe_rounds`` times. ``rollout_samples``: draws of the model per start pose and
+    primitive in the planner's rollouts (their mean pose is the successor, their scans' mean
+    safety cost its cost; :class:`~pyro_slam.planning.LearnedEnv`); ``fit_noise``: the mapping
+    fits the emission's noise after the map (:func:`~pyro_slam.slam.fit_noise`), which the
+    rollouts then sample.
     """
 
     max_expansions: int = 2000
@@ -35,6 +39,8 @@ class NavigationConfig:
     mode_separation: float = 0.1
     accept_tol: float = 0.01
     observe_rounds: int = 3
+    rollout_samples: int = 8
+    fit_noise: bool = True
 
 
 # the library's and the command line's defaults

@@ -6,6 +6,7 @@ simulator."""
 from __future__ import annotations
 
 import copy
+import hashlib
 from dataclasses import replace
 
 import numpy as np
@@ -18,13 +19,14 @@ from scipy.spatial import cKDTree
 from simulators import LidarConfig, World, raycast, simulate_traversal
 from simulators.world import point_segment_distance
 
-from ..model import DVBFLM, EmissionMLP, KinematicTransition
+from ..model import EmissionMLP
 from ..model.networks import LIDAR_MAP_DIM
-from ..pretrained import EMISSION_FILE, PRETRAINED, load_emission
+from ..pretrained import EMISSION_FILE, PRETRAINED, load_emission, transition_for
 from ..slam import (
     SLAMConfig,
     build_model,
     fit_map,
+    fit_noise,
     prepare_traversal,
     pretrain_emission,
 )
@@ -72,10 +74,14 @@ class LearnedEnv(_Rollouts):
     """The DVBF-LM model with a fixed map ``M`` (mean of ``q(M)``) as planning environment.
 
     Args:
-        model: a :class:`~pyro_slam.model.DVBFLM` (its emission is used, frozen).
+        model: a :class:`~pyro_slam.model.DVBFLM`: the planner's rollouts sample it, under its
+            handlers (:meth:`~pyro_slam.model.DVBFLM.handled`), with its transition and its
+            emission, each with its noise (a mapping model's transition stops short of the walls
+            its predicted scans show, ``transition.clip_margin``).
         M: map ``[w, h, D_m]``.
-        clip_margin: stop this far before the predicted range ahead.
         bounds: ``(x0, x1, y0, y1)`` poses must stay within (default: the map extent).
+        scale: ``q(M)``'s std ``[w, h, D_m]`` (explored space, :meth:`valid`).
+        samples: rollouts drawn per start pose and primitive (:meth:`rollout`).
     """
 
     name = "learned"
@@ -85,29 +91,19 @@ class LearnedEnv(_Rollouts):
         self,
         model,
         M: torch.Tensor,
-        clip_margin: float = 0.01,
         bounds=None,
         scale: torch.Tensor | None = None,
         max_std: float = 0.6,
         hits: np.ndarray | None = None,
         hit_margin: float = 0.0,
+        samples: int = NAVIGATION.rollout_samples,
     ):
         self.model, self.M, self.scale, self.max_std = model, M, scale, max_std
         # the mapping scans' returns (ScanHits) and the clearance a position keeps from them
         self.hits, self.hit_margin = hits, hit_margin
-        # the planner's copy of the model: its emission, map prior and noise, with kinematics
-        # that stop short of predicted walls and no transition noise
-        self.transition = KinematicTransition(0.0, "rotate_forward", clip_margin=clip_margin)
-        self.planner_model = DVBFLM(
-            model.grid,
-            model.emission,
-            self.transition,
-            sigma_emission=model.sigma_emission,
-            prior=model.prior,
-            noise=model.noise,
-            outlier_prob=model.outlier_prob,
-            outlier_range=model.outlier_range,
-        )
+        if not (isinstance(samples, int) and samples >= 1):
+            raise ValueError(f"samples must be a positive integer, got {samples!r}")
+        self.samples = samples
         self.bounds = bounds if bounds is not None else model.grid.extent()
         self.seen: list[tuple] = []  # (pose [3], real scan [B], margin, radius)
         self._memos: dict = {}  # rollouts per controls and start pose (see _Rollouts)
@@ -153,21 +149,35 @@ class LearnedEnv(_Rollouts):
 
     @torch.no_grad()
     def _rollout(self, z0: np.ndarray, controls: torch.Tensor):
-        """One run of ``DVBFLM.model`` for start poses ``z0 [K, 3]`` under ``controls [P, L,
-        2]``, traced with the map conditioned on ``M`` and ``z_0`` on the starts: the planner's
-        transition (kinematics that stop short of predicted walls, no noise) and the model's
-        emission, prior and noise; the predicted scans are its ``scan_t`` sites. Returns
-        ``[K, P, ...]`` (see :meth:`rollout`)."""
-        K, (P, L, _) = len(z0), controls.shape
+        """``samples`` draws of :meth:`DVBFLM.model <pyro_slam.model.DVBFLM.model>` (under its
+        handlers) for start poses ``z0 [K, 3]`` under ``controls [P, L, 2]``, in one trace
+        vectorised over the draws as :class:`pyro.infer.Predictive` samples in parallel, with
+        the map conditioned on ``M`` and ``z_0`` on the starts; the random numbers are a
+        function of the starts and the controls (a rollout is deterministic, as the memo
+        needs). The successors are the draws' mean poses; the end scans are the draws of the
+        observation site ``x_L`` (the planner's safety cost is their mean). Returns
+        ``[K, P, ...]`` (see :meth:`rollout`), the scans ``[K, P, S, B]``."""
+        K, (P, L, _), S = len(z0), controls.shape, self.samples
         init = torch.as_tensor(z0, dtype=controls.dtype)[:, None]  # [K, 1, 3]
-        model = poutine.condition(self.planner_model.model, {"map": self.M, "z_0": init})
-        with pyro.validation_enabled(False):  # (a noise-free transition)
-            tr = poutine.trace(model).get_trace(None, controls, init)
-        z = [tr.nodes[f"z_{t}"]["value"].expand(K, P, 3) for t in range(L + 1)]
-        path = torch.stack(z, 2)  # [K, P, L + 1, 3]
+        fixed = {"map": self.M, "z_0": init.expand(S, K, 1, 3)}
+        model = poutine.condition(self.model.handled(), fixed)
+        with torch.random.fork_rng(devices=[]), pyro.validation_enabled(False):
+            torch.manual_seed(_seed(z0, controls))
+            with pyro.plate("_num_predictive_samples", S, dim=-3):
+                tr = poutine.trace(model).get_trace(None, controls, init)
+        z = [tr.nodes[f"z_{t}"]["value"].expand(S, K, P, 3) for t in range(L + 1)]
+        path = torch.stack(z, 3).mean(0)  # [K, P, L + 1, 3] the draws' mean
         travel = (path[..., 1:, :2] - path[..., :-1, :2]).norm(dim=-1).sum(-1)  # [K, P]
-        scans = tr.nodes[f"scan_{L}"]["value"].expand(K, P, -1)  # [K, P, B]
+        scans = tr.nodes[f"x_{L}"]["value"].expand(S, K, P, -1).movedim(0, 2)  # [K, P, S, B]
         return path[:, :, -1].numpy(), travel.numpy(), scans, path.numpy()
+
+
+def _seed(*arrays) -> int:
+    """A seed that is a function of the arrays' values."""
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(np.ascontiguousarray(np.asarray(a)).tobytes())
+    return int.from_bytes(h.digest()[:8], "little") % (2**63)
 
 
 class GroundTruthEnv(_Rollouts):
@@ -390,11 +400,12 @@ def learned_env(
     noise=None,
     guide=None,
     slam=None,
+    noise_fit: bool | None = None,
 ):
     """A :class:`LearnedEnv` for ``maze``.
 
-    From a fitted :class:`~pyro_slam.slam.SLAM` (``slam``): its model (emission, map prior,
-    noise) and its map belief ``q(M)``, as SLAM left them, at its poses.
+    From a fitted :class:`~pyro_slam.slam.SLAM` (``slam``): its model (transition, emission,
+    map prior, noise, handlers) and its map belief ``q(M)``, as SLAM left them, at its poses.
 
     Otherwise: simulate a traversal (unless given; ``steps`` exploring steps, then a tour
     through the positions ``tour`` ``[P, 2]`` it missed, see
@@ -411,6 +422,11 @@ def learned_env(
     ``poses`` (:class:`ScanHits`), so a wall the map belief lost near its end is still
     avoided (on the tuning mazes' SLAM maps, pose targets reached: 100/100 at 0.02 against
     89/100 without).
+
+    The planner's rollouts sample the model with its noise; ``noise_fit`` (default: for the
+    model fitted here, not for a SLAM run's) first fits the emission's noise to the traversal
+    at ``poses`` and the map's mean (:func:`~pyro_slam.slam.fit_noise`), so that the scans the
+    planner scores are as noisy as the traversal's own, not as the training noise.
 
     Everything is seeded by ``seed``, whatever ran before in the process.
 
@@ -430,6 +446,8 @@ def learned_env(
         loc, scale = fit_map(
             traversal, model, poses, fit_steps, guide=guide, seed=seed, progress=progress
         )
+    if noise_fit if noise_fit is not None else slam is None and NAVIGATION.fit_noise:
+        fit_noise(traversal, model, loc, poses, seed=seed)
     hits = ScanHits(traversal, poses) if hit_margin > 0 else None
     env = LearnedEnv(
         model,
@@ -460,7 +478,9 @@ def _mapping_model(traversal, poses, emission_steps, n_world, seed, progress, pr
         )
     else:
         em = load_emission(PRETRAINED / EMISSION_FILE, traversal)
-    return build_model(traversal, NAVIGATION_MAPPING, emission=em, prior=prior, noise=noise)[0]
+    return build_model(
+        traversal, NAVIGATION_MAPPING, emission=em, prior=prior, noise=noise, learn_emission=False
+    )[0]
 
 
 def run_env(
@@ -483,18 +503,23 @@ def run_env(
     tr = prepare_traversal(traversal, config)
     kind = emission_kind(config.emission.kind)
     emission = kind.shipped(tr) if kind.shipped is not None else None
+    transition = transition_for(tr) if config.transition.kind == "learned" else None
     if kind.observation != "lidar" or (kind.learned and emission is None):
         raise ValueError(
             f"the run's emission.kind {kind.name!r} cannot be rebuilt for planning (a LiDAR "
             "emission without learned parameters, or with shipped ones, can)"
         )
-    model, _ = build_model(tr, config, emission=emission, prior=prior, noise=noise)
+    model, _ = build_model(
+        tr, config, transition, emission, prior=prior, noise=noise, learn_emission=False
+    )
     loc, scale = (torch.as_tensor(np.asarray(a), dtype=torch.float32) for a in (map_loc, map_scale))
     if tuple(loc.shape) != tuple(model.grid.shape) or loc.shape != scale.shape:
         raise ValueError(
             f"the run's map {tuple(loc.shape)} does not fit the grid {tuple(model.grid.shape)} "
             "its configuration builds over this traversal (another traversal?)"
         )
+    if NAVIGATION.fit_noise:  # the rollouts' noise: the run's scans' about its map and poses
+        fit_noise(tr, model, loc, poses)
     hits = ScanHits(tr, poses) if hit_margin > 0 else None
     bounds = maze_bounds(maze)
     return LearnedEnv(model, loc, bounds=bounds, scale=scale, hits=hits, hit_margin=hit_margin)

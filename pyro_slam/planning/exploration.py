@@ -287,66 +287,96 @@ def _emission(cfg: ExploreConfig, n_world: int, max_range: float) -> EmissionMLP
     return em
 
 
+def exploration_model(grid: MapGrid, beam_angles, max_range: float, cfg, prior=None, noise=None):
+    """The model the exploring agent maps with (:class:`Mapper`): the emission MLP of
+    ``cfg.mapping`` (shipped weights where they fit), the kinematic transition with std
+    ``cfg.motion.sigma_T``, ``sigma_E`` ``cfg.mapping.sigma_E``, the map ``prior`` and emission
+    ``noise`` (:class:`~pyro_slam.model.DVBFLM`)."""
+    em = _emission(cfg, max(len(beam_angles), 20), max_range)
+    trans = KinematicTransition(cfg.motion.sigma_T)
+    return DVBFLM(
+        grid,
+        em,
+        trans,
+        beam_angles,
+        cfg.mapping.sigma_E,
+        prior=prior,
+        noise=noise,
+        learn_emission=cfg.mapping.learn_emission,
+    )
+
+
 class Mapper:
-    """DVBF-LM (known transition) plus ``q(M)``, trained by SVI on the data collected so far.
+    """A DVBF-LM model plus its ``q(M)``, trained by SVI on the data collected so far; the
+    mutual information of planned controls (:func:`mutual_information`) is the model's own
+    predictive (:class:`pyro.infer.Predictive` on :meth:`DVBFLM.model
+    <pyro_slam.model.DVBFLM.model>`, under its handlers) under maps from ``q(M)``.
 
     Args:
-        grid: map geometry.
-        beam_angles: ``[B]`` beam directions (body frame).
-        max_range: sensor range (emission output scale).
+        model: the :class:`~pyro_slam.model.DVBFLM` (:func:`exploration_model`, or a SLAM
+            run's, :meth:`from_slam`): its transition, emission, map prior, noise and
+            handlers reach the map fit, the infogain and the MI samples.
         cfg: :class:`ExploreConfig`.
-        prior, noise: the model's map prior and emission noise
-            (:class:`~pyro_slam.model.DVBFLM`): they reach the map fit, the infogain and the MI
-            samples.
-        guide: a factory ``model -> map guide`` (default: the mean-field
-            :class:`~pyro_slam.model.MapGuide`; e.g. :func:`~pyro_slam.model.autoguide`).
+        guide: the map guide (default: the mean-field :class:`~pyro_slam.model.MapGuide`),
+            called with ``guide_args``.
+        scope: the parameter store the guide keeps its parameters in (default: its own,
+            :class:`~pyro_slam.model.guide.ParamScope`).
 
-    The mapper keeps its parameters in a store of its own
-    (:class:`~pyro_slam.model.guide.ParamScope`).
+    :meth:`new` builds the exploring agent's mapper for a maze.
     """
 
-    def __init__(
-        self,
-        grid: MapGrid,
-        beam_angles,
-        max_range: float,
-        cfg: ExploreConfig,
-        *,
-        prior=None,
-        noise=None,
-        guide=None,
-    ):
-        self.cfg = cfg
-        self.scope = ParamScope()
-        pyro.set_rng_seed(cfg.seed)  # SVI and rollout sampling use the global RNGs
+    def __init__(self, model: DVBFLM, cfg: ExploreConfig, guide=None, scope=None, guide_args=()):
+        self.cfg, self.model = cfg, model
+        self.scope = ParamScope() if scope is None else scope
         self.gen = torch.Generator().manual_seed(cfg.seed)
-        em = _emission(cfg, max(len(beam_angles), 20), max_range)
-        trans = KinematicTransition(cfg.motion.sigma_T)
-        self.model = DVBFLM(
-            grid, em, trans, beam_angles, cfg.mapping.sigma_E, prior=prior, noise=noise
-        )
-        self.model.learn_emission = cfg.mapping.learn_emission
-        self.max_range = float(max_range)
-        self.beam_angles = np.asarray(beam_angles, dtype=np.float64)
+        self.max_range = float(getattr(model.emission, "reading_range", model.outlier_range))
+        self.beam_angles = model.beam_angles.double().numpy()
         mapping = cfg.mapping
 
         def per_param(name, _p):
             return {"lr": mapping.lr_emission if name.startswith("emission") else mapping.lr_map}
 
+        self.guide_args = tuple(guide_args)
         with self.scope():
             if guide is None:
-                self.guide = MapGuide(grid.shape, init_scale=self.model.prior_std())
+                guide = MapGuide(model.grid.shape, init_scale=model.prior_std())
+            self.guide = guide
+            if hasattr(guide, "params"):  # create its parameters
+                guide.params()
             else:
-                self.guide = guide(self.model)
-            if hasattr(self.guide, "params"):  # create its parameters
-                self.guide.params()
-            else:
-                sample_maps(self.guide, 1)
+                sample_maps(guide, 1, self.guide_args)
             self.svi = SVI(
                 self.model.mapping_model, self.guide, Adam(per_param), TraceMeanField_ELBO()
             )
         self.poses: list[np.ndarray] = []
         self.obs: list[np.ndarray] = []
+
+    @classmethod
+    def new(
+        cls,
+        grid: MapGrid,
+        beam_angles,
+        max_range: float,
+        cfg,
+        *,
+        prior=None,
+        noise=None,
+        guide=None,
+    ) -> Mapper:
+        """The exploring agent's mapper: :func:`exploration_model` (its emission's weights
+        drawn from ``cfg.seed``) and a map guide (factory) ``guide``."""
+        pyro.set_rng_seed(cfg.seed)  # SVI and rollout sampling use the global RNGs
+        model = exploration_model(grid, beam_angles, max_range, cfg, prior, noise)
+        mapper = cls(model, cfg, None if guide is None else guide(model))
+        mapper.beam_angles = np.asarray(beam_angles, dtype=np.float64)  # (as given, not float32)
+        mapper.max_range = float(max_range)
+        return mapper
+
+    @classmethod
+    def from_slam(cls, slam, cfg: ExploreConfig) -> Mapper:
+        """A mapper on a SLAM run: its model (under its handlers) and its map guide, in its
+        parameter store; MI is then the run's own predictive under its map belief."""
+        return cls(slam.model, cfg, slam.map_guide, slam.scope, slam.elbo.model_args)
 
     # -- data
     def add(self, poses, scans) -> None:
@@ -373,7 +403,7 @@ class Mapper:
     def marginals(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The marginal mean and std of ``q(M)``, ``[w, h, D_m]`` (detached)."""
         with self.scope():
-            loc, scale = map_marginals(self.guide)
+            loc, scale = map_marginals(self.guide, self.guide_args)
         return loc.detach(), scale.detach()
 
     def infogain(self) -> float:
@@ -391,9 +421,9 @@ class Mapper:
         kept = [t for t in range(T) if (T - 1 - t) % stride == 0]
         with torch.no_grad():
             with self.scope():
-                maps = sample_maps(self.guide, n_maps)  # [n_maps, w, h, D]
+                maps = sample_maps(self.guide, n_maps, self.guide_args)  # [n_maps, w, h, D]
             pred = Predictive(
-                self.model.model,
+                self.model.handled(),
                 posterior_samples={"map": maps.repeat_interleave(n_paths, 0)},
                 return_sites=[f"x_{t}" for t in kept],
                 parallel=True,
@@ -594,7 +624,7 @@ class _Episode:
         lid = self.world.lidar_config
         grid = scale_grid(self.scale, cfg.mapping.map_dim)
         own = replace(cfg, seed=cfg.seed + maze_seed)
-        self.mapper = Mapper(grid, lid.beam_angles, lid.max_range, own)
+        self.mapper = Mapper.new(grid, lid.beam_angles, lid.max_range, own)
         self.gen = torch.Generator().manual_seed(cfg.seed * 7919 + maze_seed)
         self.rng = np.random.default_rng(cfg.seed * 7919 + maze_seed)
         self.state = pema.initial_state() if policy == "pema" else None

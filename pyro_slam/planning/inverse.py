@@ -130,10 +130,11 @@ class InversePose:
         dvbflm: a :class:`~pyro_slam.model.DVBFLM` with a LiDAR emission (frozen here).
         M: map ``[w, h, D_m]`` (e.g. the mean of ``q(M)``).
         bounds: ``(x0, x1, y0, y1)`` of the prior and the encoder (default: the map extent).
-        sigma: decoder std. Default 0.03, the emission's mean absolute residual at the true
-            poses of a known-pose map, rather than the training ``sigma_E = 0.1``: with 0.1
-            the likelihood of one 20-beam scan barely localises, the dreamed scans of the sleep
-            phase are mostly noise, and ``q(z | x)`` stays blurred.
+        sigma: decoder std. Default: the model's own ``sigma_E`` (the planning model's is
+            fitted to its mapping traversal, :func:`~pyro_slam.slam.fit_noise`), rather than
+            the training ``sigma_E = 0.1``: with 0.1 the likelihood of one 20-beam scan barely
+            localises, the dreamed scans of the sleep phase are mostly noise, and ``q(z | x)``
+            stays blurred.
         max_range: sensor range (default: the emission's output scale).
         encoder: a :class:`PoseEncoder` (default: a new one).
         valid: optional ``poses [n, 3] -> bool [n]`` marking where the map is known (e.g.
@@ -147,7 +148,7 @@ class InversePose:
         dvbflm: DVBFLM,
         M: torch.Tensor,
         bounds=None,
-        sigma: float = 0.03,
+        sigma: float | None = None,
         max_range: float | None = None,
         encoder: PoseEncoder | None = None,
         valid=None,
@@ -156,7 +157,7 @@ class InversePose:
             raise ValueError("the inverse model needs a LiDAR emission (beam_angles)")
         self.dvbflm, self.M, self.valid = dvbflm, M.detach(), valid
         self.bounds = tuple(float(b) for b in (bounds or dvbflm.grid.extent()))
-        self.sigma = float(sigma)
+        self.sigma = float(dvbflm.sigma_emission if sigma is None else sigma)
         if max_range is None:
             max_range = getattr(dvbflm.emission, "net", None)
             max_range = max_range.scale if max_range is not None else 1.0

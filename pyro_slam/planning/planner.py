@@ -44,6 +44,13 @@ def safety_cost(scan, **kw) -> torch.Tensor:
     return safety(scan, **kw).sum(-1)
 
 
+def expected_safety(scans, **kw) -> np.ndarray:
+    """``L_safe`` of end scans ``[P, B]``, or its mean over draws of them ``[P, S, B]`` (the
+    model's predictive): ``[P]``."""
+    cost = safety_cost(scans, **kw).double()
+    return (cost if cost.dim() == 1 else cost.mean(-1)).numpy()
+
+
 # --------------------------------------------------------------------------- primitives
 @dataclass(frozen=True)
 class Primitives:
@@ -210,7 +217,7 @@ class _Successors:
             for i, c in enumerate(keys):
                 self.done[c] = tuple(v[i] for v in out)
         ends, travel, scans, paths = self.done.pop(k)
-        cost = travel + self.safety_weight * safety_cost(scans, **self.safety_kw).double().numpy()
+        cost = travel + self.safety_weight * expected_safety(scans, **self.safety_kw)
         z = nodes[k][0]
         if self.check_path:  # every step of the primitive must be valid, not only its end;
             # turning on the spot stays valid (the search may start in unexplored space)

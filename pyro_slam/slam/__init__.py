@@ -26,6 +26,7 @@ _EXPORTS = {
     "TransitionConfig": "config",
     "build_model": "build",
     "fit_map": "training",
+    "fit_noise": "training",
     "from_dict": "config",
     "image_traversal": "build",
     "path_integration": "build",

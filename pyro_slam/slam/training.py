@@ -1,6 +1,7 @@
 """Fitting with known poses: pretraining an emission (:func:`pretrain_emission`) and mapping
-(:func:`fit_map`). Both maximise ``E_q(M)[log p(x_t | z_t, M)] - KL(q(M) || p(M)) / T`` on
-minibatches of time steps, with the poses ``z_t`` given."""
+(:func:`fit_map`), both maximising ``E_q(M)[log p(x_t | z_t, M)] - KL(q(M) || p(M)) / T`` on
+minibatches of time steps, with the poses ``z_t`` given; and the emission's noise fitted to a
+traversal (:func:`fit_noise`)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,9 @@ from tqdm.auto import tqdm
 from ..model import DVBFLM, Emission, EmissionMLP, LidarEmission, MapGuide, map_marginals
 from .build import build_model, traversal_tensors
 from .config import SLAMConfig
+
+POSITIVE = dist.constraints.positive
+SHARE = dist.constraints.interval(0.0, 0.5)  # an outlier probability fitted to a log
 
 
 def _map_params(model: DVBFLM):
@@ -139,3 +143,54 @@ def fit_map(
                 p.requires_grad_(True)
         loc, scale = map_marginals(q)
     return loc.detach(), scale.detach()
+
+
+def fit_noise(
+    traversal,
+    model: DVBFLM,
+    M,
+    poses=None,
+    steps: int = 300,
+    batch_size: int = 256,
+    lr: float = 0.02,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """The emission's noise fitted to a traversal by the ELBO: ``sigma_E`` and the outlier
+    probability ``eps`` as Pyro parameters of :meth:`DVBFLM.mapping_model` (maximum likelihood
+    under the model's noise family: the map is conditioned on ``M [w, h, D_m]``, e.g. the map
+    belief's mean, and the guide has no site), at ``poses [T, 3]`` (default: the traversal's
+    ground truth; e.g. a SLAM posterior mean), by Adam on minibatches of ``batch_size`` steps.
+    Sets the model's ``sigma_emission`` and ``outlier_prob`` -- so that its predictive (e.g.
+    :class:`pyro.infer.Predictive` on :meth:`DVBFLM.model` at that map, the planner's
+    rollouts) and everything else that reads the model follow -- and returns them. Runs in a
+    parameter store of its own."""
+    if poses is None:
+        poses = traversal.poses
+    obs, _, mask, _ = traversal_tensors(traversal)
+    z = torch.as_tensor(np.asarray(poses), dtype=obs.dtype)
+    M = torch.as_tensor(M, dtype=obs.dtype).detach()
+    before = float(model.sigma_emission), float(model.outlier_prob)
+    eps0 = min(max(before[1], 0.01), 0.4)
+
+    def noise_model(*args):
+        model.sigma_emission = pyro.param("sigma_E", torch.tensor(before[0]), constraint=POSITIVE)
+        model.outlier_prob = pyro.param("outlier_prob", torch.tensor(eps0), constraint=SHARE)
+        pyro.condition(model.mapping_model, {"map": M})(*args)
+
+    def no_latent(*args):  # (the map is given: nothing to infer)
+        pass
+
+    learn = model.learn_emission
+    model.learn_emission = False
+    fitted = before
+    try:
+        with pyro.get_param_store().scope(), torch.random.fork_rng():
+            torch.manual_seed(seed)
+            svi = SVI(noise_model, no_latent, Adam({"lr": lr}), TraceMeanField_ELBO())
+            for _ in range(steps):
+                svi.step(z, obs, mask, batch_size)
+            fitted = tuple(float(pyro.param(n).detach()) for n in ("sigma_E", "outlier_prob"))
+    finally:  # plain numbers again (the fitted ones, or, on an error, the model's own)
+        model.learn_emission = learn
+        model.sigma_emission, model.outlier_prob = fitted
+    return fitted

@@ -523,14 +523,14 @@ def test_swaps_reach_navigation_and_mi():
     for name, kw in (("std", {}), ("wide", {"prior": wide}), ("student", {"noise": student})):
         runs = []
         for seed in range(3):
-            m = Mapper(grid, beams, 0.53, dataclasses.replace(cfg, seed=seed), **kw)
+            m = Mapper.new(grid, beams, 0.53, dataclasses.replace(cfg, seed=seed), **kw)
             runs.append(mutual_information(m, east, [0.25, 0.5, 0.0], cfg))
         mi[name] = runs
     assert min(mi["wide"]) > max(mi["std"]) + 5  # measured ~91 against ~77 nats
     assert max(mi["student"]) < min(mi["std"]) - 20  # measured ~29
     # infogain = KL(q(M) || p(M)) against the model's prior: 0 at the prior, whatever it is;
     # q = N(0, 1) everywhere against N(0, 4): log 2 + 1/8 - 1/2 per entry
-    m = Mapper(grid, beams, 0.53, cfg, prior=wide)
+    m = Mapper.new(grid, beams, 0.53, cfg, prior=wide)
     assert m.infogain() == pytest.approx(0.0, abs=1e-6)
     with m.scope():
         leaves = MapLeaves.of(m.guide, grid.shape)
@@ -564,7 +564,7 @@ def test_an_autonormal_map_guide_runs_through_slam_navigation_and_mi():
     assert env2.scan(torch.as_tensor(tr.poses[:3], dtype=torch.float32)).shape == (3, 20)
     cfg = ExploreConfig.smoke(mi={"L": 10, "M": 4, "K": 10, "obs_stride": 5}, plan={"horizon": 10})
     grid = MapGrid((8, 8), cfg.mapping.map_dim, (0.0, 0.0), (1.0, 1.0))
-    m = Mapper(grid, 2 * np.pi * np.arange(20) / 20, 0.53, cfg, guide=guide)
+    m = Mapper.new(grid, 2 * np.pi * np.arange(20) / 20, 0.53, cfg, guide=guide)
     m.add(tr.poses[:50] / 0.5, tr.observations[:50])
     losses = m.train(5)
     assert all(math.isfinite(v) for v in losses) and math.isfinite(m.infogain())

@@ -48,7 +48,7 @@ def _half_explored_mapper(cfg):
     """Unit square, 8 x 8 map: q(M) tight (scale 0.02) on x < 0.5, prior (scale 1) beyond."""
     grid = MapGrid((8, 8), cfg.mapping.map_dim, (0.0, 0.0), (1.0, 1.0))
     beams = 2 * np.pi * np.arange(20) / 20
-    mapper = Mapper(grid, beams, 0.53, cfg)
+    mapper = Mapper.new(grid, beams, 0.53, cfg)
     with mapper.scope():  # q(M)'s leaves in the mapper's parameter store
         leaves = MapLeaves.of(mapper.guide, grid.shape)
     gen = torch.Generator().manual_seed(0)
