@@ -1,6 +1,6 @@
-"""The DVBF-LM generative model: map grid and model (:mod:`.model`), guides (:mod:`.guide`),
-emissions (:mod:`.emissions`), networks (:mod:`.networks`) and transitions
-(:mod:`.transitions`)."""
+"""The DVBF-LM generative model: map grid and model (:mod:`.model`), its factors
+(:mod:`.factors`), guides (:mod:`.guide`), emissions (:mod:`.emissions`), networks
+(:mod:`.networks`) and transitions (:mod:`.transitions`)."""
 
 from .emissions import (
     Emission,

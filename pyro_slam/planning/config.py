@@ -25,7 +25,9 @@ class NavigationConfig:
     primitive in the planner's rollouts (their mean pose is the successor, their scans' mean
     safety cost its cost; :class:`~pyro_slam.planning.LearnedEnv`); ``fit_noise``: the mapping
     fits the emission's noise after the map (:func:`~pyro_slam.slam.fit_noise`), which the
-    rollouts then sample.
+    rollouts then sample; ``clip_margin``: the mapping model's kinematics stop this far short
+    of the wall its predicted scan shows ahead, so that its rollouts do not pass through walls
+    (:class:`~pyro_slam.model.KinematicTransition`).
     """
 
     max_expansions: int = 2000
@@ -41,6 +43,7 @@ class NavigationConfig:
     observe_rounds: int = 3
     rollout_samples: int = 8
     fit_noise: bool = True
+    clip_margin: float = 0.01
 
 
 # the library's and the command line's defaults

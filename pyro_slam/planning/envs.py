@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 from simulators import LidarConfig, World, raycast, simulate_traversal
 from simulators.world import point_segment_distance
 
-from ..model import EmissionMLP
+from ..model import EmissionMLP, KinematicTransition
 from ..model.networks import LIDAR_MAP_DIM
 from ..pretrained import EMISSION_FILE, PRETRAINED, load_emission, transition_for
 from ..slam import (
@@ -77,7 +77,7 @@ class LearnedEnv(_Rollouts):
         model: a :class:`~pyro_slam.model.DVBFLM`: the planner's rollouts sample it, under its
             handlers (:meth:`~pyro_slam.model.DVBFLM.handled`), with its transition and its
             emission, each with its noise (a mapping model's transition stops short of the walls
-            its predicted scans show, ``transition.clip_margin``).
+            its predicted scans show, ``NavigationConfig.clip_margin``).
         M: map ``[w, h, D_m]``.
         bounds: ``(x0, x1, y0, y1)`` poses must stay within (default: the map extent).
         scale: ``q(M)``'s std ``[w, h, D_m]`` (explored space, :meth:`valid`).
@@ -478,8 +478,18 @@ def _mapping_model(traversal, poses, emission_steps, n_world, seed, progress, pr
         )
     else:
         em = load_emission(PRETRAINED / EMISSION_FILE, traversal)
+    control_model = traversal.metadata.get("control_model", "rotate_forward")
+    transition = KinematicTransition(
+        NAVIGATION_MAPPING.transition.sigma, control_model, clip_margin=NAVIGATION.clip_margin
+    )
     return build_model(
-        traversal, NAVIGATION_MAPPING, emission=em, prior=prior, noise=noise, learn_emission=False
+        traversal,
+        NAVIGATION_MAPPING,
+        transition,
+        em,
+        prior=prior,
+        noise=noise,
+        learn_emission=False,
     )[0]
 
 

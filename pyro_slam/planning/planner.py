@@ -218,11 +218,11 @@ class _Successors:
                 self.done[c] = tuple(v[i] for v in out)
         ends, travel, scans, paths = self.done.pop(k)
         cost = travel + self.safety_weight * expected_safety(scans, **self.safety_kw)
-        z = nodes[k][0]
         if self.check_path:  # every step of the primitive must be valid, not only its end;
-            # turning on the spot stays valid (the search may start in unexplored space)
+            # turning on the spot, before the primitive's first forward control, stays valid
+            # (the search may start in unexplored space; the rollouts' mean poses jitter)
             steps = paths[:, 1:]  # [P, L, 3]
-            here = np.hypot(*(steps[..., :2] - z[:2]).transpose(2, 0, 1)) < 1e-5
+            here = np.cumsum(np.abs(np.asarray(self.prims[..., 1])), 1) == 0  # [P, L]
             ok = (self.env.valid(steps.reshape(-1, 3)).reshape(here.shape) | here).all(1)
         else:
             ok = self.env.valid(ends)

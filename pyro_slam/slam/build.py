@@ -248,9 +248,7 @@ def build_model(
     noise = emission_noise(e.noise) if noise is None else noise
     if transition is None:
         control_model = traversal.metadata.get("control_model", "rotate_forward")
-        transition = KinematicTransition(
-            config.transition.sigma, control_model, clip_margin=config.transition.clip_margin
-        )
+        transition = KinematicTransition(config.transition.sigma, control_model)
     scale = torch.as_tensor(config.transition.scale, dtype=transition.sigma.dtype)
     if not bool((scale == 1).all()):
         transition = copy.deepcopy(transition)

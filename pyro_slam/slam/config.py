@@ -173,26 +173,16 @@ class EmissionConfig:
 class TransitionConfig:
     """The transition ``p(z_{t+1} | z_t, u_t)``: ``kind`` ``"kinematic"`` (the control model's
     kinematics with std ``sigma``) or ``"learned"`` (the shipped ``mu_T`` network and its own
-    ``sigma_T``). The model's ``sigma_T`` is that std times ``scale``. ``clip_margin``: the
-    kinematic transition's forward motion stops this far short of the wall its predicted
-    scan shows ahead (None: it does not; the planner's mapping model sets it, so that its
-    rollouts do not pass through walls)."""
+    ``sigma_T``). The model's ``sigma_T`` is that std times ``scale``."""
 
     kind: str = "learned"
     sigma: tuple[float, float, float] = (5e-4, 5e-4, 8e-3)
     scale: tuple[float, float, float] = (3.0, 3.0, 1.0)
-    clip_margin: float | None = None
 
     def __post_init__(self):
         _choice("transition.kind", self.kind, TRANSITIONS)
         _triple("transition.sigma", self.sigma)
         _triple("transition.scale", self.scale)
-        _positive("transition.clip_margin", self.clip_margin, optional=True)
-        if self.clip_margin is not None and self.kind != "kinematic":
-            raise ConfigError(
-                "transition.clip_margin stops the kinematic transition short of walls: it needs "
-                f"transition.kind 'kinematic', got {self.kind!r}"
-            )
         for f in ("sigma", "scale"):  # JSON gives lists: keep tuples
             object.__setattr__(self, f, tuple(float(x) for x in getattr(self, f)))
 

@@ -192,11 +192,11 @@ REAL = SLAMConfig(
 
 # the model the planner maps with and plans in (:func:`pyro_slam.planning.learned_env`): the
 # paper's LiDAR emission MLP on its 32 x 32 grid, with the paper's Gaussian noise of 0.1 (the
-# mapping fits its own, which the planner's rollouts sample), and kinematics that stop 0.01 short
-# of the walls the predicted scan shows ahead
+# mapping fits its own, which the planner's rollouts sample) and kinematics (which
+# :func:`pyro_slam.planning.learned_env` stops short of the walls the predicted scan shows ahead)
 NAVIGATION_MAPPING = SLAMConfig(
     emission=EmissionConfig("mlp", resolution=1 / 31, sigma=0.1, outlier_prob=0.0),
-    transition=TransitionConfig("kinematic", scale=(1.0, 1.0, 1.0), clip_margin=0.01),
+    transition=TransitionConfig("kinematic", scale=(1.0, 1.0, 1.0)),
     heading=None,
 )
 

@@ -175,7 +175,7 @@ def test_scan_hits_keep_the_planner_off_walls_that_the_map_belief_lost():
     assert np.isinf(hits.clearance(np.array([[0.25, 0.25]]), upto=0.05))[0]
     assert hits.clearance(np.array([[0.25, 1 / 6 + 0.004]]))[0] == pytest.approx(0.004, abs=1e-3)
     pts = free_grid(maze, 3)
-    start = np.array([*pts[1], np.pi / 2])
+    start = np.array([*pts[2], np.pi / 2])  # below the wall, far from its open end
     blind = plan(room, start, pts[4], max_expansions=400)
     assert blind.success and segments_cross(blind.path[:, :2], maze.walls)
     kept = copy.copy(room)

@@ -14,7 +14,7 @@ import pyro
 import torch
 
 from pyro_slam.model import DVBFLM, Transition
-from pyro_slam.model.model import _Memo
+from pyro_slam.model.factors import _Memo
 
 Q = (0.2, 0.15, 0.1)  # transition std per pose dimension
 R = 0.5  # observation std
