@@ -22,11 +22,12 @@ class NavigationConfig:
     :func:`~pyro_slam.planning.seek_observation`); a goal without a plan is explored towards
     (the agent scans at the reached place nearest to it and plans again) up to
     ``observe_rounds`` times. ``rollout_samples``: draws of the model per start pose and
-    primitive in the planner's rollouts (their mean pose is the successor, their scans' mean
-    safety cost its cost; :class:`~pyro_slam.planning.LearnedEnv`); ``fit_noise``: the mapping
-    fits the emission's noise after the map (:func:`~pyro_slam.slam.fit_noise`), which the
-    rollouts then sample; ``clip_margin``: the mapping model's kinematics stop this far short
-    of the wall its predicted scan shows ahead, so that its rollouts do not pass through walls
+    primitive in the planner's rollouts (their scans' mean safety cost is its cost; the
+    successor follows the transition's mean; :class:`~pyro_slam.planning.LearnedEnv`);
+    ``fit_noise``: the mapping fits the emission's noise after the map
+    (:func:`~pyro_slam.slam.fit_noise`), which the rollouts then sample; ``clip_margin``: the
+    mapping model's kinematics stop this far short of the wall its predicted scan shows ahead,
+    so that its rollouts do not pass through walls
     (:class:`~pyro_slam.model.KinematicTransition`).
     """
 

@@ -154,8 +154,9 @@ class LearnedEnv(_Rollouts):
         vectorised over the draws as :class:`pyro.infer.Predictive` samples in parallel, with
         the map conditioned on ``M`` and ``z_0`` on the starts; the random numbers are a
         function of the starts and the controls (a rollout is deterministic, as the memo
-        needs). The successors are the draws' mean poses; the end scans are the draws of the
-        observation site ``x_L`` (the planner's safety cost is their mean). Returns
+        needs). The successors follow the model's noise-free transition (:meth:`_mean_path`);
+        the end scans are the draws of the observation site ``x_L`` at the draws' poses (the
+        planner's safety cost is the mean over them). Returns
         ``[K, P, ...]`` (see :meth:`rollout`), the scans ``[K, P, S, B]``."""
         K, (P, L, _), S = len(z0), controls.shape, self.samples
         init = torch.as_tensor(z0, dtype=controls.dtype)[:, None]  # [K, 1, 3]
@@ -165,11 +166,22 @@ class LearnedEnv(_Rollouts):
             torch.manual_seed(_seed(z0, controls))
             with pyro.plate("_num_predictive_samples", S, dim=-3):
                 tr = poutine.trace(model).get_trace(None, controls, init)
-        z = [tr.nodes[f"z_{t}"]["value"].expand(S, K, P, 3) for t in range(L + 1)]
-        path = torch.stack(z, 3).mean(0)  # [K, P, L + 1, 3] the draws' mean
+        path = self._mean_path(init.expand(K, P, 3), controls)  # [K, P, L + 1, 3]
         travel = (path[..., 1:, :2] - path[..., :-1, :2]).norm(dim=-1).sum(-1)  # [K, P]
         scans = tr.nodes[f"x_{L}"]["value"].expand(S, K, P, -1).movedim(0, 2)  # [K, P, S, B]
         return path[:, :, -1].numpy(), travel.numpy(), scans, path.numpy()
+
+    def _mean_path(self, z: torch.Tensor, controls: torch.Tensor) -> torch.Tensor:
+        """The poses the controls ``[P, L, 2]`` lead to from ``z [K, P, 3]`` under the model's
+        noise-free transition (its mean, reading the predicted scans): ``[K, P, L + 1, 3]``.
+        The controls are executed open loop, so a node is where they take the agent, not
+        the mean of noisy draws (whose heading noise would drift the plan from it)."""
+        path = [z]
+        for t in range(controls.shape[-2]):
+            scan = self.model.emission_mean(self.M, z) if self.model.transition.needs_scan else None
+            z = self.model.transition.mean(z, controls[:, t], scan)
+            path.append(z)
+        return torch.stack(path, -2)
 
 
 def _seed(*arrays) -> int:

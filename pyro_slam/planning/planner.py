@@ -220,7 +220,7 @@ class _Successors:
         cost = travel + self.safety_weight * expected_safety(scans, **self.safety_kw)
         if self.check_path:  # every step of the primitive must be valid, not only its end;
             # turning on the spot, before the primitive's first forward control, stays valid
-            # (the search may start in unexplored space; the rollouts' mean poses jitter)
+            # (the search may start in unexplored space)
             steps = paths[:, 1:]  # [P, L, 3]
             here = np.cumsum(np.abs(np.asarray(self.prims[..., 1])), 1) == 0  # [P, L]
             ok = (self.env.valid(steps.reshape(-1, 3)).reshape(here.shape) | here).all(1)
