@@ -410,8 +410,12 @@ def _heading_terms(model, heading: HeadingEvidence, z):
     so = heading.std().to(z.dtype)
     value = torch.as_tensor(heading.frame, dtype=z.dtype) - heading.direction.nan_to_num()
     e = wrap_angle(value - z[..., 2], f.period)
-    g = torch.exp(-0.5 * (e / so) ** 2) / (so * math.sqrt(2 * math.pi))
-    resp = (1 - f.outlier_prob) * g / ((1 - f.outlier_prob) * g + f.outlier_prob / f.period)
+    resp = torch.ones_like(e)
+    if f.outlier_prob > 0:  # the inlier's responsibility, in log space (a far residual: 0)
+        log_in = -0.5 * (e / so) ** 2 - torch.log(so * math.sqrt(2 * math.pi))
+        resp = torch.sigmoid(
+            log_in + math.log1p(-f.outlier_prob) - math.log(f.outlier_prob / f.period)
+        )
     w = torch.where(heading.seen(), resp / so**2, 0.0)
     H = torch.zeros(*z.shape, 3, dtype=z.dtype)
     H[..., 2, 2] = w

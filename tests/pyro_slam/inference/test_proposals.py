@@ -11,7 +11,15 @@ from torch.distributions import MultivariateNormal, Normal
 
 from pyro_slam.inference import ParticleFilter, Particles, TransitionProposal
 from pyro_slam.inference.proposals import MatchedProposal, PoseProposal, ScanMatchProposal
-from pyro_slam.model import DVBFLM, KinematicTransition, MapBelief, MapGrid, RayEmission
+from pyro_slam.model import (
+    DVBFLM,
+    HeadingEvidence,
+    KinematicTransition,
+    MapBelief,
+    MapGrid,
+    RayEmission,
+    WallHeading,
+)
 
 
 def test_the_proposals_densities_are_the_mixtures_they_sample():
@@ -78,3 +86,22 @@ def test_scan_matching_puts_few_particles_where_the_scan_fits():
                 assert float((new.z[:, :2] - truth[:2]).norm(dim=-1).median()) < 0.01
     assert max(err["match"]) < 0.008, err  # measured <= 0.0051
     assert sum(err["match"]) < 0.5 * sum(err["transition"]), err
+
+
+def test_scan_matching_pulls_a_far_heading_to_the_wall_direction():
+    """With a heading factor of no outliers and a direction seen with std 0.001 rad, a cloud
+    whose heading is 0.02 rad (20 std) off is matched to the heading the direction says (the
+    factor's weight is a whole 1 / sigma^2, not a 0 / 0 where its Gaussian underflows), not
+    handed back to the transition."""
+    model, belief = _room()
+    model.heading = WallHeading(period=math.pi / 2, outlier_prob=0.0)
+    truth = torch.tensor([0.35, 0.45, 0.3])
+    x = model.emission_mean(belief.loc, truth)
+    seen = HeadingEvidence(torch.tensor(0.0), 0.001, frame=0.3)  # frame - direction = 0.3
+    prev = truth - torch.tensor([0.0, 0.0, 0.02])
+    scan = model.emission_mean(belief.loc, prev)
+    q = ScanMatchProposal().dist(
+        model, prev[None], scan[None], torch.zeros(3), x=x, M=belief, heading=seen
+    )
+    assert isinstance(q, MatchedProposal)
+    assert abs(float(q.mu[0, 2]) - 0.3) < 0.002, q.mu
