@@ -62,7 +62,7 @@ from .planning import (
 )
 from .planning.inverse import fit_inverse
 from .plotting import plot_navigation
-from .runtime import DEFAULT_THREADS
+from .runtime import DEFAULT_THREADS, MAX_THREADS
 from .slam import SLAM, ConfigError, SLAMConfig, from_dict, presets
 from .slam.checkpoint import CHECKPOINT_EVERY
 from .slam.components import emission_kind
@@ -128,6 +128,7 @@ SEED = _number(int, 0, high=MAX_SEED)
 MAX_STEPS = 1_000_000  # a simulated traversal's steps (about 1 GB with camera frames)
 STEPS = _number(int, 1, high=MAX_STEPS)
 MAX_DISTRACTORS = 1000
+THREADS = _number(int, 1, high=MAX_THREADS)
 
 
 def _bag_options(args, kind: str, path: Path) -> dict:
@@ -148,27 +149,30 @@ def _bag_options(args, kind: str, path: Path) -> dict:
 
 
 def _read(args) -> Traversal:
-    """The input traversal. ``--lenient`` (text logs): malformed lines are skipped, and said
-    in one line on stderr; ``--scan-topic`` / ``--odom-topic``: a ROS bag's topics;
+    """The input traversal. ``--lenient``: malformed lines of a text log, or a bag's scans out
+    of time order, are skipped and said in one line on stderr; ``--scan-topic`` /
+    ``--odom-topic``: a ROS bag's topics;
     ``--no-odometry`` / ``--laser-offset``: a ROS bag's odometry and laser mount, chosen."""
     path = Path(args.traversal)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or directory")
     kind, kw = input_kind(path), {}
     if getattr(args, "lenient", False):
-        if kind != "carmen":
-            raise DatasetError(f"{path}: --lenient applies to CARMEN text logs, not this input")
+        if kind not in ("carmen", "rosbag"):
+            raise DatasetError(
+                f"{path}: --lenient applies to CARMEN logs and ROS bags, not this input"
+            )
         kw["lenient"] = True
     kw.update(_bag_options(args, kind, path))
     tr = read_any(path, **kw)
-    skipped = tr.metadata.get("skipped_lines", 0)
-    if skipped:
-        first = (tr.metadata.get("skip_reasons") or ["?"])[0]
-        print(
-            f"pyro-slam {args.command}: --lenient skipped {skipped} malformed line(s) of "
-            f"{path} (listed in metrics.json; the first: {first})",
-            file=sys.stderr,
-        )
+    for key, what in (("skipped_lines", "malformed line(s)"), ("skipped_scans", "scan(s)")):
+        if tr.metadata.get(key, 0):
+            first = (tr.metadata.get("skip_reasons") or ["?"])[0]
+            print(
+                f"pyro-slam {args.command}: --lenient skipped {tr.metadata[key]} {what} of "
+                f"{path} (listed in metrics.json; the first: {first})",
+                file=sys.stderr,
+            )
     return tr
 
 
@@ -182,14 +186,6 @@ def _config(args, traversal: Traversal) -> tuple[str, SLAMConfig]:
     noise = getattr(args, "odometry_noise", None)
     try:
         name, config = presets.configure(args.preset, traversal, args.config or None, noise)
-        given = parse_overrides(args.config) if args.config else {}
-        tran = given.get("transition") if isinstance(given, dict) else None
-        if isinstance(tran, dict) and "sigma" in tran and config.transition.kind == "learned":
-            raise ConfigError(
-                "transition.sigma is the kinematic transition's std; transition.kind 'learned' "
-                "uses its network's own (scale it with transition.scale), so it would be "
-                "ignored"
-            )
         check_settings(traversal, config, str(getattr(args, "traversal", "traversal")))
     except ConfigError as e:
         raise DatasetError(f"--config: {e}") from None
@@ -304,7 +300,8 @@ def cmd_simulate(args) -> int:
 
 def cmd_slam(args) -> int:
     """Read the input, the configuration and the networks, then run SLAM into ``--out``
-    (written beside it and swapped in at the end: a failure leaves ``--out`` as it was)."""
+    (written into its ``.partial`` and put in place at the end: a failure leaves ``--out`` as
+    it was)."""
     torch.manual_seed(args.seed)
     with run_folder(args.out, args.resume, args.overwrite) as folder:
         report = _slam(args, folder)
@@ -328,7 +325,14 @@ def _slam(args, folder) -> dict:
                 "has none"
             )
         emission = kind.load(args.emission, tr)
-    transition = pretrained.load_transition(args.transition) if args.transition else None
+    transition = None
+    if args.transition is not None:
+        if config.transition.kind != "learned":
+            raise DatasetError(
+                "--transition loads a learned transition network; transition.kind "
+                f"{config.transition.kind!r} has none (set it to 'learned')"
+            )
+        transition = pretrained.load_transition(args.transition)
     return run_slam(
         tr,
         folder,
@@ -343,6 +347,7 @@ def _slam(args, folder) -> dict:
         checkpoint_every=args.checkpoint_every,
         threads=args.threads,
         argv=args.argv,
+        overrides=parse_overrides(args.config) if args.config else None,
     )
 
 
@@ -686,14 +691,14 @@ def _add_run_options(p, out: str, what: str) -> None:
     again.add_argument(
         "--resume",
         action="store_true",
-        help="continue the interrupted run kept beside OUT (.OUT.partial), or the run in OUT, "
+        help="continue the interrupted run kept in OUT (OUT/.partial), or the run in OUT, "
         "from its checkpoint.pt",
     )
     again.add_argument(
         "--overwrite",
         action="store_true",
         help="replace the run in a non-empty OUT once the new one has finished (a run is "
-        "written beside OUT and swapped in at its end: a failure leaves OUT as it was)",
+        "written into OUT/.partial and put in place at its end: a failure leaves OUT as it was)",
     )
     p.add_argument(
         "--checkpoint-every",
@@ -704,7 +709,7 @@ def _add_run_options(p, out: str, what: str) -> None:
     )
     p.add_argument(
         "--threads",
-        type=POSITIVE,
+        type=THREADS,
         default=DEFAULT_THREADS,
         metavar="N",
         help="torch intra-op threads (the results depend on N, never on the machine's load; "
@@ -750,8 +755,9 @@ def _add_slam(sub) -> None:
     s.add_argument(
         "--lenient",
         action="store_true",
-        help="CARMEN logs: skip malformed lines (counted and listed in metrics.json, said on "
-        "stderr) instead of stopping at the first",
+        help="CARMEN logs: skip malformed lines; ROS bags: skip scans whose stamps do not go "
+        "forward (counted and listed in metrics.json, said on stderr) instead of stopping at "
+        "the first",
     )
     s.add_argument(
         "--odometry-noise",

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import os
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ import torch
 from .version import package_version
 
 DEFAULT_THREADS = 1  # torch intra-op threads of a run that names no count
+MAX_THREADS = 256  # the most a run may ask for (OpenMP aborts the process far beyond)
 CHUNK = 1 << 20  # bytes read at a time when hashing
 
 __all__ = [
@@ -40,6 +42,11 @@ def thread_count(n: int | None = None) -> int:
     n = DEFAULT_THREADS if n is None else n
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"threads must be a positive integer, got {n!r}")
+    if n > MAX_THREADS:
+        raise ValueError(
+            f"threads {n}: at most {MAX_THREADS} (this machine has {os.cpu_count()} cores; "
+            "a thread count far beyond them only slows a run down)"
+        )
     return n
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from bad_inputs import TINY_JSON, corpus, make_shared, run_case
+from bad_inputs import TINY_LOG_JSON, corpus, make_shared, run_case
 
 from pyro_slam import cli
 
@@ -52,7 +52,7 @@ def _flaser(i):
 def test_byte_order_mark_and_crlf_keep_every_scan(tmp_path, newline, bom):
     log = _log(tmp_path / "l.clf", [_flaser(i) for i in range(6)], newline, bom)
     out = tmp_path / "o"
-    assert cli.main(["slam", str(log), "--out", str(out), "--config", TINY_JSON]) == 0
+    assert cli.main(["slam", str(log), "--out", str(out), "--config", TINY_LOG_JSON]) == 0
     assert json.loads((out / "metrics.json").read_text())["steps"] == 6
 
 
@@ -62,7 +62,7 @@ def test_lenient_counts_and_lists_what_it_skipped(tmp_path, capsys):
     lines = [_flaser(i) for i in range(6)]
     lines.insert(3, "FLASER 8 abc")
     log = _log(tmp_path / "l.clf", lines + ["FLASER 8 1.0 1."])
-    args = ["slam", str(log), "--config", TINY_JSON]
+    args = ["slam", str(log), "--config", TINY_LOG_JSON]
     assert cli.main([*args, "--out", str(tmp_path / "strict")]) == 2
     assert "l.clf:4" in capsys.readouterr().err
     assert cli.main([*args, "--out", str(tmp_path / "lenient"), "--lenient"]) == 0
@@ -78,7 +78,7 @@ def test_a_metric_undefined_for_a_short_log_is_null_with_the_reason(tmp_path):
     consistency is ``null`` with the reason, never NaN nor a capped 1.0."""
     log = _log(tmp_path / "l.clf", [_flaser(i) for i in range(6)])
     out = tmp_path / "o"
-    assert cli.main(["slam", str(log), "--out", str(out), "--config", TINY_JSON]) == 0
+    assert cli.main(["slam", str(log), "--out", str(out), "--config", TINY_LOG_JSON]) == 0
     text = (out / "metrics.json").read_text()
     assert "NaN" not in text
     for path in ("slam", "path_integration"):

@@ -45,6 +45,7 @@ from pyro_slam.io.common import (
     ParseError,
     build_traversal,
     odometry_poses,
+    open_text,
     parse_float,
     parse_floats,
     poses_at,
@@ -172,11 +173,9 @@ def _open_lines(source) -> tuple[str, Iterable[str], bool]:
     """``(name, lines, opened_here)`` for a path (``.gz`` transparently) or an iterable."""
     if isinstance(source, (str, os.PathLike)):
         path = Path(source)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such CARMEN log")
         opener = gzip.open if path.suffix == ".gz" else open
-        # utf-8-sig: a byte-order mark is not part of the first line's message name
-        return str(path), opener(path, "rt", encoding="utf-8-sig", errors="replace"), True
+        # (a byte-order mark is not part of the first line's message name)
+        return str(path), open_text(path, "CARMEN log", opener), True
     return "<lines>", source, False
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import os
 import re
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -27,6 +28,21 @@ class ParseError(ValueError):
         self.path, self.lineno, self.reason = str(path), lineno, reason
         where = self.path if lineno is None else f"{self.path}:{lineno}"
         super().__init__(f"{where}: {reason}")
+
+
+def open_text(path: str | os.PathLike, what: str, opener=open):
+    """The text file ``path`` opened for reading (``opener``: e.g. ``gzip.open``), a byte-order
+    mark skipped; :class:`FileNotFoundError` where it is missing and :class:`ParseError` where it
+    is a folder or cannot be read, naming it as ``what`` (e.g. ``"CARMEN log"``)."""
+    path = Path(path)
+    if path.is_dir():
+        raise ParseError(path, None, f"is a folder, not a {what}")
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such {what}")
+    try:
+        return opener(path, "rt", encoding="utf-8-sig", errors="replace")
+    except OSError as e:
+        raise ParseError(path, None, f"cannot read the {what} ({e.strerror or e})") from None
 
 
 _NUMBER = re.compile(

@@ -18,17 +18,18 @@ import numpy as np
 
 from pyro_slam.data import atomic_write
 from pyro_slam.geometry import wrap_angle
-from pyro_slam.io.common import ParseError, parse_float, relative
+from pyro_slam.io.common import ParseError, open_text, parse_float, relative
 
 COLUMNS = ("t1", "t2", "x", "y", "z", "roll", "pitch", "yaw")
 
 
 def read_relations(path: str | os.PathLike) -> np.ndarray:
-    """Relations ``[R, 8]`` from a Kümmerle-style file; :class:`ParseError` ``file:line``
-    on a line without 8 finite numbers."""
+    """Relations ``[R, 8]`` from a Kümmerle-style file (a byte-order mark skipped);
+    :class:`ParseError` ``file:line`` on a line without 8 finite numbers, and naming the file
+    where it is a folder."""
     path = Path(path)
     rows = []
-    with open(path, encoding="utf-8", errors="replace") as f:
+    with open_text(path, "relations file") as f:
         for lineno, raw in enumerate(f, start=1):
             tokens = raw.split()
             if not tokens or tokens[0].startswith("#"):

@@ -4,10 +4,15 @@
 Reads ``sensor_msgs/msg/LaserScan`` (one traversal step per scan) and, when present,
 ``nav_msgs/msg/Odometry`` (paired to each scan by time), else the odometry in ``/tf``
 (``odom -> base_link``). Transforms come from ``/tf_static`` and ``/tf`` (``tf2_msgs/TFMessage``
-or ROS 1's older ``tf/tfMessage``); a transform on ``/tf`` that is constant over the bag (what
-ROS 1's ``static_transform_publisher`` republishes) is a mount, never odometry, unless its parent
-is ``odom``. The laser's mounting offset on the robot (``base_link -> laser``) is applied: the
-controls move the laser's frame, whose origin and heading the scans are measured from. Where the
+or ROS 1's older ``tf/tfMessage``). Which transform is the odometry is read from the tree of
+frames, not from how constant a transform is: ``odom -> base`` where the bag has an ``odom``
+frame (REP 105), else the topmost moving transform above the laser; the transforms between the
+base and the laser are its mount, fixed up to ``MOUNT_TOL`` of jitter when republished on ``/tf``
+(ROS 1's ``static_transform_publisher``), and refused where they change. The laser's mounting
+offset on the robot (``base_link -> laser``) is applied: the controls move the laser's frame,
+whose origin and heading the scans are measured from. Scans whose stamps do not go forward are
+refused (skipped, counted and listed with ``lenient``); empty frame ids are refused naming the
+topic. Where the
 bag holds no odometry, or does not say where the laser sits on the odometry's frame, reading
 stops naming what is missing, unless the caller chooses (``odometry=False``,
 ``laser_offset``). Output conventions match
@@ -51,7 +56,10 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")  # ROS 2 / ROS 1, and ROS 1's older one
 TF_STATIC_TOPIC = "/tf_static"
 ODOM_FRAME = "odom"  # the parent frame of odometry in /tf (REP 105)
-CONSTANT_TOL = 1e-6  # metres / radians: a /tf transform that moves less is a mount
+CONSTANT_TOL = 1e-6  # metres / radians: a --laser-offset this close to the bag's mount agrees
+# metres / radians: a mount on /tf that moves less than this over the bag is fixed (jitter)
+MOUNT_TOL = 1e-3
+MAX_REASONS = 20  # skipped scans listed in the metadata (all are counted)
 
 
 @dataclass
@@ -81,6 +89,31 @@ def _yaw(q) -> float:
 def _frame(name: str) -> str:
     """A frame id without ROS 1's leading slash."""
     return str(name).lstrip("/")
+
+
+def _in_time_order(path: Path, bag: _Bag, topic: str, lenient: bool) -> dict:
+    """Keep the scans whose stamps go forward: a stamp at or before the previous scan's is a
+    :class:`ParseError` naming the scan, or with ``lenient`` the scan is skipped (odometry is
+    paired by time, so a scan out of order would get another's); the metadata of what was
+    skipped (``skipped_scans``, ``skip_reasons``)."""
+    keep, reasons, latest = [], [], -math.inf
+    for k, t in enumerate(bag.times):
+        if t > latest:
+            keep.append(k)
+            latest = t
+            continue
+        why = "repeats" if t == latest else "is before"
+        reason = (
+            f"scan {k} on {topic}: its stamp {t:.9g} s {why} the previous scan's {latest:.9g} s"
+        )
+        if not lenient:
+            raise ParseError(path, None, f"{reason}; --lenient skips such scans")
+        reasons.append(reason)
+    if not reasons:
+        return {}
+    bag.ranges = [bag.ranges[k] for k in keep]
+    bag.times = [bag.times[k] for k in keep]
+    return {"skipped_scans": len(reasons), "skip_reasons": reasons[:MAX_REASONS]}
 
 
 def _connections(reader, path: Path, topic: str | None, msgtype: str, required: bool):
@@ -118,11 +151,19 @@ def _add_scan(bag: _Bag, path: Path, topic: str, msg, bag_ns: int) -> None:
     bag.times.append(_stamp(msg, bag_ns))
 
 
-def _add_transforms(bag: _Bag, msg, static: bool) -> None:
-    """The 2-D parts ``(x, y, yaw)`` of a TFMessage's transforms."""
+def _add_transforms(bag: _Bag, path: Path, topic: str, msg, static: bool) -> None:
+    """The 2-D parts ``(x, y, yaw)`` of a TFMessage's transforms; a :class:`ParseError`
+    naming the topic for a transform with an empty frame id."""
     for tf in msg.transforms:
         t, q = tf.transform.translation, tf.transform.rotation
         parent, child = _frame(tf.header.frame_id), _frame(tf.child_frame_id)
+        if not parent or not child:
+            raise ParseError(
+                path,
+                None,
+                f"{topic}: a transform with an empty frame id (parent {parent!r}, child "
+                f"{child!r}): the tree of frames cannot be built",
+            )
         pose = [t.x, t.y, _yaw(q)]
         if static:
             bag.static[child] = (parent, np.asarray(pose), TF_STATIC_TOPIC)
@@ -144,34 +185,71 @@ def _read_messages(reader, path: Path, conns) -> _Bag:
             bag.odom_child = _frame(msg.child_frame_id)
             bag.odom_parent = _frame(msg.header.frame_id)
         elif conn.msgtype in TF_TYPES:
-            _add_transforms(bag, msg, conn.topic.lstrip("/") == TF_STATIC_TOPIC[1:])
+            static = conn.topic.lstrip("/") == TF_STATIC_TOPIC[1:]
+            _add_transforms(bag, path, conn.topic, msg, static)
         else:
             _add_scan(bag, path, conn.topic, msg, bag_ns)
-    _split_mounts(bag)
     return bag
 
 
-def _split_mounts(bag: _Bag) -> None:
-    """Move the ``/tf`` transforms that are constant over the bag (and whose parent is not
-    ``odom``: a robot standing still still has odometry) into ``bag.static``: mounts."""
-    for (parent, child), (_, poses) in list(bag.dynamic.items()):
-        p = np.asarray(poses)  # [K, 3]
-        spread = np.abs(np.concatenate([p[:, :2] - p[0, :2], wrap_angle(p[:, 2:] - p[0, 2])], 1))
-        if parent != ODOM_FRAME and spread.max() <= CONSTANT_TOL and child not in bag.static:
-            bag.static[child] = (parent, p[0], "/tf")
-            del bag.dynamic[(parent, child)]
+def _spread(poses: np.ndarray) -> float:
+    """How far poses ``[K, 3]`` move from the first (metres or radians, the larger)."""
+    p = np.asarray(poses)
+    d = np.concatenate([p[:, :2] - p[0, :2], wrap_angle(p[:, 2:] - p[0, 2])], 1)
+    return float(np.abs(d).max())
 
 
-def _mount_chain(static: dict, laser: str) -> list[tuple[str, np.ndarray, str]]:
-    """``[(frame, pose of the laser in that frame [3], topics)]``, from the laser's own frame
-    up the tree of mounts (e.g. ``laser`` -> ``base_link`` -> ``base_footprint``); ``topics``:
-    where the transforms on the way came from."""
-    chain, pose, frame, topics = [(laser, np.zeros(3), "")], np.zeros(3), laser, []
-    while frame in static and static[frame][0] not in {f for f, _, _ in chain}:
-        frame, offset, topic = static[frame]
-        pose = compose(offset, pose)
+def _parents(bag: _Bag) -> dict[str, tuple[str, np.ndarray, str]]:
+    """The tree of frames: ``child -> (parent, poses [K, 3], topic)`` over ``/tf_static`` and
+    ``/tf`` (a child in both: ``/tf_static``'s)."""
+    tree = {c: (p, pose[None], topic) for c, (p, pose, topic) in bag.static.items()}
+    for (parent, child), (_, poses) in bag.dynamic.items():
+        tree.setdefault(child, (parent, np.asarray(poses), "/tf"))
+    return tree
+
+
+def _ancestry(tree: dict, laser: str) -> list[str]:
+    """The frames from the laser's up to the tree's root (``laser``, ``base_link``, ``odom``)."""
+    chain = [laser]
+    while chain[-1] in tree and tree[chain[-1]][0] not in chain:
+        chain.append(tree[chain[-1]][0])
+    return chain
+
+
+def _odometry_edge(bag: _Bag, ancestry: list[str]) -> tuple[str, str] | None:
+    """The ``/tf`` transform that is the odometry, by the tree's structure (REP 105): the one
+    leaving ``odom`` (the one above the laser where several do); without an ``odom`` frame,
+    the topmost transform above the laser that moves. None where there is none."""
+    leaving = [k for k in bag.dynamic if k[0] == ODOM_FRAME]
+    if leaving:
+        return min(leaving, key=lambda k: k[1] not in ancestry)
+    up = [(ancestry[i + 1], ancestry[i]) for i in range(len(ancestry) - 1)]
+    moving = [k for k in up if k in bag.dynamic and _spread(bag.dynamic[k][1]) > MOUNT_TOL]
+    return moving[-1] if moving else None
+
+
+def _mount_chain(path: Path, tree: dict, laser: str, base: str):
+    """``{frame: (pose of the laser in that frame [3], topics)}`` from the laser's frame up to
+    ``base`` (the odometry's frame; the root where it is not above the laser). A mount on
+    ``/tf`` is fixed where it moves less than :data:`MOUNT_TOL` over the bag (its median);
+    one that moves more, below ``base``, is a :class:`ParseError` naming ``--laser-offset``."""
+    chain, pose, frame, topics = {laser: (np.zeros(3), "")}, np.zeros(3), laser, []
+    while frame != base and frame in tree and tree[frame][0] not in chain:
+        parent, poses, topic = tree[frame]
+        if _spread(poses) > MOUNT_TOL:
+            if base in _ancestry(tree, parent):
+                raise ParseError(
+                    path,
+                    None,
+                    f"the laser's mount {parent} -> {frame} on {topic} changes by "
+                    f"{_spread(poses):.3g} over the bag (more than {MOUNT_TOL:g}): a moving "
+                    f"mount is not supported; {OFFSET_HINT}",
+                )
+            break
+        pose = compose(np.median(poses, axis=0), pose)
         topics.append(topic)
-        chain.append((frame, pose, " + ".join(dict.fromkeys(topics))))
+        frame = parent
+        chain[frame] = (pose, " + ".join(dict.fromkeys(topics)))
     return chain
 
 
@@ -179,18 +257,17 @@ NO_ODOMETRY_HINT = "pass --no-odometry (odometry=False) to run on the scans alon
 OFFSET_HINT = "give the laser's pose on it with --laser-offset X Y YAW (laser_offset=)"
 
 
-def _odometry_records(bag: _Bag, chain: dict, odom_topic: str | None):
+def _odometry_records(bag: _Bag, ancestry: list[str], odom_topic: str | None):
     """``(stamps [K], poses [K, 3], parent frame, base frame, source)`` of the odometry: the
-    Odometry topic's, else the ``/tf`` transform that moves the laser's base (``odom -> base``
-    preferred, REP 105); None where the bag has neither."""
+    Odometry topic's, else the ``/tf`` transform :func:`_odometry_edge` finds; None where the
+    bag has neither."""
     if bag.odom_pose:
         stamps, poses = np.asarray(bag.odom_time), np.asarray(bag.odom_pose)
         return stamps, poses, bag.odom_parent, bag.odom_child, odom_topic
-    found = [k for k in bag.dynamic if k[1] in chain or k[0] == ODOM_FRAME]
-    if not found:
+    edge = _odometry_edge(bag, ancestry)
+    if edge is None:
         return None
-    found.sort(key=lambda k: (k[1] not in chain, k[0] != ODOM_FRAME))
-    (parent, base), (stamps, poses) = found[0], bag.dynamic[found[0]]
+    (parent, base), (stamps, poses) = edge, bag.dynamic[edge]
     return np.asarray(stamps), np.asarray(poses), parent, base, f"/tf {parent} -> {base}"
 
 
@@ -253,8 +330,8 @@ def _odometry(
             "frames": {"laser": laser},
         }
         return np.zeros((len(times), 3)), meta
-    chain = {f: (pose, topics) for f, pose, topics in _mount_chain(bag.static, laser)}
-    found = _odometry_records(bag, chain, odom_topic)
+    tree = _parents(bag)
+    found = _odometry_records(bag, _ancestry(tree, laser), odom_topic)
     if found is None:
         raise ParseError(
             path,
@@ -264,6 +341,12 @@ def _odometry(
             + NO_ODOMETRY_HINT,
         )
     stamps, poses, parent, base, source = found
+    try:
+        chain = _mount_chain(path, tree, laser, base)
+    except ParseError:  # a moving mount: refused unless replaced
+        if laser_offset is None:
+            raise
+        chain = {}
     offset, offset_source = _mount(path, chain, base, laser, source, laser_offset)
     odom, gap = poses_at(times, stamps, poses, pairing)
     meta = {
@@ -312,43 +395,9 @@ def _sensor(first, ranges: np.ndarray, max_range: float | None) -> tuple[dict, f
     return sensor, max_range
 
 
-def read_rosbag(
-    path: str | os.PathLike,
-    scan_topic: str | None = None,
-    odom_topic: str | None = None,
-    *,
-    beam_stride: int = 1,
-    max_range: float | None = None,
-    pairing: str = "nearest",
-    odometry: bool = True,
-    laser_offset=None,
-) -> Traversal:
-    """Read a ROS 1 ``.bag`` or ROS 2 bag directory into a :class:`Traversal`.
-
-    Args:
-        scan_topic / odom_topic: topics to use; default: the bag's only LaserScan / Odometry
-            topic. Without an Odometry topic, odometry comes from ``/tf`` (``odom -> base``,
-            the base being the frame the mounts in ``/tf_static`` or constant ``/tf``
-            transforms put the laser on); without either, a :class:`ParseError` says so.
-        beam_stride: keep every ``beam_stride``-th beam.
-        max_range: override the first scan's ``range_max``.
-        pairing: ``"nearest"`` (default) or ``"interp"``: odometry record matched to a scan.
-        odometry: False: ignore any odometry, zero controls (SLAM on the scans alone).
-        laser_offset: ``(x, y, yaw)``, the laser's pose on the odometry's frame, instead of
-            the bag's transforms (needed where the bag has none, e.g. an Odometry topic with
-            an empty ``child_frame_id`` and no ``/tf_static``).
-    ``metadata`` records ``odometry_source``, ``laser_offset`` (and its source) and the
-    ``frames`` used (``laser``, ``base``, ``odometry``).
-
-    Raises:
-        ParseError: unreadable bag, missing / ambiguous topics, inconsistent scans, no scans,
-            no odometry (without ``odometry=False``), no mount of the laser on the odometry's
-            frame (without ``laser_offset``).
-    """
-    require(AnyReader, "reading ROS bags", "rosbags", "ros")
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such bag")
+def _read_bag(path: Path, scan_topic: str | None, odom_topic: str | None, odometry: bool):
+    """The bag's scans, odometry and transforms (:class:`_Bag`), and the scan and odometry
+    topics read (the latter None where there is none or ``odometry`` is False)."""
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
@@ -363,16 +412,68 @@ def read_rosbag(
         reader.close()
     if not bag.ranges:
         raise ParseError(path, None, f"no messages on {scans[0].topic}")
+    return bag, scans[0].topic, odoms[0].topic if odoms else None
+
+
+def read_rosbag(
+    path: str | os.PathLike,
+    scan_topic: str | None = None,
+    odom_topic: str | None = None,
+    *,
+    beam_stride: int = 1,
+    max_range: float | None = None,
+    pairing: str = "nearest",
+    odometry: bool = True,
+    laser_offset=None,
+    lenient: bool = False,
+) -> Traversal:
+    """Read a ROS 1 ``.bag`` or ROS 2 bag directory into a :class:`Traversal`.
+
+    Args:
+        scan_topic / odom_topic: topics to use; default: the bag's only LaserScan / Odometry
+            topic. Without an Odometry topic, odometry comes from ``/tf`` (``odom -> base``,
+            the mounts below ``base`` putting the laser on it); without either, a
+            :class:`ParseError` says so.
+        beam_stride: keep every ``beam_stride``-th beam.
+        max_range: override the first scan's ``range_max``.
+        pairing: ``"nearest"`` (default) or ``"interp"``: odometry record matched to a scan.
+        odometry: False: ignore any odometry, zero controls (SLAM on the scans alone).
+        laser_offset: ``(x, y, yaw)``, the laser's pose on the odometry's frame, instead of
+            the bag's transforms (needed where the bag has none, e.g. an Odometry topic with
+            an empty ``child_frame_id`` and no ``/tf_static``).
+        lenient: skip scans whose stamps do not go forward (counted and listed in the
+            metadata's ``skipped_scans`` / ``skip_reasons``) instead of refusing the bag.
+    ``metadata`` records ``odometry_source``, ``laser_offset`` (and its source) and the
+    ``frames`` used (``laser``, ``base``, ``odometry``).
+
+    Raises:
+        ParseError: unreadable bag, missing / ambiguous topics, inconsistent scans, no scans,
+            no odometry (without ``odometry=False``), no mount of the laser on the odometry's
+            frame (without ``laser_offset``).
+    """
+    require(AnyReader, "reading ROS bags", "rosbags", "ros")
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such bag")
+    bag, scan_topic, odom_topic = _read_bag(path, scan_topic, odom_topic, odometry)
+    if not _frame(bag.first.header.frame_id) and laser_offset is None and odometry:
+        raise ParseError(
+            path,
+            None,
+            f"{scan_topic}: the scans' header has an empty frame_id, so where the laser is "
+            f"mounted is unknown; {OFFSET_HINT}",
+        )
+    skipped = _in_time_order(path, bag, scan_topic, lenient)
     ranges = np.stack(bag.ranges)  # [T, B]
     times = np.asarray(bag.times)  # [T]
     first = bag.first
     sensor, max_range = _sensor(first, ranges, max_range)
-    meta = {"source": "rosbag", "file": str(path), "scan_topic": scans[0].topic, "sensor": sensor}
-    odom_topic = odoms[0].topic if odoms else None
+    meta = {"source": "rosbag", "file": str(path), "scan_topic": scan_topic, "sensor": sensor}
     odom, odom_meta = _odometry(path, bag, times, pairing, odom_topic, odometry, laser_offset)
     meta.update(odom_topic=odom_topic if odometry else None, **odom_meta)
     _log_choices(path, meta)
     meta["counts"] = {"scans": len(times), "odometry": len(bag.odom_pose)}
+    meta.update(skipped)
     angles = wrap_angle(first.angle_min + first.angle_increment * np.arange(ranges.shape[1]))
     return build_traversal(
         ranges,

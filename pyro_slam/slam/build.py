@@ -22,6 +22,7 @@ from ..model import (
     Emission,
     EmissionMLP,
     KinematicTransition,
+    LearnedTransition,
     LidarEmission,
     MapGrid,
     MapGuide,
@@ -154,7 +155,20 @@ def _extent(traversal: Traversal, config: SLAMConfig):
     return (*(path.min(0) - reach), *(path.max(0) + reach))
 
 
+def transition_kind(transition) -> str:
+    """The ``transition.kind`` that a transition is: ``"learned"`` for the network,
+    ``"kinematic"`` for the control model (another class: its name)."""
+    if isinstance(transition, LearnedTransition):
+        return "learned"
+    if isinstance(transition, KinematicTransition):
+        return "kinematic"
+    return type(transition).__name__
+
+
 MAX_BYTES = 8 << 30  # the largest working set a configuration may ask for (8 GiB)
+# the most offline SVI steps a configuration may ask for (each takes milliseconds to a second)
+MAX_SVI_STEPS = 1_000_000
+MAX_FILTER_STEPS = 100_000_000  # the most steps offline rounds may filter (1e8: about a month)
 
 
 def _gib(n: float) -> str:
@@ -213,6 +227,31 @@ def check_size(traversal: Traversal, config: SLAMConfig) -> None:
                 f"{name} {n} would need {_gib(n * per_point)} for its particles' predicted "
                 f"observations (at most {_gib(MAX_BYTES)})"
             )
+    _check_cost(traversal, config)
+
+
+def _check_cost(traversal: Traversal, config: SLAMConfig) -> None:
+    """Refuse the particle cache that would not fit in memory (its poses and weights, ``[T,
+    K, 4]`` float32, twice for the refresh), and more offline filter steps or SVI steps than
+    :data:`MAX_FILTER_STEPS` / :data:`MAX_SVI_STEPS`, which would run for days."""
+    k = config.training.cache_particles
+    cache = traversal.num_steps * k * 4 * 4 * 2
+    if cache > MAX_BYTES:
+        raise ConfigError(
+            f"training.cache_particles {k} would need {_gib(cache)} for the particle cache of "
+            f"{traversal.num_steps} steps (at most {_gib(MAX_BYTES)})"
+        )
+    o = config.offline
+    if o.rounds * traversal.num_steps > MAX_FILTER_STEPS:
+        raise ConfigError(
+            f"offline.rounds {o.rounds} over {traversal.num_steps} steps would filter for days "
+            f"(at most {MAX_FILTER_STEPS:g} filter steps in all)"
+        )
+    if o.rounds * o.svi_steps > MAX_SVI_STEPS:
+        raise ConfigError(
+            f"offline.rounds x offline.svi_steps {o.rounds} x {o.svi_steps} SVI steps would run "
+            f"for days (at most {MAX_SVI_STEPS:g} in all)"
+        )
 
 
 def build_model(

@@ -385,3 +385,60 @@ def parse_overrides(text: str) -> dict:
 def from_dict(d: dict) -> SLAMConfig:
     """The configuration written by :meth:`SLAMConfig.to_dict`."""
     return with_overrides(SLAMConfig(), d)
+
+
+def _given_fields(changes: dict, where: str = "") -> list[str]:
+    """The dotted field names a nested dict of changes sets (``emission.insert.gap``)."""
+    names = []
+    for key, value in changes.items():
+        name = f"{where}{key}"
+        names += _given_fields(value, f"{name}.") if isinstance(value, dict) else [name]
+    return names
+
+
+def _ignored(config: SLAMConfig, mode: str, learns_emission: bool | None) -> dict[str, str]:
+    """What would ignore each field (dotted name, or a component's prefix ending in ``.``) in
+    a run of ``config`` in ``mode``: the field's component and why; only the ignored ones."""
+    e, t, o = config.emission, config.training, config.offline
+    offline_svi = mode == "offline" and o.rounds > 0 and o.svi_steps > 0
+    svi = t.every > 0 or offline_svi
+    reads_rays = EMISSIONS[e.kind].rays if e.kind in EMISSIONS else True
+    ignored = {}
+    if mode == "online":
+        ignored["offline."] = "offline SLAM's passes, and --mode online makes none"
+    if not reads_rays:
+        for name in ("emission.ray_spacing", "emission.march_tolerance"):
+            ignored[name] = (
+                f"a ray-cast emission's march, and emission.kind {e.kind!r} casts no rays"
+            )
+    if not svi:
+        why = "training.every 0" + ("" if mode == "online" else " and no offline SVI steps")
+        ignored["training."] = f"the SVI steps, and this run takes none ({why})"
+    elif learns_emission is False:
+        ignored["training.lr_emission"] = (
+            "the learning rate of an emission SVI learns, and this run's emission (kind "
+            f"{e.kind!r}, pretrained or with nothing to learn) is frozen"
+        )
+    if config.transition.kind == "learned":
+        ignored["transition.sigma"] = (
+            "the kinematic transition's std, and transition.kind 'learned' uses its network's "
+            "own (scale it with transition.scale)"
+        )
+    return ignored
+
+
+def check_used(
+    changes: dict, config: SLAMConfig, mode: str, learns_emission: bool | None = None
+) -> None:
+    """Refuse a field of the overrides ``changes`` (what :func:`with_overrides` took to make
+    ``config``) that nothing in a run in ``mode`` (``"online"`` or ``"offline"``) would read:
+    :class:`ConfigError` naming the field and the component that ignores it.
+    ``learns_emission``: whether the run's SVI learns its emission (None: not known yet, so
+    ``training.lr_emission`` is not checked)."""
+    ignored = _ignored(config, mode, learns_emission)
+    for name in _given_fields(changes):
+        for key, why in ignored.items():
+            if name == key or (key.endswith(".") and name.startswith(key)):
+                if name == "training.every":
+                    continue
+                raise ConfigError(f"{name} configures {why}: it would be ignored")

@@ -4,6 +4,7 @@ checkpoint, written into one folder (what ``pyro-slam slam`` and ``pyro-slam dem
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import hashlib
 import json
@@ -23,9 +24,9 @@ from ..data import DatasetError, Traversal, atomic_write, one_line
 from ..inference import ParticleFilterFailed
 from ..io.ros_map import occupancy_grid, write_map
 from ..runtime import provenance, torch_threads
-from .build import MAX_BYTES, path_integration
+from .build import MAX_BYTES, path_integration, transition_kind
 from .checkpoint import CHECKPOINT_EVERY
-from .config import ConfigError, SLAMConfig, TrainingConfig
+from .config import ConfigError, SLAMConfig, TrainingConfig, check_used
 from .runner import SLAM
 
 log = logging.getLogger(__name__)
@@ -55,8 +56,8 @@ MIN_CELLS_PER_RANGE = 4  # the coarsest map: the sensor's range spans this many 
 class Interrupted(KeyboardInterrupt):
     """The run was stopped by a signal (SIGINT or SIGTERM); ``signal``: its name."""
 
-    def __init__(self, signal_name: str):
-        super().__init__(f"interrupted ({signal_name})")
+    def __init__(self, signal_name: str, message: str = ""):
+        super().__init__(message or f"interrupted ({signal_name})")
         self.signal = signal_name
 
 
@@ -79,67 +80,165 @@ def terminate_as_interrupt():
         signal.signal(signal.SIGTERM, previous)
 
 
-def _sibling(out: Path, suffix: str) -> Path:
-    """The hidden path beside the folder ``out`` (``PARENT/.NAME<suffix>``)."""
-    return out.parent / f".{out.name}{suffix}"
+# a run's own hidden entries inside its folder OUT: the run being written, the previous run's
+# outputs while the new ones are moved in, the lock, and (in the run being written) the list of
+# a finished run's files
+WORK, PREVIOUS, LOCK, MANIFEST = ".partial", ".previous", ".lock", ".complete"
 
 
-def _lock(path: Path, out: Path):
-    """An open file holding an exclusive ``flock`` on ``path`` (created if missing); a
-    :class:`DatasetError` naming ``out`` when another process holds it."""
+def _lock(path: Path, shown: str):
+    """An open file holding an exclusive ``flock`` on ``path`` (created if missing, never
+    through a symbolic link); a :class:`DatasetError` naming ``--out shown`` when another
+    process holds it or when ``path`` is a link."""
     while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        except OSError as e:
+            if e.errno != errno.ELOOP:
+                raise
+            raise DatasetError(
+                f"--out {shown}: its lock {path} is a symbolic link, which a run does not "
+                "follow; remove it"
+            ) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             os.close(fd)
             raise DatasetError(
-                f"--out {out}: another run is writing into it (it holds {path}); wait for it "
+                f"--out {shown}: another run is writing into it (it holds {path}); wait for it "
                 "to finish or choose another folder"
             ) from None
         try:  # the holder before us may have removed the file: lock the one on disk
-            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+            if os.stat(path, follow_symlinks=False).st_ino == os.fstat(fd).st_ino:
                 return fd
         except FileNotFoundError:
             pass
         os.close(fd)
 
 
+@contextlib.contextmanager
+def _deferred_signals():
+    """Within the block SIGINT and SIGTERM are recorded (in the list yielded), not raised, so
+    that they never stop a swap half-way (main thread only)."""
+    pending: list[str] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield pending
+        return
+
+    def record(signum, _frame):
+        pending.append(signal.Signals(signum).name)
+
+    previous = {s: signal.signal(s, record) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield pending
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def finish_swap(out: Path, owned: tuple[str, ...]) -> None:
+    """Put the finished run in ``out/.partial`` (its files listed in ``.partial/.complete``)
+    in place of the previous run's outputs, from wherever a swap stopped: each previous output
+    (``owned``, or a name of the new run) not yet replaced is moved into ``out/.previous``,
+    each new file still in ``.partial`` is moved in, then ``.complete``, ``.partial`` and
+    ``.previous`` are removed. Every step is one rename or removal inside ``out``, so running
+    it again after a stop at any step ends in the same folder."""
+    work, previous = out / WORK, out / PREVIOUS
+    names = json.loads((work / MANIFEST).read_text())
+    previous.mkdir(exist_ok=True)
+    for name in sorted({*owned, *names}):
+        p = out / name
+        moved_in = name in names and not (work / name).exists()
+        if (p.exists() or p.is_symlink()) and not moved_in:
+            os.replace(p, previous / name)
+    for name in names:
+        if (work / name).exists():
+            os.replace(work / name, out / name)
+    os.remove(work / MANIFEST)
+    os.rmdir(work)
+    shutil.rmtree(previous)
+
+
+def _recover(out: Path, shown: str, owned: tuple[str, ...]) -> None:
+    """Finish what a run stopped at any point (a kill, a power cut) left inside ``out``,
+    saying what: a finished run half put in place is put in place, the previous run's leftover
+    outputs are removed; an interrupted run's folder stays (:func:`_check_out` names it)."""
+    work, previous = out / WORK, out / PREVIOUS
+    try:
+        _finish_leftovers(out, shown, owned, work, previous)
+    except (OSError, ValueError) as e:  # (ValueError: a damaged list of the run's files)
+        raise DatasetError(
+            f"--out {shown}: cannot finish what a stopped run left in it ({one_line(e)}); "
+            f"move {work} and {previous} away by hand"
+        ) from None
+
+
+def _finish_leftovers(out: Path, shown: str, owned, work: Path, previous: Path) -> None:
+    if (work / MANIFEST).is_file():
+        log.warning(
+            "--out %s: the run in %s had finished but was stopped while being put in place; "
+            "putting it in place now (the previous run's outputs moved into %s are removed)",
+            shown,
+            work,
+            previous,
+        )
+        finish_swap(out, owned)
+    elif previous.exists():
+        log.warning(
+            "--out %s: removing %s, a previous run's outputs left by a run stopped once it was "
+            "in place (the folder holds that run)",
+            shown,
+            previous,
+        )
+        shutil.rmtree(previous)
+
+
 class RunFolder:
     """The output folder ``out`` of one run, made ready by :func:`run_folder`.
 
-    A run writes into the hidden sibling folder ``work`` (``PARENT/.NAME.partial``), and only
-    :meth:`writing` finishing swaps it in as ``out``, whole: until then ``out`` keeps the
-    previous run, if any, as it was. Files of ``out`` that are not run outputs (``owned``) are
-    carried over into the new folder. An interrupted run (SIGINT, SIGTERM, a full disk) keeps
-    ``work`` where it holds a checkpoint, for ``--resume``; any other failure removes it.
+    A run writes into the hidden folder ``work`` inside it (``OUT/.partial``); only
+    :meth:`writing` finishing puts it in place, whole: until then ``out`` keeps the previous
+    run, if any, as it was. Everything happens inside ``out``, so a mount point, ``.`` or a
+    symbolic link (which stays a link) all work: the list of the finished run's files is
+    written (the commit point), then :func:`finish_swap` moves the files, one rename each;
+    SIGINT and SIGTERM wait for its end, and the next run on ``out`` finishes a swap that a
+    kill stopped. Files of ``out`` that are not run outputs (``owned``) stay. An interrupted
+    run (SIGINT, SIGTERM, a full disk) keeps ``work`` where it holds a checkpoint, for
+    ``--resume``; any other failure removes it. ``shown``: ``out`` as the user wrote it (for
+    messages).
     """
 
-    def __init__(self, out: Path, resume: bool, owned: tuple[str, ...]):
-        self.out, self.resume, self.owned = Path(out), resume, owned
-        self.work = _sibling(self.out.absolute(), ".partial")
+    def __init__(self, out: Path, resume: bool, owned: tuple[str, ...], shown: str = ""):
+        self.out, self.resume, self.owned = Path(out), resume, tuple(owned)
+        self.shown = shown or str(out)
+        self.work = self.out / WORK
         self.checkpoint = self.work / "checkpoint.pt"
+        self.committed = False
 
     @property
     def resume_from(self) -> Path:
-        """The checkpoint ``--resume`` continues: the interrupted run's kept beside ``out``,
+        """The checkpoint ``--resume`` continues: the interrupted run's kept in ``.partial``,
         else the finished run's in ``out``."""
         return self.checkpoint if self.checkpoint.is_file() else self.out / "checkpoint.pt"
 
     @contextlib.contextmanager
     def writing(self):
-        """The block that writes the run into :attr:`work` (yielded); swapped in as ``out``
-        at its end. A failure leaves ``out`` as it was; :attr:`work` stays only where it was
-        there before (a resumed interrupted run) or, after an interruption or a write error,
-        where it holds a checkpoint."""
+        """The block that writes the run into :attr:`work` (yielded); put in place as ``out``
+        at its end. A failure before that leaves ``out`` as it was; :attr:`work` stays only
+        where it was there before (a resumed interrupted run) or, after an interruption or a
+        write error, where it holds a checkpoint."""
         existed = self.work.exists()
         if self.resume and not existed and (self.out / "checkpoint.pt").is_file():
-            _copy_folder(self.out, self.work)  # continue a finished run: on a copy of it
+            _copy_outputs(self.out, self.work, self.owned)  # continue a finished run: a copy
         self.work.mkdir(exist_ok=True)
         try:
             yield self.work
             self._swap()
         except BaseException as e:
+            if self.committed:  # the run is finished: out holds it, or the next run's will
+                if isinstance(e, OSError):
+                    raise DatasetError(self._describe(e, False)) from None
+                raise
             stopped = isinstance(e, (KeyboardInterrupt, OSError))
             kept = (existed or stopped) and self.checkpoint.is_file()
             if not kept:
@@ -151,47 +250,47 @@ class RunFolder:
             raise
 
     def _describe(self, e: BaseException, kept: bool) -> str:
-        """One line: what stopped the run, that ``out`` is unchanged, what was kept."""
+        """One line: what stopped the run, in what state ``out`` is, what was kept."""
         if isinstance(e, OSError):
             where = f" ({e.filename})" if e.filename else ""
             what = f"cannot write the run: {e.strerror or one_line(e)}{where}"
         else:
             what = f"interrupted ({getattr(e, 'signal', 'SIGINT')})"
-        line = f"--out {self.out}: {what}; the folder is as it was before this run"
+        if self.committed:
+            return (
+                f"--out {self.shown}: {what} while putting the finished run in place; it is "
+                f"kept in {self.work}, and the next run on the folder puts it in place"
+            )
+        line = f"--out {self.shown}: {what}; the folder is as it was before this run"
         if kept:
             line += f"; the run so far is kept in {self.work} (--resume continues it)"
         return line
 
     def _swap(self) -> None:
-        """Make :attr:`work` ``out``: carry the previous folder's own files over, then two
-        renames (the previous folder is removed only once the new one is in place)."""
-        if not self.out.exists():
-            os.rename(self.work, self.out)
-            return
-        for p in self.out.iterdir():
-            if p.name not in self.owned and not (self.work / p.name).exists():
-                _copy_entry(p, self.work / p.name)
-        old = _sibling(self.out.absolute(), f".previous-{os.getpid()}")
-        os.rename(self.out, old)
-        try:
-            os.rename(self.work, self.out)
-        except BaseException:
-            os.rename(old, self.out)
-            raise
-        shutil.rmtree(old, ignore_errors=True)
+        """Put :attr:`work` in place: its list of files (the commit point), then
+        :func:`finish_swap`, with SIGINT and SIGTERM held until it has ended."""
+        names = sorted(p.name for p in self.work.iterdir())
+        text = json.dumps(names).encode()
+        with _deferred_signals() as pending:
+            atomic_write(self.work / MANIFEST, lambda f: f.write(text))
+            self.committed = True
+            finish_swap(self.out, self.owned)
+        if pending:
+            raise Interrupted(
+                pending[0],
+                f"--out {self.shown}: interrupted ({pending[0]}) once the run had finished; "
+                "the folder holds it",
+            )
 
 
-def _copy_entry(src: Path, dst: Path) -> None:
-    if src.is_dir() and not src.is_symlink():
-        shutil.copytree(src, dst, symlinks=True)
-    else:
-        shutil.copy2(src, dst, follow_symlinks=False)
-
-
-def _copy_folder(src: Path, dst: Path) -> None:
-    """Copy the folder ``src`` into a new folder ``dst`` (removed again if the copy fails)."""
+def _copy_outputs(src: Path, dst: Path, names: tuple[str, ...]) -> None:
+    """Copy the files ``names`` of the folder ``src`` into a new folder ``dst`` (removed again
+    if the copy fails)."""
+    dst.mkdir()
     try:
-        shutil.copytree(src, dst, symlinks=True)
+        for name in names:
+            if (src / name).is_file():
+                shutil.copy2(src / name, dst / name)
     except BaseException:
         shutil.rmtree(dst, ignore_errors=True)
         raise
@@ -208,31 +307,41 @@ def make_parents(out: Path) -> list[Path]:
     return made
 
 
-def _check_out(out: Path, resume: bool, overwrite: bool, work: Path, keep) -> None:
-    """Refuse ``out`` (before any work) where it is no folder, holds another run's results
-    (without ``resume`` / ``overwrite``), or where resuming has no checkpoint."""
-    if out.exists() and not out.is_dir():
-        raise DatasetError(f"--out {out}: exists and is not a folder")
-    present = []
-    if out.is_dir():
-        present = sorted(
-            p.name for p in out.iterdir() if not p.name.startswith(".") and p.name not in keep
-        )
+def _check_out(out: Path, resume: bool, overwrite: bool, work: Path, keep, shown: str) -> None:
+    """Refuse ``out`` (before any work) where it holds another run's results (without
+    ``resume`` / ``overwrite``), or where resuming has no checkpoint."""
+    present = sorted(
+        p.name for p in out.iterdir() if not p.name.startswith(".") and p.name not in keep
+    )
     interrupted = (work / "checkpoint.pt").is_file()
     if resume:
         if not interrupted and not (out / "checkpoint.pt").is_file():
-            raise DatasetError(f"{out / 'checkpoint.pt'}: no checkpoint to resume from")
+            raise DatasetError(f"{Path(shown) / 'checkpoint.pt'}: no checkpoint to resume from")
     elif interrupted and not overwrite:
         raise DatasetError(
-            f"--out {out}: an interrupted run into it is kept in {work}; use --resume to "
+            f"--out {shown}: an interrupted run into it is kept in {work}; use --resume to "
             "continue it, or --overwrite to discard it"
         )
     elif present and not overwrite:
-        shown = ", ".join(present[:4]) + (", ..." if len(present) > 4 else "")
+        listed = ", ".join(present[:4]) + (", ..." if len(present) > 4 else "")
         raise DatasetError(
-            f"--out {out}: not empty ({shown}); use --resume to continue the run in it, "
+            f"--out {shown}: not empty ({listed}); use --resume to continue the run in it, "
             "--overwrite to replace it, or another folder"
         )
+
+
+def _make_out(out: Path, shown: str) -> list[Path]:
+    """Create the folder ``out`` and the missing ones above it (returned, deepest first)."""
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"--out {shown}: exists and is not a folder")
+    try:
+        made = make_parents(out)
+        if not out.exists():
+            out.mkdir()
+            made.insert(0, out)
+    except OSError as e:
+        raise DatasetError(f"--out {shown}: cannot create it ({e.strerror or e})") from None
+    return made
 
 
 @contextlib.contextmanager
@@ -242,38 +351,40 @@ def run_folder(
     """Make ``out`` ready for a run, before any work, and hold it for the block: a
     :class:`RunFolder` (write the run inside ``folder.writing()``).
 
-    ``out`` is refused when it is no folder, when another process holds its lock (the file
-    ``PARENT/.NAME.lock``), or when it holds other results unless ``resume`` (continue the run
-    in it, or the interrupted one kept beside it) or ``overwrite`` (replace it once the new run
-    has finished; files that are not run outputs stay). ``keep``: files the command itself
-    writes there (not counted as another run's). Folders created for ``out`` and not used are
-    removed again at the end of the block."""
-    out = Path(out)
-    if out.absolute().name in ("", ".", ".."):
-        out = Path(os.path.abspath(out))
+    ``out`` is resolved first (a symbolic link to a folder is that folder, and stays a link).
+    It is refused when it is no folder, when another process holds its lock (the file
+    ``OUT/.lock``, never followed through a link), or when it holds other results unless
+    ``resume`` (continue the run in it, or the interrupted one kept in it) or ``overwrite``
+    (replace it once the new run has finished; files that are not run outputs stay). A swap
+    that a kill stopped is finished first (:func:`finish_swap`). ``keep``: files the command
+    itself writes there (not counted as another run's). Folders created for ``out`` and not
+    used are removed again at the end of the block."""
+    shown = str(out)
+    out = Path(os.path.realpath(out))
+    made = _make_out(out, shown)
     try:
-        made = make_parents(out)
-    except OSError as e:
-        raise DatasetError(f"--out {out}: cannot create it ({e.strerror or e})") from None
-    lock = _sibling(out.absolute(), ".lock")
-    try:
-        fd = _lock(lock, out)
+        fd = _lock(out / LOCK, shown)
     except OSError as e:
         remove_empty(made)
-        raise DatasetError(f"--out {out}: cannot write there ({e.strerror or e})") from None
+        raise DatasetError(f"--out {shown}: cannot write there ({e.strerror or e})") from None
     try:
-        folder = RunFolder(out, resume, (*OUTPUTS, *keep))
-        _check_out(out, resume, overwrite, folder.work, keep)
+        owned = (*OUTPUTS, *keep)
+        _recover(out, shown, owned)
+        folder = RunFolder(out, resume, owned, shown)
+        _check_out(out, resume, overwrite, folder.work, keep, shown)
         if not resume and folder.work.exists():  # a discarded or checkpoint-less leftover
+            why = "discarded (--overwrite)" if folder.checkpoint.is_file() else "no checkpoint"
+            log.warning(
+                "--out %s: removing %s, a run stopped unfinished (%s)", shown, folder.work, why
+            )
             shutil.rmtree(folder.work)
         with terminate_as_interrupt():
             yield folder
     finally:
         with contextlib.suppress(OSError):
-            os.unlink(lock)
+            os.unlink(out / LOCK)
         os.close(fd)
-        if not out.exists():
-            remove_empty(made)
+        remove_empty(made)
 
 
 def remove_empty(folders: list[Path]) -> None:
@@ -322,6 +433,14 @@ def walls_fingerprint(walls: np.ndarray) -> str:
     return hashlib.sha256(f"{a.shape}".encode() + a.tobytes()).hexdigest()[:32]
 
 
+def _config_that_ran(slam: SLAM) -> dict:
+    """The run's configuration as it ran: ``transition.kind`` is that of the transition the
+    model holds (a network passed in runs as ``"learned"``)."""
+    config = slam.cfg.to_dict()
+    config["transition"]["kind"] = transition_kind(slam.model.transition)
+    return config
+
+
 def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, run: dict):
     """What ``metrics.json`` holds: nothing that differs between two runs of the same command
     (the timings are in ``timing.json``); ``run``: ``preset``, ``seed``, ``input`` (path) and
@@ -330,16 +449,20 @@ def _report(slam: SLAM, traversal: Traversal, res: dict, mode: str, run: dict):
         "mode": mode,
         **run,
         "steps": traversal.num_steps,
-        "config": slam.cfg.to_dict(),
+        "config": _config_that_ran(slam),
         "metadata": {k: traversal.metadata.get(k) for k in ("source", "seed", "maze")},
         "walls": walls_fingerprint(traversal.walls),
     }
     for key in INPUT_CHOICES:  # a real log's: where odometry and the laser's mount came from
         if key in traversal.metadata:
             report[key] = traversal.metadata[key]
-    if "skipped_lines" in traversal.metadata:  # a text log: what --lenient skipped
-        report["skipped_lines"] = traversal.metadata["skipped_lines"]
-        report["skip_reasons"] = traversal.metadata.get("skip_reasons", [])
+    for key in (
+        "skipped_lines",
+        "skipped_scans",
+    ):  # a text log's or a bag's: what --lenient skipped
+        if key in traversal.metadata:
+            report[key] = traversal.metadata[key]
+            report["skip_reasons"] = traversal.metadata.get("skip_reasons", [])
     if traversal.poses is not None:
         if not metrics.HAVE_EVO:
             log.warning("metrics.json without ATE: it needs evo, pip install 'pyro_slam[eval]'")
@@ -419,12 +542,16 @@ def read_run(out: Path) -> dict:
 
 def check_settings(traversal: Traversal, config: SLAMConfig, src: str = "traversal") -> None:
     """Refuse, before any work, settings that cannot mean anything for this (raw) traversal,
-    naming the field and its limit: a ``beam_stride`` that leaves fewer than two beams, a
-    ``range_clip`` beyond the sensor's range, and an ``emission.resolution`` whose grid cell is
-    not small against what the sensor sees (a beam must cross at least
+    naming the field and its limit: a scan of one beam, a ``beam_stride`` that leaves fewer
+    than two beams, a ``range_clip`` beyond the sensor's range, and an ``emission.resolution``
+    whose grid cell is not small against what the sensor sees (a beam must cross at least
     ``MIN_CELLS_PER_RANGE`` cells)."""
     lidar = config.emission.observation == "lidar"
     n = traversal.num_beams
+    if lidar and n < 2:
+        raise DatasetError(
+            f"{src}: field 'observations' has {n} beam per scan; a LiDAR scan needs at least 2"
+        )
     if lidar and config.beam_stride >= max(n, 2):
         raise ConfigError(
             f"beam_stride {config.beam_stride} leaves fewer than 2 of the {n} beams of {src} "
@@ -479,6 +606,14 @@ def diverged(e: Exception, cfg: SLAMConfig) -> DatasetError:
     return DatasetError(f"SLAM diverged ({one_line(e)}): most likely {cause}")
 
 
+def _check_used(overrides: dict | None, config: SLAMConfig, mode: str, learns=None) -> None:
+    """:func:`~pyro_slam.slam.config.check_used` as the command line's ``--config`` error."""
+    try:
+        check_used(overrides or {}, config, mode, learns)
+    except ConfigError as e:
+        raise DatasetError(f"--config: {e}") from None
+
+
 def run_slam(
     traversal: Traversal,
     out: Path | RunFolder,
@@ -496,6 +631,7 @@ def run_slam(
     inputs: dict | None = None,
     threads: int | None = None,
     argv: list[str] | None = None,
+    overrides: dict | None = None,
 ) -> dict:
     """SLAM on ``traversal`` writing plots, trajectories, metrics and a checkpoint (every
     ``checkpoint_every`` steps) into the folder ``out``: a :class:`RunFolder` made ready by
@@ -505,7 +641,9 @@ def run_slam(
     in ``metrics.json`` with its SHA-256; ``inputs``: files the command writes into the run
     first, ``{name: write(path)}`` (the demo's traversal); ``threads``: torch intra-op threads
     for the whole run (:func:`~pyro_slam.runtime.thread_count`); ``argv``: the command line
-    recorded in ``metrics.json``. Returns the report written to ``metrics.json`` together with
+    recorded in ``metrics.json``; ``overrides``: the configuration changes the user gave, each
+    refused where nothing built would read it (:func:`~pyro_slam.slam.config.check_used`).
+    Returns the report written to ``metrics.json`` together with
     the timings written to ``timing.json`` (``wall_time_s``, summed over the sessions of a
     resumed run, ``seconds_per_step``, ``wall_time_session_s`` and ``resumed``)."""
     if not isinstance(out, RunFolder):
@@ -513,6 +651,7 @@ def run_slam(
         with run_folder(out, resume, overwrite and not resume, tuple(inputs or ())) as folder:
             return run_slam(**{**kw, "out": folder})
     check_settings(traversal, config, source or "traversal")
+    _check_used(overrides, config, mode)
     with torch_threads(threads) as n:
         slam = SLAM(
             traversal,
@@ -524,6 +663,7 @@ def run_slam(
             seed=seed,
             threads=n,
         )
+        _check_used(overrides, slam.cfg, mode, slam.model.learn_emission)
         dead_reckoning = path_integration(traversal, slam.model.transition)
         check_map_extent(slam, dead_reckoning, source or "traversal")
         if resume:

@@ -2,6 +2,7 @@
 bad input."""
 
 import argparse
+import contextlib
 import errno
 import hashlib
 import json
@@ -197,6 +198,11 @@ def test_slam_with_the_ray_emission_writes_an_occupancy_map(traversal, tmp_path,
 
 
 # ------------------------------------------------------------------------ overwrite, resume
+def _run_files(folder: Path) -> dict[str, str]:
+    """The files of the run in ``folder`` (its hidden entries, a run's own, left out)."""
+    return {k: v for k, v in _files(folder).items() if not k.startswith(".")}
+
+
 def _files(folder: Path) -> dict[str, str]:
     """Every file under ``folder`` (hidden ones too) and its SHA-256."""
     return {
@@ -280,24 +286,19 @@ def _signalled_run(argv: list[str], name: str) -> subprocess.CompletedProcess:
 # the default preset (its transition noise follows the cloud's trust in the map), shrunk; the
 # first checkpoint (step 5) follows an SVI step (step 4), so the map has changed since the last
 # weighing: the trust must come from the checkpoint, not be recomputed
-RESUME_CONFIG = json.dumps(
-    {
-        "filter": {"particles": 32},
-        "training": {"particles": 4, "chunks": 2},
-        "offline": {"rounds": 1, "svi_steps": 6},
-    }
-)
+RESUME_CONFIG = {"filter": {"particles": 32}, "training": {"particles": 4, "chunks": 2}}
+RESUME_OFFLINE = {"offline": {"rounds": 1, "svi_steps": 6}}  # (only an offline run reads it)
 
 
 def _assert_resume_is_byte_identical(traversal, tmp_path, mode):
-    args = [str(traversal), "--mode", mode, "--config", RESUME_CONFIG, "--checkpoint-every", "5"]
+    config = json.dumps({**RESUME_CONFIG, **(RESUME_OFFLINE if mode == "offline" else {})})
+    args = [str(traversal), "--mode", mode, "--config", config, "--checkpoint-every", "5"]
     ref, killed = tmp_path / "uninterrupted", tmp_path / "killed"
     assert cli.main(["slam", *args, "--out", str(ref)]) == 0
     proc = _signalled_run(["slam", *args, "--out", str(killed)], "SIGKILL")
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
-    # killed at step 5: no output folder yet, the run so far beside it
-    assert not killed.exists()
-    assert sorted(p.name for p in (tmp_path / ".killed.partial").iterdir()) == ["checkpoint.pt"]
+    # killed at step 5: no run in the folder yet, the run so far inside it (and its lock)
+    assert sorted(_files(killed)) == [".lock", ".partial/checkpoint.pt"]
     # a fresh run object that knows only the checkpoint file
     assert cli.main(["slam", *args, "--out", str(killed), "--resume"]) == 0
     for name in ("trajectory_slam.tum", "map.pgm"):
@@ -328,7 +329,8 @@ def test_overwrite_survives_late_failure(traversal, tmp_path, capsys):
     """A new ``--overwrite`` run that fails late leaves the previous run byte for byte: the
     filter diverging (an absurd learning rate, after the first checkpoint) is one line naming
     ``training.lr``; SIGINT and SIGTERM right after the first checkpoint keep the run so far
-    beside the folder, and ``--resume`` finishes it and only then replaces the previous one."""
+    in the folder's ``.partial``, and ``--resume`` finishes it and only then replaces the
+    previous one."""
     out = tmp_path / "run"
     args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
     assert cli.main(args) == 0
@@ -339,13 +341,13 @@ def test_overwrite_survives_late_failure(traversal, tmp_path, capsys):
     err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
     assert len(err) == 1 and "SLAM diverged" in err[0] and "training.lr 1e+30" in err[0]
     assert _files(tmp_path) == folder  # nothing left beside it either
-    partial = tmp_path / ".run.partial"
+    partial = out / ".partial"
     for name, rc in (("SIGINT", 130), ("SIGTERM", 143)):
         proc = _signalled_run([*args, *late, "--seed", "5"], name)
         err = proc.stderr.decode()
         assert proc.returncode == rc, err[-2000:]
         assert "Traceback" not in err and f"interrupted ({name})" in err
-        assert _files(out) == before, name
+        assert _run_files(out) == before, name
         assert (partial / "checkpoint.pt").is_file(), name  # the run so far, for --resume
     assert cli.main([*args, "--seed", "5", "--checkpoint-every", "5", "--resume"]) == 0
     assert json.loads((out / "metrics.json").read_text())["seed"] == 5
@@ -368,7 +370,7 @@ def test_full_disk_keeps_previous_run(traversal, tmp_path, capsys, monkeypatch):
         assert cli.main([*args, "--overwrite", "--seed", "2"]) == 2
     err = capsys.readouterr().err
     assert "No space left on device" in err and "slam.png" in err and str(out) in err
-    assert _files(out) == before
+    assert _run_files(out) == before
     assert cli.main([*args, "--seed", "2", "--resume"]) == 0
     assert json.loads((out / "metrics.json").read_text())["seed"] == 2
 
@@ -422,7 +424,7 @@ HOLD_THE_FOLDER = textwrap.dedent(
     """
     import sys
     from pyro_slam.slam.outputs import run_folder
-    with run_folder(sys.argv[1]):
+    with run_folder(sys.argv[1], overwrite=True):
         print("holding", flush=True)
         sys.stdin.read()
     """
@@ -726,3 +728,148 @@ def test_goal_outside_map_refused(traversal, tmp_path, capsys):
     env = GroundTruthEnv(make_maze("simple-small", 1))
     with pytest.raises(ValueError, match="goal 5 5: outside the map"):
         plan(env, np.array([0.1, 0.1, 0.0]), np.array([5.0, 5.0]))
+
+
+def test_out_on_mount_point_and_dot(traversal, tmp_path, monkeypatch):
+    """``--out`` on a mount point (which cannot be renamed: here every rename of the folder
+    itself fails with EBUSY, as the kernel answers for a mount) and ``--out .`` both run,
+    again with ``--overwrite`` and ``--resume``: the run is moved in file by file."""
+    mount = tmp_path / "mounted"
+    mount.mkdir()
+    real_replace, real_rename = os.replace, os.rename
+
+    def refuse_the_mount(fn):
+        def move(src, dst, *a, **kw):
+            if {os.path.realpath(src), os.path.realpath(dst)} & {str(mount), str(tmp_path)}:
+                raise OSError(errno.EBUSY, os.strerror(errno.EBUSY), str(src))
+            return fn(src, dst, *a, **kw)
+
+        return move
+
+    monkeypatch.setattr(os, "replace", refuse_the_mount(real_replace))
+    monkeypatch.setattr(os, "rename", refuse_the_mount(real_rename))
+    args = ["slam", str(traversal), "--config", TINY, "--checkpoint-every", "5"]
+    for extra in ([], ["--overwrite", "--seed", "2"], ["--resume", "--seed", "2"]):
+        assert cli.main([*args, "--out", str(mount), *extra]) == 0, extra
+        assert json.loads((mount / "metrics.json").read_text())["seed"] == (2 if extra else 0)
+    assert sorted(p.name for p in mount.iterdir() if p.name.startswith(".")) == []
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    assert cli.main([*args, "--out", "."]) == 0
+    assert (here / "trajectory_slam.tum").is_file() and (here / "map.pgm").is_file()
+    assert cli.main([*args, "--out", ".", "--overwrite", "--seed", "3"]) == 0
+    assert json.loads((here / "metrics.json").read_text())["seed"] == 3
+
+
+def test_symlinked_out_keeps_link_and_lock(traversal, tmp_path, capsys):
+    """``--out ALIAS``, a symbolic link to a folder: the run is written into the folder and
+    the link stays a link; while another process holds the folder, a run into the alias is
+    refused; a lock file planted as a link is refused, and what it points to is not
+    created."""
+    real, alias = tmp_path / "real", tmp_path / "alias"
+    real.mkdir()
+    alias.symlink_to(real, target_is_directory=True)
+    args = ["slam", str(traversal), "--config", TINY]
+    assert cli.main([*args, "--out", str(alias)]) == 0
+    assert alias.is_symlink() and (real / "metrics.json").is_file()
+    assert cli.main([*args, "--out", str(alias), "--overwrite", "--seed", "4"]) == 0
+    assert alias.is_symlink() and json.loads((real / "metrics.json").read_text())["seed"] == 4
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLD_THE_FOLDER, str(real)],
+        env=env,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+    )
+    try:
+        assert holder.stdout.readline() == b"holding\n"
+        capsys.readouterr()
+        assert cli.main([*args, "--out", str(alias), "--overwrite"]) == 2
+        assert "another run is writing into it" in capsys.readouterr().err
+    finally:
+        holder.communicate(b"")
+    planted = tmp_path / "elsewhere" / "created"
+    (real / ".lock").symlink_to(planted)
+    assert cli.main([*args, "--out", str(alias), "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert "is a symbolic link" in err and ".lock" in err
+    assert not planted.exists() and not planted.parent.exists()
+    assert json.loads((real / "metrics.json").read_text())["seed"] == 4
+
+
+def test_unused_config_field_refused(traversal, tmp_path, capsys):
+    """A ``--config`` field that nothing in the run reads is refused before any work, naming
+    the field and what ignores it: ``offline.*`` in an online run, the ray march's settings
+    with the paper's emission MLP, ``training.lr_emission`` where no emission is learned; the
+    same fields where they are read run."""
+    out = tmp_path / "run"
+    cases = [
+        ([], {"offline": {"rounds": 1}}, "offline.rounds", "--mode online"),
+        (["--preset", "paper"], {"emission": {"ray_spacing": 1.0}}, "emission.ray_spacing", "mlp"),
+        (["--preset", "paper"], {"emission": {"march_tolerance": 1e-6}}, "march_tolerance", "rays"),
+        ([], {"training": {"lr_emission": 0.01}}, "training.lr_emission", "frozen"),
+        ([], {"transition": {"sigma": [0.1, 0.1, 0.1]}}, "transition.sigma", "learned"),
+    ]
+    for extra, changes, field, why in cases:
+        config = json.dumps({**json.loads(TINY), **changes})
+        argv = ["slam", str(traversal), "--out", str(out), "--config", config, *extra]
+        assert cli.main(argv) == 2, changes
+        err = capsys.readouterr().err
+        assert field in err and why in err and "ignored" in err, err
+        assert not out.exists()
+    used = {**json.loads(TINY), "offline": {"rounds": 1, "svi_steps": 2}}
+    argv = ["slam", str(traversal), "--out", str(out), "--mode", "offline"]
+    assert cli.main([*argv, "--config", json.dumps(used), "--steps", "12"]) == 0
+    config = json.loads((out / "metrics.json").read_text())["config"]
+    assert config["offline"]["rounds"] == 1 and config["offline"]["svi_steps"] == 2
+
+
+def test_metrics_record_the_transition_that_ran(traversal, tmp_path, capsys):
+    """``metrics.json`` records the transition that ran: a learned network handed to a
+    configuration of the kinematic kind runs, and is recorded, as ``learned``; the command
+    line refuses ``--transition FILE`` with ``transition.kind`` kinematic, naming the field."""
+    net = pretrained.PRETRAINED / "transition_moderate_medium.pt"
+    kinematic = json.dumps({**json.loads(TINY), "transition": {"kind": "kinematic"}})
+    argv = ["slam", str(traversal), "--out", str(tmp_path / "cli"), "--config", kinematic]
+    assert cli.main([*argv, "--transition", str(net)]) == 2
+    err = capsys.readouterr().err
+    assert "--transition" in err and "transition.kind 'kinematic'" in err
+    config = presets.configure(None, load(traversal), kinematic)[1]
+    tr = load(traversal)
+    for given, ran in ((pretrained.load_transition(net), "learned"), (None, "kinematic")):
+        out = tmp_path / ran
+        outputs.run_slam(tr, out, "online", config, transition=given, progress=False)
+        recorded = json.loads((out / "metrics.json").read_text())["config"]["transition"]
+        assert recorded["kind"] == ran
+
+
+def test_huge_cache_threads_svi_steps_refused(traversal, tmp_path, capsys):
+    """Sizes that would exhaust memory, the OpenMP runtime or any time budget are refused
+    before any work with one line naming the field or option and its limit: a particle
+    cache of 1e9 particles, 1e6 threads, 1e12 offline SVI steps, 1e9 offline rounds, a scan
+    of one beam."""
+    out = tmp_path / "run"
+    base = ["slam", str(traversal), "--out", str(out)]
+    huge = [
+        (["--config", '{"training": {"cache_particles": 1000000000}}'], "cache_particles"),
+        (["--threads", "1000000"], "--threads"),
+        (
+            ["--mode", "offline", "--config", '{"offline": {"svi_steps": 1000000000000}}'],
+            "svi_steps",
+        ),
+        (["--mode", "offline", "--config", '{"offline": {"rounds": 1000000000}}'], "rounds"),
+    ]
+    for extra, named in huge:
+        with pytest.raises(SystemExit) if extra[0] == "--threads" else contextlib.nullcontext():
+            assert cli.main([*base, *extra]) == 2, extra
+        err = capsys.readouterr().err
+        assert named in err and "at most" in err and "Traceback" not in err, err
+        assert not out.exists()
+    arrays = dict(np.load(traversal))
+    one = tmp_path / "one_beam.npz"
+    beams = ("observations", "obs_mask", "beam_angles")
+    np.savez(one, **{k: (v[..., :1] if k in beams else v) for k, v in arrays.items()})
+    assert cli.main(["slam", str(one), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "1 beam" in err and "one_beam.npz" in err

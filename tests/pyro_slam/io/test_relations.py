@@ -7,6 +7,7 @@ import pytest
 
 from pyro_slam.io import (
     ParseError,
+    read_carmen,
     read_relations,
     relation_error,
     relations_from_reference,
@@ -73,3 +74,14 @@ def test_relation_file_round_trip_and_errors(tmp_path):
     bad.write_text("0 1 0 0 0 0 0 zero\n")
     with pytest.raises(ParseError, match=r"bad.txt:1: non-numeric value 'zero'"):
         read_relations(bad)
+
+
+def test_relations_file_with_a_byte_order_mark_or_a_folder(tmp_path):
+    """A relations file saved with a byte-order mark reads as without one; a folder given as
+    the file (or as a CARMEN log) is a ParseError naming it, not a bare OSError."""
+    marked = tmp_path / "marked.relations"
+    marked.write_text("# t1 t2 x y z roll pitch yaw\n0 1 0.5 0 0 0 0 0.1\n", encoding="utf-8-sig")
+    np.testing.assert_allclose(read_relations(marked), [[0, 1, 0.5, 0, 0, 0, 0, 0.1]])
+    for read, what in ((read_relations, "relations file"), (read_carmen, "CARMEN log")):
+        with pytest.raises(ParseError, match=f"{tmp_path}: is a folder, not a {what}"):
+            read(tmp_path)

@@ -31,9 +31,9 @@ def scan_ranges(k):
     return r.astype(np.float32)
 
 
-def messages(store, ros1: bool, laser="base_link", odom_child="base_link"):
+def messages(store, ros1: bool, laser="base_link", odom_child="base_link", stamps=SCAN_TIMES):
     """(topic, msgtype, t_ns, message) in time order: scans at SCAN_TIMES in the frame
-    ``laser``, odometry of the frame ``odom_child`` at 20 Hz."""
+    ``laser`` (their header stamps ``stamps``), odometry of the frame ``odom_child`` at 20 Hz."""
     T_ = store.types
     Header, Time = T_["std_msgs/msg/Header"], T_["builtin_interfaces/msg/Time"]
 
@@ -42,9 +42,9 @@ def messages(store, ros1: bool, laser="base_link", odom_child="base_link"):
         return Header(seq=0, stamp=stamp, frame_id=frame) if ros1 else Header(stamp, frame)
 
     out = []
-    for k, t in enumerate(SCAN_TIMES):
+    for k, (t, stamp) in enumerate(zip(SCAN_TIMES, stamps)):
         scan = T_["sensor_msgs/msg/LaserScan"](
-            header=header(t, laser),
+            header=header(stamp, laser),
             angle_min=ANGLE_MIN,
             angle_max=ANGLE_MIN + ANGLE_INC * 6,
             angle_increment=ANGLE_INC,
@@ -216,7 +216,7 @@ def test_odometry_from_tf_and_the_laser_mounting_offset(tmp_path, with_odom):
     assert tr.metadata["odometry_source"].startswith(source)
 
 
-TINY = '{"filter": {"particles": 16}, "training": {"particles": 4, "chunks": 2}}'
+TINY = '{"filter": {"particles": 16}}'  # (the real-log preset takes no SVI steps)
 
 
 def test_a_bag_with_two_scan_topics_runs_with_scan_topic(tmp_path, capsys):
@@ -265,10 +265,13 @@ def tf_message(store, tf_type, ros1, transforms):
     return T_[tf_type](transforms=out)
 
 
-def write_tf_only_bag(path, ros1=False, tf_type="tf2_msgs/msg/TFMessage", odom=True, mount=True):
+def write_tf_only_bag(
+    path, ros1=False, tf_type="tf2_msgs/msg/TFMessage", odom=True, mount=True, drift=None
+):
     """Scans in ``laser``; no Odometry topic and no ``/tf_static``: ``/tf`` alone holds, at 20
     Hz, the moving ``odom -> base_link`` (``odom``) and the constant ``base_link -> laser``
-    (``mount``), as ROS 1's ``static_transform_publisher`` republishes it."""
+    (``mount``), as ROS 1's ``static_transform_publisher`` republishes it; ``drift(k)``: what
+    is added to the mount's k-th message (jitter, a change)."""
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
     if tf_type == OLD_TF:
         store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", OLD_TF))
@@ -281,12 +284,13 @@ def write_tf_only_bag(path, ros1=False, tf_type="tf2_msgs/msg/TFMessage", odom=T
                 conns[topic] = w.add_connection(topic, msgtype, typestore=store)
             w.write(conns[topic], int(t * 1e9), serialize(msg, msgtype))
 
-        for topic, msgtype, t, msg in messages(store, ros1=ros1, laser="laser"):
+        for k, (topic, msgtype, t, msg) in enumerate(messages(store, ros1=ros1, laser="laser")):
             if topic != "/odom":
                 put(topic, msgtype, t, msg)
                 continue
+            pose = np.asarray(MOUNT_ON_TF) + (0 if drift is None else drift(k))
             tfs = [("odom", "base_link", t, true_pose(t))] if odom else []
-            tfs += [("base_link", "laser", t, MOUNT_ON_TF)] if mount else []
+            tfs += [("base_link", "laser", t, tuple(pose))] if mount else []
             put("/tf", tf_type, t, tf_message(store, tf_type, ros1, tfs))
     return path
 
@@ -385,3 +389,52 @@ def test_quiet_and_verbose_drive_the_library_logging(tmp_path, capsys):
     assert cli.main(["--quiet", *run, str(tmp_path / "c")]) == 0
     err = capsys.readouterr().err
     assert "WARNING" not in err and "INFO" not in err
+
+
+def test_mount_with_jitter_is_not_odometry(tmp_path):
+    """A ``base_link -> laser`` mount republished on ``/tf`` with 1e-5 jitter is still the
+    mount, and ``odom -> base_link`` the odometry (the tree's structure decides, not how
+    constant a transform is); a mount that changes once during the bag is refused naming
+    ``--laser-offset``, and runs with it."""
+    jitter = read_rosbag(write_tf_only_bag(tmp_path / "jitter", drift=lambda k: 1e-5 * (-1) ** k))
+    np.testing.assert_allclose(jitter.controls, laser_controls(MOUNT_ON_TF), atol=1e-4)
+    assert jitter.metadata["odometry_source"].startswith("/tf odom -> base_link")
+    np.testing.assert_allclose(jitter.metadata["laser_offset"], MOUNT_ON_TF, atol=2e-5)
+    assert jitter.metadata["frames"] == {"laser": "laser", "base": "base_link", "odometry": "odom"}
+    changed = write_tf_only_bag(tmp_path / "changed", drift=lambda k: [0.05 * (k > 20), 0, 0])
+    with pytest.raises(ParseError, match="mount base_link -> laser on /tf changes.*--laser-offset"):
+        read_rosbag(changed)
+    tr = read_rosbag(changed, laser_offset=MOUNT_ON_TF)
+    np.testing.assert_allclose(tr.controls, laser_controls(MOUNT_ON_TF), atol=1e-6)
+
+
+def test_backwards_stamps_refused_or_listed(tmp_path, capsys):
+    """A scan whose header stamp is before the previous scan's (or repeats it) is refused,
+    naming the scan and ``--lenient``; with it, the scan is skipped, counted and listed, and
+    the others keep their own odometry."""
+    store, path = get_typestore(Stores.ROS2_HUMBLE), tmp_path / "backwards"
+    stamps = SCAN_TIMES.copy()
+    stamps[2], stamps[3] = SCAN_TIMES[1], SCAN_TIMES[0]  # one repeat, one step back
+    with Writer2(path, version=9) as w:
+        conns = {}
+        for topic, msgtype, t, msg in messages(store, ros1=False, stamps=stamps):
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, msgtype, typestore=store)
+            w.write(conns[topic], int(t * 1e9), store.serialize_cdr(msg, msgtype))
+    with pytest.raises(ParseError, match="scan 2 on /scan: its stamp .* repeats.*--lenient"):
+        read_rosbag(path)
+    tr = read_rosbag(path, lenient=True)
+    kept = SCAN_TIMES[[0, 1, 4]]
+    np.testing.assert_allclose(tr.timestamps, kept, atol=1e-6)
+    odom = np.stack([true_pose(t) for t in kept])
+    np.testing.assert_allclose(tr.controls, relative(odom[:-1], odom[1:]), atol=1e-6)
+    assert tr.metadata["skipped_scans"] == 2
+    assert [r.split(":")[0] for r in tr.metadata["skip_reasons"]] == [
+        "scan 2 on /scan",
+        "scan 3 on /scan",
+    ]
+    out = tmp_path / "run"
+    args = ["slam", str(path), "--config", TINY, "--out", str(out), "--lenient"]
+    assert cli.main(args) == 0
+    assert "--lenient skipped 2 scan(s)" in capsys.readouterr().err
+    assert json.loads((out / "metrics.json").read_text())["skipped_scans"] == 2
