@@ -406,6 +406,10 @@ def _ignored(config: SLAMConfig, mode: str, learns_emission: bool | None) -> dic
     ignored = {}
     if mode == "online":
         ignored["offline."] = "offline SLAM's passes, and --mode online makes none"
+    else:
+        ignored["filter.lag"] = (
+            "the online smoother's lag, and --mode offline smooths over the whole traversal"
+        )
     if not reads_rays:
         for name in ("emission.ray_spacing", "emission.march_tolerance"):
             ignored[name] = (

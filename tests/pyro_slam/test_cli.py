@@ -800,12 +800,14 @@ def test_symlinked_out_keeps_link_and_lock(traversal, tmp_path, capsys):
 
 def test_unused_config_field_refused(traversal, tmp_path, capsys):
     """A ``--config`` field that nothing in the run reads is refused before any work, naming
-    the field and what ignores it: ``offline.*`` in an online run, the ray march's settings
+    the field and what ignores it: ``offline.*`` in an online run, ``filter.lag`` in an
+    offline one, the ray march's settings
     with the paper's emission MLP, ``training.lr_emission`` where no emission is learned; the
     same fields where they are read run."""
     out = tmp_path / "run"
     cases = [
         ([], {"offline": {"rounds": 1}}, "offline.rounds", "--mode online"),
+        (["--mode", "offline"], {"filter": {"lag": 5}}, "filter.lag", "--mode offline"),
         (["--preset", "paper"], {"emission": {"ray_spacing": 1.0}}, "emission.ray_spacing", "mlp"),
         (["--preset", "paper"], {"emission": {"march_tolerance": 1e-6}}, "march_tolerance", "rays"),
         ([], {"training": {"lr_emission": 0.01}}, "training.lr_emission", "frozen"),
