@@ -33,6 +33,10 @@ if version_only(__name__):  # `pyro-slam --version`: answered before torch is im
     print(f"pyro-slam {package_version()}")
     raise SystemExit(0)
 
+# the command draws into files only: matplotlib's file backend, whatever MPLBACKEND says (an
+# unknown one would stop the import of matplotlib itself)
+os.environ["MPLBACKEND"] = "Agg"
+
 import numpy as np
 import torch
 

@@ -377,6 +377,8 @@ def parse_overrides(text: str) -> dict:
         changes = json.loads(text)
     except json.JSONDecodeError as e:
         raise ConfigError(f"not JSON ({e})") from None
+    except RecursionError:
+        raise ConfigError("nested too deeply (no configuration field is)") from None
     if not isinstance(changes, dict):
         raise ConfigError(f"the configuration must be a JSON object, got {changes!r}")
     return changes

@@ -573,6 +573,18 @@ def check_settings(traversal: Traversal, config: SLAMConfig, src: str = "travers
         )
 
 
+def check_offline_length(traversal: Traversal, config: SLAMConfig, mode: str, src: str) -> None:
+    """Refuse an offline run whose SVI steps draw chunks longer than the traversal."""
+    o, L = config.offline, config.training.chunk_length
+    svi = mode == "offline" and o.rounds > 0 and o.svi_steps > 0
+    if svi and traversal.num_steps < L:
+        raise DatasetError(
+            f"{src}: {traversal.num_steps} steps, fewer than training.chunk_length {L}, the "
+            "length of the chunks offline SVI draws: use --mode online or a shorter "
+            "training.chunk_length"
+        )
+
+
 def check_map_extent(slam: SLAM, path: np.ndarray, src: str = "traversal") -> None:
     """Refuse, before SLAM runs, a traversal whose exported occupancy grid (``map.pgm``) would
     not fit in memory: the dead-reckoned ``path [T, 3]`` plus the sensor's range, at the
@@ -652,6 +664,7 @@ def run_slam(
             return run_slam(**{**kw, "out": folder})
     check_settings(traversal, config, source or "traversal")
     _check_used(overrides, config, mode)
+    check_offline_length(traversal, config, mode, source or "traversal")
     with torch_threads(threads) as n:
         slam = SLAM(
             traversal,

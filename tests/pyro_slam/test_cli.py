@@ -875,3 +875,42 @@ def test_huge_cache_threads_svi_steps_refused(traversal, tmp_path, capsys):
     assert cli.main(["slam", str(one), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "1 beam" in err and "one_beam.npz" in err
+
+
+def test_oversized_settings_refused_before_work(traversal, tmp_path, capsys):
+    """Particle counts whose tensors would not fit in memory, and a configuration nested
+    100,000 deep, are refused before anything is allocated or written, one line naming the
+    field, no traceback."""
+    out = tmp_path / "o"
+    deep = tmp_path / "deep.json"
+    deep.write_text('{"a": ' * 100_000 + "1" + "}" * 100_000)
+    cases = [
+        ('{"filter": {"particles": 1000000000}}', "filter.particles"),
+        ('{"training": {"particles": 100000000}}', "training.particles"),
+        (str(deep), "nested too deeply"),
+    ]
+    for config, named in cases:
+        assert cli.main(["slam", str(traversal), "--out", str(out), "--config", config]) == 2
+        err = capsys.readouterr().err
+        assert named in err and "Traceback" not in err and len(err.splitlines()) == 1, err
+    assert list(tmp_path.iterdir()) == [deep]
+
+
+def test_short_offline_run_and_a_bad_plot_backend_end_cleanly(tmp_path, capsys):
+    """Offline SLAM on a traversal shorter than its SVI chunks is refused naming
+    ``training.chunk_length``; an unknown ``MPLBACKEND`` does not stop the command, which
+    draws into files with matplotlib's file backend."""
+    short = tmp_path / "short.npz"
+    assert (
+        cli.main(["simulate", "--maze", "simple-small", "--steps", "3", "--out", str(short)]) == 0
+    )
+    capsys.readouterr()
+    assert cli.main(["slam", str(short), "--out", str(tmp_path / "o"), "--mode", "offline"]) == 2
+    assert "training.chunk_length 4" in capsys.readouterr().err
+    env = {**os.environ, "PYTHONPATH": str(REPO), "MPLBACKEND": "nonexistent"}
+    argv = ["slam", str(short), "--out", str(tmp_path / "plots"), "--config", TINY]
+    proc = subprocess.run(
+        [sys.executable, "-m", "pyro_slam.cli", *argv], env=env, capture_output=True
+    )
+    assert proc.returncode == 0, proc.stderr.decode()[-2000:]
+    assert (tmp_path / "plots" / "slam.png").is_file()
