@@ -914,3 +914,45 @@ def test_short_offline_run_and_a_bad_plot_backend_end_cleanly(tmp_path, capsys):
     )
     assert proc.returncode == 0, proc.stderr.decode()[-2000:]
     assert (tmp_path / "plots" / "slam.png").is_file()
+
+
+KILLED_IN_THE_SWAP = textwrap.dedent(
+    """
+    import os, signal, sys
+    from pyro_slam import cli
+    from pyro_slam.slam import outputs
+    replace = os.replace
+    def replace_or_die(src, dst):
+        if os.path.basename(os.path.dirname(dst)) == ".previous":
+            replace(src, dst)
+            os.kill(os.getpid(), signal.SIGKILL)  # half-way: the first old output moved aside
+        replace(src, dst)
+    outputs.os.replace = replace_or_die
+    sys.exit(cli.main(sys.argv[1:]))
+    """
+)
+
+
+def test_killed_swap_is_reported_and_cleaned(traversal, tmp_path):
+    """A run SIGKILLed half-way through putting its finished outputs in place (one old output
+    moved aside): the next run on the folder (``--overwrite``) says so on stderr, finishes
+    putting the killed run in place, replaces it, and leaves neither ``.previous`` nor
+    ``.partial`` behind."""
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+    assert cli.main(args) == 0
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    script = [sys.executable, "-c", KILLED_IN_THE_SWAP, *args, "--overwrite", "--seed", "7"]
+    proc = subprocess.run(script, env=env, capture_output=True)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
+    assert (out / ".previous").is_dir() and (out / ".partial" / ".complete").is_file()
+    proc = subprocess.run(
+        [sys.executable, "-m", "pyro_slam.cli", *args, "--overwrite", "--seed", "8"],
+        env=env,
+        capture_output=True,
+    )
+    err = proc.stderr.decode()
+    assert proc.returncode == 0, err[-2000:]
+    assert "stopped while being put in place" in err and str(out / ".partial") in err
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+    assert json.loads((out / "metrics.json").read_text())["seed"] == 8
