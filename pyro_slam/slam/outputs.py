@@ -28,6 +28,7 @@ from .build import MAX_BYTES, path_integration, transition_kind
 from .checkpoint import CHECKPOINT_EVERY
 from .config import ConfigError, SLAMConfig, TrainingConfig, check_used
 from .runner import SLAM
+from .state import Phase
 
 log = logging.getLogger(__name__)
 
@@ -214,6 +215,11 @@ class RunFolder:
         self.work = self.out / WORK
         self.checkpoint = self.work / "checkpoint.pt"
         self.committed = False
+
+    @property
+    def finished(self) -> bool:
+        """``out`` holds a finished run and no interrupted one is kept beside it."""
+        return not self.checkpoint.is_file() and (self.out / "checkpoint.pt").is_file()
 
     @property
     def resume_from(self) -> Path:
@@ -681,6 +687,9 @@ def run_slam(
         check_map_extent(slam, dead_reckoning, source or "traversal")
         if resume:
             slam.resume(out.resume_from)
+            if out.finished and slam.state.phase == Phase.DONE and slam.state.mode == mode:
+                log.warning("--out %s: its run has finished; nothing to resume", out.shown)
+                return _finished_report(out.out)
         run = {"preset": preset, "seed": seed, "input": source}
         with out.writing() as work:
             for name, write in (inputs or {}).items():
@@ -699,6 +708,17 @@ def run_slam(
             res.update(mode=mode, path_integration=dead_reckoning)
             run.update(provenance(slam.threads, argv, source))
             return _write_run(work, slam, traversal, res, run, timing, progress)
+
+
+def _finished_report(out: Path) -> dict:
+    """A finished run's ``metrics.json`` and ``timing.json``, as :func:`run_slam` returns."""
+    report = {}
+    for name in ("metrics.json", "timing.json"):
+        try:
+            report.update(json.loads((out / name).read_text()))
+        except (OSError, ValueError) as e:
+            raise DatasetError(f"{out / name}: not a finished run's ({one_line(e)})") from None
+    return report
 
 
 def _write_run(work: Path, slam: SLAM, traversal: Traversal, res: dict, run, timing, progress):

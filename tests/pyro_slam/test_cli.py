@@ -5,6 +5,7 @@ import argparse
 import contextlib
 import errno
 import hashlib
+import itertools
 import json
 import os
 import signal
@@ -90,18 +91,34 @@ def test_resume_of_finished_run_keeps_result(traversal, tmp_path):
 def test_resumed_run_keeps_the_total_wall_time(traversal, tmp_path, monkeypatch):
     """``timing.json``'s ``wall_time_s`` of a resumed run is the run's wall time over all its
     sessions (kept in the checkpoint), not the last session's; ``resumed`` says it was resumed.
-    (A clock that advances one second per reading makes the times exact.)"""
-    ticks = iter(range(10**6))
-    monkeypatch.setattr(runner, "time", SimpleNamespace(perf_counter=lambda: float(next(ticks))))
+    (Clocks that advance 1000 seconds, then one second, per reading make the sessions' times
+    tell apart.)"""
+
+    def clock(step):  # a clock that advances ``step`` seconds per reading
+        ticks = itertools.count(0, step)
+        monkeypatch.setattr(
+            runner, "time", SimpleNamespace(perf_counter=lambda: float(next(ticks)))
+        )
+
+    clock(1000)  # the first session: slow
     out = tmp_path / "run"
     args = ["slam", str(traversal), "--out", str(out), "--config", TINY, "--checkpoint-every", "10"]
-    assert cli.main(args) == 0
-    first = json.loads((out / "timing.json").read_text())
-    saved = checkpoint.read(out / "checkpoint.pt")["state"]["wall_time_s"]
-    assert first["resumed"] is False and 0 < saved < first["wall_time_s"]
+    save = SLAM.save
+
+    def save_then_stop(self, path):  # SIGINT right after the first checkpoint
+        save(self, path)
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(SLAM, "save", save_then_stop)
+        assert cli.main(args) == 130
+    saved = checkpoint.read(out / ".partial" / "checkpoint.pt")["state"]["wall_time_s"]
+    assert saved >= 1000
+    clock(1)  # the second: fast
     assert cli.main([*args, "--resume"]) == 0
     again = json.loads((out / "timing.json").read_text())
-    assert again["resumed"] is True and again["wall_time_s"] >= first["wall_time_s"]
+    assert again["resumed"] is True
+    assert saved < again["wall_time_s"] < saved + 100, again  # the first session's in it
 
 
 def test_a_run_never_replaces_another_runs_folder(traversal, tmp_path, capsys):
@@ -956,3 +973,18 @@ def test_killed_swap_is_reported_and_cleaned(traversal, tmp_path):
     assert "stopped while being put in place" in err and str(out / ".partial") in err
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
     assert json.loads((out / "metrics.json").read_text())["seed"] == 8
+
+
+def test_resume_on_finished_run_is_a_no_op(traversal, tmp_path, capsys):
+    """``--resume`` on a folder whose run has finished says so and rewrites nothing (every
+    file byte for byte and untouched), keeps nothing hidden; its report is the run's."""
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+    assert cli.main(args) == 0
+    before = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in out.iterdir()}
+    capsys.readouterr()
+    assert cli.main([*args, "--resume"]) == 0
+    captured = capsys.readouterr()
+    assert "its run has finished; nothing to resume" in captured.err
+    assert "final error SLAM" in captured.out
+    assert {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in out.iterdir()} == before
