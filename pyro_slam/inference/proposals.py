@@ -298,25 +298,23 @@ class ScanMatchProposal(Proposal):
         self.iterations, self.defensive = int(iterations), float(defensive)
 
     def dist(self, model, z, scan, u, *, x=None, mask=None, M=None, heading=None, **step):
+        if z.dim() == 1 and x is not None and M is not None:  # a single path (a Pyro guide's)
+            scan = None if scan is None else scan[None]
+            q = self._cloud(model, z[None], scan, u, x, mask, M, heading, single=True)
+            return q.squeeze_particle()
+        return self._cloud(model, z, scan, u, x, mask, M, heading, single=False)
+
+    def _cloud(self, model, z, scan, u, x, mask, M, heading, single: bool):
+        """:meth:`dist` for particles ``z [..., K, 3]``; ``single``: one path (a cloud of
+        one), which has no weights to bring a stray heading back, so the match always reads
+        the heading factor (:func:`_heading_terms`)."""
         loc, scale = gaussian_transition(model, z, u, scan)  # [..., K, 3]
         if x is None or M is None:
             return PoseProposal(loc, scale)
-        if loc.dim() == 1:  # a single pose (a Pyro guide's): a cloud of one
-            q = self.dist(
-                model,
-                z[None],
-                None if scan is None else scan[None],
-                u,
-                x=x,
-                mask=mask,
-                M=M,
-                heading=heading,
-            )
-            return q.squeeze_particle()
         centre = _cloud_centre(loc.reshape(-1, *loc.shape[-2:])).reshape(*loc.shape[:-2], 3)
         prior = (scale**-2).mean(-2)  # [..., 3] the transition's precision at the centre
         h = None if heading is None else _squeeze_particles(heading, loc.dim())
-        zm, H, b = _match(model, M, x, mask, h, centre, prior, self.iterations)
+        zm, H, b = _match(model, M, x, mask, h, centre, prior, self.iterations, single)
         if not (torch.isfinite(H).all() and torch.isfinite(zm).all()):
             return PoseProposal(loc, scale)
         zm = zm.unsqueeze(-2)  # [..., 1, 3], heading on each particle's branch
@@ -378,10 +376,10 @@ def reading_weights(model, x, r, e, eps) -> torch.Tensor:
     return (score / e).clamp_min(0.0)
 
 
-def _match(model, M, x, mask, heading, centre, prior, iterations: int):
+def _match(model, M, x, mask, heading, centre, prior, iterations: int, single: bool = False):
     """Gauss-Newton from ``centre [..., 3]`` on the log-likelihood plus the prior about it of
     precision ``prior [..., 3]``; the linearisation ``(z*, H [..., 3, 3], b [..., 3])`` of the
-    log-likelihood at the match."""
+    log-likelihood at the match (``single``: :func:`_heading_terms`'s)."""
     spacing = min(s / (c - 1) for s, c in zip(model.grid.size, model.grid.cells))
     delta = torch.tensor([0.2 * spacing, 0.2 * spacing, 0.2 * spacing / model.outlier_range])
     delta = delta.to(centre.dtype)
@@ -394,7 +392,7 @@ def _match(model, M, x, mask, heading, centre, prior, iterations: int):
         H = J.transpose(-1, -2) @ (w.unsqueeze(-1) * J)  # [..., 3, 3]
         b = (J * (w * e).unsqueeze(-1)).sum(-2)  # [..., 3]
         if heading is not None and model.heading is not None:
-            Hh, bh = _heading_terms(model, heading, z)
+            Hh, bh = _heading_terms(model, heading, z, single)
             H, b = H + Hh, b + bh
         if i == iterations:
             return z, H, b
@@ -403,19 +401,28 @@ def _match(model, M, x, mask, heading, centre, prior, iterations: int):
         z = z + step
 
 
-def _heading_terms(model, heading: HeadingEvidence, z):
+def _heading_terms(model, heading: HeadingEvidence, z, single: bool = False):
     """The heading factor's Gauss-Newton terms at poses ``z [..., 3]``: ``H [..., 3, 3]`` and
-    ``b [..., 3]`` (zero where no direction is seen)."""
-    f = model.heading
+    ``b [..., 3]`` (zero where no direction is seen), each weighted by the direction's inlier
+    responsibility. For a cloud, a direction whose inlier density underflows the float at the
+    cloud's heading (about 14 std off) has responsibility 0, and, without outliers, 0 / 0:
+    the match fails and the proposal is the transition, whose spread the weights then choose
+    from (measured more accurate than matching to that direction: the results page's options
+    tried). For
+    a single path (``single``) the responsibility is taken in log space: the match always
+    reads the direction."""
+    f, eps = model.heading, model.heading.outlier_prob
     so = heading.std().to(z.dtype)
     value = torch.as_tensor(heading.frame, dtype=z.dtype) - heading.direction.nan_to_num()
     e = wrap_angle(value - z[..., 2], f.period)
-    resp = torch.ones_like(e)
-    if f.outlier_prob > 0:  # the inlier's responsibility, in log space (a far residual: 0)
-        log_in = -0.5 * (e / so) ** 2 - torch.log(so * math.sqrt(2 * math.pi))
-        resp = torch.sigmoid(
-            log_in + math.log1p(-f.outlier_prob) - math.log(f.outlier_prob / f.period)
-        )
+    if single:
+        resp = torch.ones_like(e)
+        if eps > 0:
+            log_in = -0.5 * (e / so) ** 2 - torch.log(so * math.sqrt(2 * math.pi))
+            resp = torch.sigmoid(log_in + math.log1p(-eps) - math.log(eps / f.period))
+    else:
+        g = torch.exp(-0.5 * (e / so) ** 2) / (so * math.sqrt(2 * math.pi))
+        resp = (1 - eps) * g / ((1 - eps) * g + eps / f.period)
     w = torch.where(heading.seen(), resp / so**2, 0.0)
     H = torch.zeros(*z.shape, 3, dtype=z.dtype)
     H[..., 2, 2] = w

@@ -89,10 +89,11 @@ def test_scan_matching_puts_few_particles_where_the_scan_fits():
 
 
 def test_scan_matching_pulls_a_far_heading_to_the_wall_direction():
-    """With a heading factor of no outliers and a direction seen with std 0.001 rad, a cloud
-    whose heading is 0.02 rad (20 std) off is matched to the heading the direction says (the
-    factor's weight is a whole 1 / sigma^2, not a 0 / 0 where its Gaussian underflows), not
-    handed back to the transition."""
+    """With a heading factor of no outliers and a direction seen with std 0.001 rad, a single
+    path (a Pyro guide's) whose heading is 0.02 rad (20 std) off is matched to the heading the
+    direction says (the factor's weight is a whole 1 / sigma^2, not a 0 / 0 where its Gaussian
+    underflows), not handed back to the transition, where nothing would bring it back; a
+    cloud that far off is proposed by the transition, whose spread its weights choose from."""
     model, belief = _room()
     model.heading = WallHeading(period=math.pi / 2, outlier_prob=0.0)
     truth = torch.tensor([0.35, 0.45, 0.3])
@@ -100,8 +101,12 @@ def test_scan_matching_pulls_a_far_heading_to_the_wall_direction():
     seen = HeadingEvidence(torch.tensor(0.0), 0.001, frame=0.3)  # frame - direction = 0.3
     prev = truth - torch.tensor([0.0, 0.0, 0.02])
     scan = model.emission_mean(belief.loc, prev)
-    q = ScanMatchProposal().dist(
-        model, prev[None], scan[None], torch.zeros(3), x=x, M=belief, heading=seen
-    )
+    q = ScanMatchProposal().dist(model, prev, scan, torch.zeros(3), x=x, M=belief, heading=seen)
     assert isinstance(q, MatchedProposal)
-    assert abs(float(q.mu[0, 2]) - 0.3) < 0.002, q.mu
+    assert abs(float(q.mu[2]) - 0.3) < 0.002, q.mu
+    cloud = prev + torch.zeros(8, 3)
+    scans = model.emission_mean(belief.loc, cloud)
+    q = ScanMatchProposal().dist(
+        model, cloud, scans, torch.zeros(3), x=x, M=belief, heading=seen.per_particle()
+    )
+    assert isinstance(q, PoseProposal)
