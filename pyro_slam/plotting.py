@@ -35,13 +35,18 @@ def _walls(ax, walls):
         ax.add_collection(LineCollection(np.asarray(walls).reshape(-1, 2, 2), colors="k", lw=1.2))
 
 
-def map_image(loc: np.ndarray) -> np.ndarray:
+def map_image(loc: np.ndarray, prior: float = 0.0) -> np.ndarray:
     """Map mean ``[w, h, D]`` -> RGB ``[h, w, 3]`` in [0, 1] via its (up to) 3 principal
-    components (``D = 1``, a ray-cast occupancy map: gray levels, walls dark)."""
+    components. ``D = 1`` (an occupancy or ramp map: higher is a wall): grey levels on a scale
+    centred on the prior's mean ``prior``, so that a cell the scans never reached is mid-grey
+    on every map, walls dark and free space light (the scale: the 98th percentile of how far
+    the cells the scans reached moved from the prior)."""
     w, h, d = loc.shape
     if d == 1:
-        lo, hi = np.percentile(loc, 2), np.percentile(loc, 98)
-        gray = 1 - np.clip((loc[..., 0] - lo) / max(hi - lo, 1e-9), 0, 1)  # [w, h]
+        moved = loc[..., 0] - prior  # [w, h]
+        reached = np.abs(moved[np.abs(moved) > 1e-6])
+        scale = float(np.percentile(reached, 98)) if reached.size else 1.0
+        gray = 0.5 - 0.5 * np.clip(moved / max(scale, 1e-9), -1, 1)
         return np.repeat(gray.T[..., None], 3, -1)
     flat = loc.reshape(-1, d) - loc.reshape(-1, d).mean(0)
     _, _, vt = np.linalg.svd(flat, full_matrices=False)
