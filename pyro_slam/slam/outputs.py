@@ -175,6 +175,8 @@ def _recover(out: Path, shown: str, owned: tuple[str, ...]) -> None:
 
 
 def _finish_leftovers(out: Path, shown: str, owned, work: Path, previous: Path) -> None:
+    """:func:`_recover`'s work: finish a committed swap, or remove a finished one's
+    ``.previous``, each with a warning naming it."""
     if (work / MANIFEST).is_file():
         log.warning(
             "--out %s: the run in %s had finished but was stopped while being put in place; "

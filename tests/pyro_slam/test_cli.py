@@ -448,27 +448,35 @@ HOLD_THE_FOLDER = textwrap.dedent(
 )
 
 
-def test_concurrent_runs_refused(traversal, tmp_path, capsys):
-    """While another process runs into a folder, a second run into it is refused before any
-    work, naming the folder; once the first has finished, it runs."""
-    out = tmp_path / "run"
+@contextlib.contextmanager
+def _held(folder: Path):
+    """The block runs while another process holds ``folder`` as its run folder (which it
+    then leaves cleanly)."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
     holder = subprocess.Popen(
-        [sys.executable, "-c", HOLD_THE_FOLDER, str(out)],
+        [sys.executable, "-c", HOLD_THE_FOLDER, str(folder)],
         env=env,
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
     )
     try:
         assert holder.stdout.readline() == b"holding\n"
-        args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+        yield
+    finally:
+        holder.communicate(b"")
+    assert holder.returncode == 0
+
+
+def test_concurrent_runs_refused(traversal, tmp_path, capsys):
+    """While another process runs into a folder, a second run into it is refused before any
+    work, naming the folder; once the first has finished, it runs."""
+    out = tmp_path / "run"
+    args = ["slam", str(traversal), "--out", str(out), "--config", TINY]
+    with _held(out):
         assert cli.main(args) == 2
         err = capsys.readouterr().err
         assert "another run is writing into it" in err and str(out) in err
         assert cli.main([*args, "--overwrite"]) == 2
-    finally:
-        holder.communicate(b"")
-    assert holder.returncode == 0
     assert cli.main(args) == 0
 
 
@@ -792,20 +800,10 @@ def test_symlinked_out_keeps_link_and_lock(traversal, tmp_path, capsys):
     assert alias.is_symlink() and (real / "metrics.json").is_file()
     assert cli.main([*args, "--out", str(alias), "--overwrite", "--seed", "4"]) == 0
     assert alias.is_symlink() and json.loads((real / "metrics.json").read_text())["seed"] == 4
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    holder = subprocess.Popen(
-        [sys.executable, "-c", HOLD_THE_FOLDER, str(real)],
-        env=env,
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-    )
-    try:
-        assert holder.stdout.readline() == b"holding\n"
+    with _held(real):
         capsys.readouterr()
         assert cli.main([*args, "--out", str(alias), "--overwrite"]) == 2
         assert "another run is writing into it" in capsys.readouterr().err
-    finally:
-        holder.communicate(b"")
     planted = tmp_path / "elsewhere" / "created"
     (real / ".lock").symlink_to(planted)
     assert cli.main([*args, "--out", str(alias), "--overwrite"]) == 2
